@@ -1,0 +1,308 @@
+//! Domain types shared by every layer: frames in, reports out.
+//!
+//! No prost or tonic types here: `service::convert` maps the wire contract to
+//! and from these.
+
+use serde::Serialize;
+
+/// What a channel carries.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ChannelRole {
+    /// Not said by the source: the scene's channel names decide.
+    Unspecified,
+    /// Transmitted-pulse reference.
+    Start,
+    /// Receiver output holding the returns.
+    Stop,
+    /// Carried along, not processed.
+    Other,
+}
+
+/// Samples as the digitiser delivered them. Integer codes stay integers so
+/// that averaging can accumulate them exactly.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Samples {
+    /// 8-bit codes.
+    I8(Vec<i8>),
+    /// 16-bit codes.
+    I16(Vec<i16>),
+    /// 32-bit codes.
+    I32(Vec<i32>),
+    /// Single-precision values (before `volts_per_code`/`offset_v`).
+    F32(Vec<f32>),
+    /// Double-precision values (averages, CSV readings).
+    F64(Vec<f64>),
+}
+
+impl Samples {
+    /// Number of samples.
+    pub fn len(&self) -> usize {
+        match self {
+            Samples::I8(v) => v.len(),
+            Samples::I16(v) => v.len(),
+            Samples::I32(v) => v.len(),
+            Samples::F32(v) => v.len(),
+            Samples::F64(v) => v.len(),
+        }
+    }
+
+    /// True when there are no samples.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// True for integer ADC codes.
+    pub fn is_integer(&self) -> bool {
+        matches!(self, Samples::I8(_) | Samples::I16(_) | Samples::I32(_))
+    }
+
+    /// Name of the sample type, for messages.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Samples::I8(_) => "i8",
+            Samples::I16(_) => "i16",
+            Samples::I32(_) => "i32",
+            Samples::F32(_) => "f32",
+            Samples::F64(_) => "f64",
+        }
+    }
+
+    /// Sample `i` as an integer code, if these are integer codes.
+    #[inline]
+    pub fn code(&self, i: usize) -> Option<i64> {
+        match self {
+            Samples::I8(v) => Some(v[i] as i64),
+            Samples::I16(v) => Some(v[i] as i64),
+            Samples::I32(v) => Some(v[i] as i64),
+            _ => None,
+        }
+    }
+
+    /// Sample `i` as a raw (unscaled) f64.
+    #[inline]
+    pub fn raw(&self, i: usize) -> f64 {
+        match self {
+            Samples::I8(v) => v[i] as f64,
+            Samples::I16(v) => v[i] as f64,
+            Samples::I32(v) => v[i] as f64,
+            Samples::F32(v) => v[i] as f64,
+            Samples::F64(v) => v[i],
+        }
+    }
+}
+
+/// One digitised channel.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Channel {
+    /// Name as the capture spells it; matched loosely (see [`channel_key`]).
+    pub name: String,
+    /// Role if the source said so; otherwise the scene's names decide.
+    pub role: ChannelRole,
+    /// The samples, codes or values.
+    pub samples: Samples,
+    /// volts = raw * volts_per_code + offset_v.
+    pub volts_per_code: f64,
+    /// Offset added after scaling, volts.
+    pub offset_v: f64,
+}
+
+impl Channel {
+    /// A channel already in volts.
+    pub fn from_volts(name: impl Into<String>, role: ChannelRole, volts: Vec<f64>) -> Self {
+        Channel {
+            name: name.into(),
+            role,
+            samples: Samples::F64(volts),
+            volts_per_code: 1.0,
+            offset_v: 0.0,
+        }
+    }
+
+    /// Writes the channel in volts into `out` (cleared first).
+    pub fn volts_into(&self, out: &mut Vec<f64>) {
+        out.clear();
+        let (g, o) = (self.volts_per_code, self.offset_v);
+        out.extend((0..self.samples.len()).map(|i| self.samples.raw(i) * g + o));
+    }
+
+    /// The channel in volts.
+    pub fn volts(&self) -> Vec<f64> {
+        let mut v = Vec::with_capacity(self.samples.len());
+        self.volts_into(&mut v);
+        v
+    }
+}
+
+/// One acquisition: one laser shot or one scope trigger.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Frame {
+    /// Sensor this frame came from.
+    pub sensor_id: String,
+    /// Per-sensor sequence number (segment index for multi-segment captures).
+    pub sequence: u64,
+    /// Absolute trigger instant, seconds (capture epoch or sensor clock).
+    pub trigger_time_s: f64,
+    /// Sampling period, seconds; > 0.
+    pub sample_interval_s: f64,
+    /// Time of sample 0 relative to the trigger, seconds (negative: pre-trigger).
+    pub first_sample_offset_s: f64,
+    /// The channels, in the order the source gave them.
+    pub channels: Vec<Channel>,
+    /// The laser was known to be off (noise-only frame).
+    pub laser_off: bool,
+}
+
+impl Frame {
+    /// Samples per channel (of the first channel; readers keep them equal).
+    pub fn len(&self) -> usize {
+        self.channels.first().map_or(0, |c| c.samples.len())
+    }
+
+    /// True when the frame has no samples.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Time of sample `i` relative to the trigger, seconds.
+    pub fn sample_time_s(&self, i: f64) -> f64 {
+        self.first_sample_offset_s + i * self.sample_interval_s
+    }
+
+    /// Finds a channel by name, matching vendor spellings loosely
+    /// (`CH2`, `Ch2`, `C2`, `2` and `channel 2` are one channel).
+    pub fn channel(&self, name: &str) -> Option<&Channel> {
+        let key = channel_key(name);
+        self.channels.iter().find(|c| channel_key(&c.name) == key)
+    }
+
+    /// Names of the channels, for error messages.
+    pub fn channel_names(&self) -> Vec<&str> {
+        self.channels.iter().map(|c| c.name.as_str()).collect()
+    }
+}
+
+/// Canonical form of a channel name: vendor spellings of channel n all map
+/// to `"n"`; other names are lower-cased and trimmed.
+pub fn channel_key(name: &str) -> String {
+    let lower = name.trim().to_ascii_lowercase();
+    let stripped = ["channel", "chan", "ch", "c"]
+        .iter()
+        .find_map(|p| lower.strip_prefix(p))
+        .map(|r| r.trim_start_matches([' ', '_', '-']))
+        .unwrap_or(&lower);
+    if !stripped.is_empty() && stripped.bytes().all(|b| b.is_ascii_digit()) {
+        stripped.trim_start_matches('0').to_string()
+    } else {
+        lower
+    }
+}
+
+/// Gaussian noise model as reported (JSON contract `noise`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct NoiseSummary {
+    /// Mean of the gate, volts.
+    pub mean_v: f64,
+    /// Standard deviation of the gate, volts.
+    pub sigma_v: f64,
+    /// Sample skewness.
+    pub skewness: f64,
+    /// Sample excess kurtosis (0 for a Gaussian).
+    pub excess_kurtosis: f64,
+    /// Normality test passed.
+    pub gaussian: bool,
+    /// Jarque-Bera p-value.
+    pub normality_p_value: f64,
+    /// MAD * 1.4826, volts.
+    pub robust_sigma_v: f64,
+    /// Samples in the gate.
+    pub samples: u64,
+    /// Robust and plain sigma disagree.
+    pub contaminated: bool,
+}
+
+/// The detector used (JSON contract `detector`).
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct DetectorSummary {
+    /// "matched_filter" or "threshold".
+    pub kind: String,
+    /// Design false-alarm probability per report over the range gate.
+    pub pfa_design: f64,
+    /// Threshold, in volts of (template) amplitude.
+    pub threshold: f64,
+    /// Per-cell false-alarm probability.
+    pub pfa_cell: f64,
+    /// Effectively independent cells in the range gate.
+    pub cells_effective: f64,
+}
+
+/// Empirical false-alarm statistics (JSON contract `false_alarm`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct FalseAlarmStats {
+    /// Crossings expected in the noise gate at the design per-cell rate.
+    pub expected_per_frame: f64,
+    /// Crossings observed in the noise gate.
+    pub observed: u64,
+    /// Effectively independent noise-gate cells examined.
+    pub cells: f64,
+    /// observed / cells.
+    pub rate: f64,
+    /// 95 % Clopper-Pearson interval of the per-cell rate.
+    pub ci95: [f64; 2],
+    /// The observed rate is above the design's interval.
+    pub excess: bool,
+}
+
+/// One detected return (JSON contract `returns[]`).
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct Return {
+    /// c_air * tof / 2, metres.
+    pub range_m: f64,
+    /// One-sigma range uncertainty, metres.
+    pub range_sigma_m: f64,
+    /// Time of flight after calibration, seconds.
+    pub tof_s: f64,
+    /// Estimated pulse amplitude above the noise mean, volts.
+    pub amplitude_v: f64,
+    /// 20 log10(amplitude / sigma), dB.
+    pub snr_db: f64,
+    /// Detector statistic over threshold (>= 1 when detected).
+    pub score: f64,
+    /// Probability of detection for the fitted amplitude.
+    pub pd: f64,
+    /// Stop timing instant relative to the trigger, seconds.
+    pub t_stop_s: f64,
+    /// Time of the sample-level peak relative to the trigger, seconds.
+    pub t_peak_s: f64,
+    /// "saturated", "frame_edge", "weak", "non_gaussian_noise", "overlapping", ...
+    pub flags: Vec<String>,
+}
+
+/// Output for one processed frame or averaged group (JSON contract).
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct Report {
+    /// Sensor id.
+    pub sensor: String,
+    /// First sequence number in the group.
+    pub seq_first: u64,
+    /// Last sequence number in the group.
+    pub seq_last: u64,
+    /// Frames averaged into this report.
+    pub frames_averaged: u32,
+    /// Trigger time of the first frame, seconds.
+    pub time_s: f64,
+    /// Pipeline stages that ran, in order.
+    pub stages: Vec<String>,
+    /// Noise model used for detection.
+    pub noise: NoiseSummary,
+    /// Detector and threshold.
+    pub detector: DetectorSummary,
+    /// Empirical false alarms in the noise gate.
+    pub false_alarm: FalseAlarmStats,
+    /// Returns, nearest first.
+    pub returns: Vec<Return>,
+    /// Time reference (start pulse instant, or trigger + offset) relative to the trigger, seconds.
+    pub t_start_s: f64,
+    /// Frame-level flags ("no_start_pulse", "laser_off", "noise_gate_small", ...).
+    pub flags: Vec<String>,
+}

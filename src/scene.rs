@@ -1,0 +1,567 @@
+//! Scene: the declarative description of one sensor set-up (TOML).
+//!
+//! Parsed with `deny_unknown_fields` and validated at load, so a bad scene
+//! fails before any frame is processed, with an error naming the field and the
+//! allowed range. The pipeline is built from a validated scene (`pipeline::build`).
+
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// The embedded default scene (the source's prototype), commented.
+pub const DEFAULT_SCENE_TOML: &str = include_str!("default_scene.toml");
+
+/// Speed of light in vacuum, m/s.
+pub const C_VACUUM_M_PER_S: f64 = 299_792_458.0;
+
+/// Errors from loading or validating a scene.
+#[derive(Debug, thiserror::Error)]
+pub enum SceneError {
+    /// The file could not be read.
+    #[error("cannot read scene {path}: {source}")]
+    Io {
+        /// File path.
+        path: String,
+        /// Cause.
+        source: std::io::Error,
+    },
+    /// TOML syntax error, unknown key or wrong type.
+    #[error("scene {origin}: {message}")]
+    Parse {
+        /// File path or "embedded default".
+        origin: String,
+        /// The TOML parser's message (names the key and line).
+        message: String,
+    },
+    /// A value out of its allowed range.
+    #[error("scene {origin}: {field} = {value} is out of range: allowed {allowed}")]
+    Invalid {
+        /// File path or "embedded default".
+        origin: String,
+        /// Dotted field name, e.g. `detector.pfa`.
+        field: &'static str,
+        /// The offending value.
+        value: String,
+        /// The allowed range or set.
+        allowed: &'static str,
+    },
+}
+
+/// One sensor set-up.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Scene {
+    /// Free text shown in logs.
+    #[serde(default = "default_name")]
+    pub name: String,
+    /// What the digitiser delivers.
+    #[serde(default)]
+    pub digitiser: DigitiserConfig,
+    /// Which channel is which.
+    #[serde(default)]
+    pub channels: ChannelsConfig,
+    /// Shape of a return on the stop channel.
+    #[serde(default = "PulseConfig::default_return")]
+    pub return_pulse: PulseConfig,
+    /// Shape of the start pulse.
+    #[serde(default = "PulseConfig::default_start")]
+    pub start_pulse: PulseConfig,
+    /// Where returns are sought.
+    #[serde(default)]
+    pub range_gate: RangeGateConfig,
+    /// Where the noise model is fitted.
+    #[serde(default)]
+    pub noise_gate: NoiseGateConfig,
+    /// Detector and false-alarm target.
+    #[serde(default)]
+    pub detector: DetectorConfig,
+    /// How instants are measured.
+    #[serde(default)]
+    pub timing: TimingConfig,
+    /// Ensemble averaging.
+    #[serde(default)]
+    pub averaging: AveragingConfig,
+    /// System delay.
+    #[serde(default)]
+    pub calibration: CalibrationConfig,
+    /// Propagation medium.
+    #[serde(default)]
+    pub medium: MediumConfig,
+}
+
+fn default_name() -> String {
+    "unnamed".into()
+}
+
+/// Digitiser expectations.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields, default)]
+pub struct DigitiserConfig {
+    /// Expected sampling period, seconds; 0 accepts any.
+    pub sample_interval_s: f64,
+    /// Expected samples per frame; 0 accepts any.
+    pub samples_per_frame: usize,
+    /// Lower clip level, volts (0 with high = 0: infer from codes).
+    pub full_scale_low_v: f64,
+    /// Upper clip level, volts.
+    pub full_scale_high_v: f64,
+}
+
+/// Channel mapping.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ChannelsConfig {
+    /// Start channel name.
+    pub start: String,
+    /// Stop channel name.
+    pub stop: String,
+    /// Time reference offset from the trigger when there is no start pulse, seconds.
+    pub reference_offset_s: f64,
+    /// Minimum start pulse amplitude, volts.
+    pub start_min_amplitude_v: f64,
+}
+
+impl Default for ChannelsConfig {
+    fn default() -> Self {
+        ChannelsConfig {
+            start: "CH1".into(),
+            stop: "CH2".into(),
+            reference_offset_s: 0.0,
+            start_min_amplitude_v: 0.05,
+        }
+    }
+}
+
+/// Parametric pulse shapes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PulseModel {
+    /// Gaussian rising half, slower Gaussian falling half.
+    Bigaussian,
+    /// Symmetric Gaussian (rise time is implied by the FWHM).
+    Gaussian,
+}
+
+/// A pulse shape.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PulseConfig {
+    /// Model family.
+    pub model: PulseModel,
+    /// 10-90 % rise time, seconds (bigaussian only).
+    #[serde(default)]
+    pub rise_time_s: f64,
+    /// Full width at half maximum, seconds.
+    pub fwhm_s: f64,
+}
+
+impl PulseConfig {
+    fn default_return() -> Self {
+        PulseConfig {
+            model: PulseModel::Bigaussian,
+            rise_time_s: 8.08e-9,
+            fwhm_s: 26.04e-9,
+        }
+    }
+    fn default_start() -> Self {
+        PulseConfig {
+            model: PulseModel::Bigaussian,
+            rise_time_s: 3.02e-9,
+            fwhm_s: 8.0e-9,
+        }
+    }
+}
+
+/// Range gate.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RangeGateConfig {
+    /// Nearest range sought, metres.
+    pub min_m: f64,
+    /// Farthest range sought, metres.
+    pub max_m: f64,
+}
+
+impl Default for RangeGateConfig {
+    fn default() -> Self {
+        RangeGateConfig {
+            min_m: 0.0,
+            max_m: 150.0,
+        }
+    }
+}
+
+/// Noise gate.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct NoiseGateConfig {
+    /// Use samples before the time reference.
+    pub pre_trigger: bool,
+    /// Guard before the reference, seconds.
+    pub guard_s: f64,
+    /// Use samples past the range gate.
+    pub beyond_range: bool,
+    /// Minimum gate size before flagging.
+    pub min_samples: usize,
+}
+
+impl Default for NoiseGateConfig {
+    fn default() -> Self {
+        NoiseGateConfig {
+            pre_trigger: true,
+            guard_s: 20e-9,
+            beyond_range: true,
+            min_samples: 32,
+        }
+    }
+}
+
+/// Detector kinds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DetectorKind {
+    /// Correlate with the unit-energy return template, threshold the output.
+    MatchedFilter,
+    /// Threshold the raw samples.
+    Threshold,
+}
+
+impl DetectorKind {
+    /// The name used in reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            DetectorKind::MatchedFilter => "matched_filter",
+            DetectorKind::Threshold => "threshold",
+        }
+    }
+}
+
+/// What `detector.pfa` is a probability of.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PfaScope {
+    /// At least one false alarm anywhere in one report's range gate.
+    Report,
+    /// A false alarm in one sample (cell).
+    Sample,
+}
+
+/// Detector configuration.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct DetectorConfig {
+    /// Detector kind.
+    pub kind: DetectorKind,
+    /// Design false-alarm probability.
+    pub pfa: f64,
+    /// Scope of `pfa`.
+    pub pfa_scope: PfaScope,
+    /// Jarque-Bera significance level.
+    pub normality_alpha: f64,
+}
+
+impl Default for DetectorConfig {
+    fn default() -> Self {
+        DetectorConfig {
+            kind: DetectorKind::MatchedFilter,
+            pfa: 1e-6,
+            pfa_scope: PfaScope::Report,
+            normality_alpha: 1e-3,
+        }
+    }
+}
+
+/// Timing methods.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TimingMethod {
+    /// Crossing of a fraction of the peak on the leading edge.
+    ConstantFraction,
+    /// Crossing of a fixed voltage (a comparator, as the source's TDC).
+    LeadingEdge,
+    /// Matched-filter peak, parabolic interpolation.
+    PeakParabolic,
+    /// Matched-filter peak, Gaussian (log-parabola) interpolation.
+    PeakGaussian,
+    /// Maximum-likelihood fit of amplitude and delay of the pulse shape.
+    Ml,
+}
+
+impl TimingMethod {
+    /// The name used in reports and stage lists.
+    pub fn name(self) -> &'static str {
+        match self {
+            TimingMethod::ConstantFraction => "constant_fraction",
+            TimingMethod::LeadingEdge => "leading_edge",
+            TimingMethod::PeakParabolic => "peak_parabolic",
+            TimingMethod::PeakGaussian => "peak_gaussian",
+            TimingMethod::Ml => "ml",
+        }
+    }
+}
+
+/// Timing configuration.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TimingConfig {
+    /// Method for start and stop.
+    pub method: TimingMethod,
+    /// Constant fraction.
+    pub fraction: f64,
+    /// Leading-edge threshold, volts above the noise mean.
+    pub leading_edge_v: f64,
+}
+
+impl Default for TimingConfig {
+    fn default() -> Self {
+        TimingConfig {
+            method: TimingMethod::ConstantFraction,
+            fraction: 0.5,
+            leading_edge_v: 1.0,
+        }
+    }
+}
+
+/// Averaging configuration.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AveragingConfig {
+    /// Frames per report.
+    pub frames: u32,
+}
+
+impl Default for AveragingConfig {
+    fn default() -> Self {
+        AveragingConfig { frames: 1 }
+    }
+}
+
+/// Calibration.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields, default)]
+pub struct CalibrationConfig {
+    /// Fixed start-to-stop delay, seconds.
+    pub delay_s: f64,
+}
+
+/// Medium.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct MediumConfig {
+    /// Group refractive index.
+    pub refractive_index: f64,
+}
+
+impl Default for MediumConfig {
+    fn default() -> Self {
+        MediumConfig {
+            refractive_index: 1.000268,
+        }
+    }
+}
+
+impl Scene {
+    /// The embedded default scene (the source's prototype).
+    pub fn default_scene() -> Scene {
+        Scene::from_toml_str(DEFAULT_SCENE_TOML, "embedded default")
+            .expect("the embedded default scene is valid (tested)")
+    }
+
+    /// Reads and validates a scene file.
+    pub fn load(path: &Path) -> Result<Scene, SceneError> {
+        let text = std::fs::read_to_string(path).map_err(|source| SceneError::Io {
+            path: path.display().to_string(),
+            source,
+        })?;
+        Scene::from_toml_str(&text, &path.display().to_string())
+    }
+
+    /// Parses and validates TOML text; `origin` names it in errors.
+    pub fn from_toml_str(text: &str, origin: &str) -> Result<Scene, SceneError> {
+        let scene: Scene = toml::from_str(text).map_err(|e| SceneError::Parse {
+            origin: origin.to_string(),
+            message: e.to_string().trim_end().to_string(),
+        })?;
+        scene.validate(origin)?;
+        Ok(scene)
+    }
+
+    /// The scene as TOML (uncommented; see [`DEFAULT_SCENE_TOML`] for the commented default).
+    pub fn to_toml(&self) -> String {
+        toml::to_string(self).expect("a scene always serialises")
+    }
+
+    /// Speed of light in the medium, m/s.
+    pub fn c_medium_m_per_s(&self) -> f64 {
+        C_VACUUM_M_PER_S / self.medium.refractive_index
+    }
+
+    /// Checks every value against its allowed range.
+    pub fn validate(&self, origin: &str) -> Result<(), SceneError> {
+        let bad = |field: &'static str, value: String, allowed: &'static str| SceneError::Invalid {
+            origin: origin.to_string(),
+            field,
+            value,
+            allowed,
+        };
+        let finite_nonneg = |x: f64| x.is_finite() && x >= 0.0;
+        let d = &self.digitiser;
+        if !finite_nonneg(d.sample_interval_s) || d.sample_interval_s > 1.0 {
+            return Err(bad(
+                "digitiser.sample_interval_s",
+                d.sample_interval_s.to_string(),
+                "0 (any) or a period in (0, 1] s",
+            ));
+        }
+        if !d.full_scale_low_v.is_finite()
+            || !d.full_scale_high_v.is_finite()
+            || (d.full_scale_low_v != 0.0 || d.full_scale_high_v != 0.0)
+                && d.full_scale_low_v >= d.full_scale_high_v
+        {
+            return Err(bad(
+                "digitiser.full_scale_high_v",
+                format!("{} (low {})", d.full_scale_high_v, d.full_scale_low_v),
+                "both 0 (infer) or low < high, finite volts",
+            ));
+        }
+        let c = &self.channels;
+        if c.stop.trim().is_empty() {
+            return Err(bad("channels.stop", format!("{:?}", c.stop), "a channel name"));
+        }
+        if crate::frame::channel_key(&c.start) == crate::frame::channel_key(&c.stop) {
+            return Err(bad(
+                "channels.start",
+                format!("{:?}", c.start),
+                "a channel other than channels.stop",
+            ));
+        }
+        if !c.reference_offset_s.is_finite() || c.reference_offset_s.abs() > 1.0 {
+            return Err(bad(
+                "channels.reference_offset_s",
+                c.reference_offset_s.to_string(),
+                "[-1, 1] s",
+            ));
+        }
+        if !finite_nonneg(c.start_min_amplitude_v) {
+            return Err(bad(
+                "channels.start_min_amplitude_v",
+                c.start_min_amplitude_v.to_string(),
+                "[0, inf) V",
+            ));
+        }
+        for (p, fwhm_field, rise_field) in [
+            (&self.return_pulse, "return_pulse.fwhm_s", "return_pulse.rise_time_s"),
+            (&self.start_pulse, "start_pulse.fwhm_s", "start_pulse.rise_time_s"),
+        ] {
+            if !(p.fwhm_s.is_finite() && p.fwhm_s > 0.0 && p.fwhm_s <= 1e-3) {
+                return Err(bad(fwhm_field, p.fwhm_s.to_string(), "(0, 1e-3] s"));
+            }
+            if p.model == PulseModel::Bigaussian {
+                // The rising half's FWHM share is 1.1774/1.6866 of the rise time;
+                // it must leave a positive falling half.
+                let max_rise = p.fwhm_s * 1.686_6 / 1.177_4;
+                if !(p.rise_time_s.is_finite() && p.rise_time_s > 0.0 && p.rise_time_s < max_rise) {
+                    return Err(bad(
+                        rise_field,
+                        p.rise_time_s.to_string(),
+                        "(0, 1.43 * fwhm_s) s: the rising half must fit inside the FWHM",
+                    ));
+                }
+            }
+        }
+        let r = &self.range_gate;
+        if !(r.min_m.is_finite() && r.max_m.is_finite() && r.min_m >= -1000.0 && r.max_m > r.min_m && r.max_m <= 1e6) {
+            return Err(bad(
+                "range_gate.max_m",
+                format!("{} (min_m {})", r.max_m, r.min_m),
+                "min_m >= -1000, min_m < max_m <= 1e6 m",
+            ));
+        }
+        let g = &self.noise_gate;
+        if !finite_nonneg(g.guard_s) || g.guard_s > 1.0 {
+            return Err(bad("noise_gate.guard_s", g.guard_s.to_string(), "[0, 1] s"));
+        }
+        if !g.pre_trigger && !g.beyond_range {
+            return Err(bad(
+                "noise_gate.pre_trigger",
+                "false (and beyond_range false)".into(),
+                "at least one of pre_trigger, beyond_range true",
+            ));
+        }
+        if g.min_samples < 2 {
+            return Err(bad("noise_gate.min_samples", g.min_samples.to_string(), "[2, inf)"));
+        }
+        let det = &self.detector;
+        if !(det.pfa > 0.0 && det.pfa <= 0.5) {
+            return Err(bad("detector.pfa", det.pfa.to_string(), "(0, 0.5]"));
+        }
+        if !(det.normality_alpha > 0.0 && det.normality_alpha < 1.0) {
+            return Err(bad(
+                "detector.normality_alpha",
+                det.normality_alpha.to_string(),
+                "(0, 1)",
+            ));
+        }
+        let t = &self.timing;
+        if !(t.fraction > 0.0 && t.fraction < 1.0) {
+            return Err(bad("timing.fraction", t.fraction.to_string(), "(0, 1)"));
+        }
+        if !(t.leading_edge_v.is_finite() && t.leading_edge_v > 0.0) {
+            return Err(bad("timing.leading_edge_v", t.leading_edge_v.to_string(), "(0, inf) V"));
+        }
+        if self.averaging.frames == 0 || self.averaging.frames > 10_000_000 {
+            return Err(bad(
+                "averaging.frames",
+                self.averaging.frames.to_string(),
+                "[1, 10000000]",
+            ));
+        }
+        if !self.calibration.delay_s.is_finite() || self.calibration.delay_s.abs() > 1.0 {
+            return Err(bad(
+                "calibration.delay_s",
+                self.calibration.delay_s.to_string(),
+                "[-1, 1] s",
+            ));
+        }
+        let n = self.medium.refractive_index;
+        if !(n.is_finite() && (1.0..=4.0).contains(&n)) {
+            return Err(bad("medium.refractive_index", n.to_string(), "[1, 4]"));
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn default_scene_parses_and_round_trips() {
+        let s = Scene::default_scene();
+        assert_eq!(s.channels.stop, "CH2");
+        assert_eq!(s.detector.pfa, 1e-6);
+        let again = Scene::from_toml_str(&s.to_toml(), "round trip").unwrap();
+        assert_eq!(s, again);
+    }
+
+    #[test]
+    fn unknown_key_is_refused_by_name() {
+        let text = DEFAULT_SCENE_TOML.replace("[detector]", "[detector]\npfaa = 1e-3");
+        let e = Scene::from_toml_str(&text, "x.toml").unwrap_err().to_string();
+        assert!(e.contains("pfaa"), "{e}");
+        assert!(e.contains("x.toml"), "{e}");
+    }
+
+    #[test]
+    fn out_of_range_names_field_and_range() {
+        let text = DEFAULT_SCENE_TOML.replace("pfa = 1e-6", "pfa = 0.7");
+        let e = Scene::from_toml_str(&text, "x.toml").unwrap_err().to_string();
+        assert!(e.contains("detector.pfa") && e.contains("(0, 0.5]"), "{e}");
+    }
+
+    #[test]
+    fn minimal_scene_takes_defaults() {
+        let s = Scene::from_toml_str("name = \"m\"\n", "m").unwrap();
+        assert_eq!(s.detector.kind, DetectorKind::MatchedFilter);
+        assert_eq!(s.return_pulse.fwhm_s, 26.04e-9);
+    }
+}

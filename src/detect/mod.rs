@@ -1,1 +1,11 @@
-//! detect
+//! Detection: noise model, Neyman-Pearson thresholds, detectors, timing and
+//! false-alarm statistics. Plain synchronous code.
+
+/// Gaussian tail Q(x), its logarithm and inverse; per-cell probabilities.
+pub mod qfunc;
+/// Confidence intervals and normality tests.
+pub mod stats;
+/// Noise-gate moments and the fitted noise model.
+pub mod noise;
+/// Maxima of correlated Gaussian sequences: per-report thresholds.
+pub mod extreme;

@@ -458,7 +458,7 @@ impl Scene {
             if p.model == PulseModel::Bigaussian {
                 // The rising half's FWHM share is 1.1774/1.6866 of the rise time;
                 // it must leave a positive falling half.
-                let max_rise = p.fwhm_s * 1.686_6 / 1.177_4;
+                let max_rise = p.fwhm_s * 1.686_922_421_262_926_4 / 1.177_410_022_515_474_6;
                 if !(p.rise_time_s.is_finite() && p.rise_time_s > 0.0 && p.rise_time_s < max_rise) {
                     return Err(bad(
                         rise_field,

@@ -5,7 +5,7 @@ use crate::scene::{PulseConfig, PulseModel};
 /// sqrt(2 ln 2): half width at half maximum of a unit-sigma Gaussian.
 const HWHM_PER_SIGMA: f64 = 1.177_410_022_515_474_6;
 /// sqrt(2 ln 10) - sqrt(2 ln(10/9)): 10-90 % rise of a unit-sigma Gaussian edge.
-const RISE_PER_SIGMA: f64 = 1.686_932_195_059_568_6;
+const RISE_PER_SIGMA: f64 = 1.686_922_421_262_926_4;
 
 /// A shape evaluated at continuous time (in samples).
 pub trait PulseShape {

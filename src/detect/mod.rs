@@ -9,3 +9,9 @@ pub mod stats;
 pub mod noise;
 /// Maxima of correlated Gaussian sequences: per-report thresholds.
 pub mod extreme;
+/// Range gate and noise gates in sample indices.
+pub mod gates;
+/// Matched-filter and threshold detector kernels.
+pub mod detector;
+/// Timing methods and their uncertainties.
+pub mod timing;

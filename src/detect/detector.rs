@@ -1,0 +1,180 @@
+//! Detector kernels: matched filter (correlation with the unit-energy return
+//! template) or plain threshold, local maxima above a Neyman-Pearson
+//! threshold, and threshold upcrossings counted in the noise gates.
+
+use crate::dsp::correlate::Correlator;
+use crate::dsp::pulse::Pulse;
+use std::ops::Range;
+
+/// Detector output planned for one pulse shape.
+#[derive(Debug, Clone)]
+pub struct DetectorPlan {
+    correlator: Correlator,
+    /// Tap index of the template peak: output `p` is the template with its peak on sample `p`.
+    peak_tap: usize,
+    /// ‖p‖ of the unit-peak template: amplitude = output / norm.
+    norm: f64,
+    /// Lag-1 correlation of the output for white input noise.
+    rho1: f64,
+    padded: Vec<f64>,
+    output: Vec<f64>,
+}
+
+impl DetectorPlan {
+    /// Matched filter for `pulse`, for frames up to `max_samples` long.
+    pub fn matched_filter(pulse: &Pulse, max_samples: usize) -> DetectorPlan {
+        let (taps, peak_tap) = pulse.template();
+        Self::from_taps(taps, peak_tap, max_samples)
+    }
+
+    /// Plain threshold on the samples (a one-tap template).
+    pub fn threshold(max_samples: usize) -> DetectorPlan {
+        Self::from_taps(vec![1.0], 0, max_samples)
+    }
+
+    fn from_taps(mut taps: Vec<f64>, peak_tap: usize, max_samples: usize) -> DetectorPlan {
+        let norm = taps.iter().map(|t| t * t).sum::<f64>().sqrt();
+        for t in &mut taps {
+            *t /= norm;
+        }
+        let rho1 = taps.windows(2).map(|w| w[0] * w[1]).sum::<f64>();
+        let len = taps.len();
+        DetectorPlan {
+            correlator: Correlator::new(&taps, max_samples + len),
+            peak_tap,
+            norm,
+            rho1,
+            padded: Vec::with_capacity(max_samples + len),
+            output: Vec::with_capacity(max_samples),
+        }
+    }
+
+    /// Template length, samples.
+    pub fn len(&self) -> usize {
+        self.correlator.taps().len()
+    }
+
+    /// True for an empty template (never: kept for clippy's len/is_empty pairing).
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// ‖p‖ of the unit-peak template.
+    pub fn norm(&self) -> f64 {
+        self.norm
+    }
+
+    /// Lag-1 correlation of the output in white noise.
+    pub fn rho1(&self) -> f64 {
+        self.rho1
+    }
+
+    /// Tap index of the template peak.
+    pub fn peak_tap(&self) -> usize {
+        self.peak_tap
+    }
+
+    /// Runs the detector on `x - mean`, zero-padded so that output `p` (for
+    /// every sample `p` of `x`) is the template centred with its peak on `p`.
+    /// For white noise of sigma s the output has sigma s (unit-energy taps),
+    /// less near the frame edges where the template is cut.
+    pub fn run(&mut self, x: &[f64], mean: f64) -> &[f64] {
+        let len = self.len();
+        self.padded.clear();
+        self.padded.resize(self.peak_tap, 0.0);
+        self.padded.extend(x.iter().map(|v| v - mean));
+        self.padded.resize(self.peak_tap + x.len() + (len - 1 - self.peak_tap), 0.0);
+        self.correlator.correlate(&self.padded, &mut self.output);
+        &self.output
+    }
+
+    /// The last output of [`run`](Self::run).
+    pub fn output(&self) -> &[f64] {
+        &self.output
+    }
+
+    /// Output positions whose template lies wholly inside `gate` (sample indices).
+    pub fn positions_inside(&self, gate: &Range<usize>) -> Range<usize> {
+        let lo = gate.start + self.peak_tap;
+        let hi = (gate.end + self.peak_tap + 1).saturating_sub(self.len());
+        lo..hi.max(lo)
+    }
+}
+
+/// Local maxima of `y` inside `range` with `y > threshold`, strongest first.
+/// A plateau counts once (its first sample).
+pub fn local_maxima(y: &[f64], range: Range<usize>, threshold: f64, out: &mut Vec<usize>) {
+    out.clear();
+    let end = range.end.min(y.len());
+    for p in range.start..end {
+        let v = y[p];
+        if !(v > threshold) {
+            continue;
+        }
+        let left_ok = p == 0 || y[p - 1] < v;
+        let right_ok = p + 1 >= y.len() || y[p + 1] <= v;
+        if left_ok && right_ok {
+            out.push(p);
+        }
+    }
+    out.sort_by(|&a, &b| y[b].total_cmp(&y[a]));
+}
+
+/// Number of excursions of `y` above `threshold` that start inside `range`
+/// (an upcrossing, or the range opening above the threshold).
+pub fn upcrossings(y: &[f64], range: Range<usize>, threshold: f64) -> u64 {
+    let end = range.end.min(y.len());
+    let mut count = 0;
+    let mut above = false;
+    for &v in &y[range.start.min(end)..end] {
+        let now = v > threshold;
+        if now && !above {
+            count += 1;
+        }
+        above = now;
+    }
+    count
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn output_is_indexed_by_peak_position_and_scaled_by_norm() {
+        let pulse = Pulse { sigma_rise: 2.0, sigma_fall: 5.0 };
+        let mut plan = DetectorPlan::matched_filter(&pulse, 200);
+        let mut x = vec![0.1; 200];
+        for (i, v) in x.iter_mut().enumerate() {
+            *v += 0.7 * pulse_value(&pulse, i as f64 - 80.0);
+        }
+        let y = plan.run(&x, 0.1).to_vec();
+        let best = (0..y.len()).max_by(|&a, &b| y[a].total_cmp(&y[b])).unwrap();
+        assert_eq!(best, 80);
+        assert!((y[80] / plan.norm() - 0.7).abs() < 1e-9);
+    }
+
+    fn pulse_value(p: &Pulse, t: f64) -> f64 {
+        use crate::dsp::pulse::PulseShape;
+        p.value_and_slope(t).0
+    }
+
+    #[test]
+    fn maxima_and_crossings() {
+        let y = [0.0, 2.0, 1.0, 3.0, 3.0, 0.0, 5.0];
+        let mut m = Vec::new();
+        local_maxima(&y, 0..7, 1.5, &mut m);
+        assert_eq!(m, vec![6, 3, 1]);
+        assert_eq!(upcrossings(&y, 0..7, 1.5), 3);
+        assert_eq!(upcrossings(&y, 4..7, 1.5), 2);
+    }
+
+    #[test]
+    fn positions_inside_gate() {
+        let plan = DetectorPlan::matched_filter(&Pulse { sigma_rise: 1.0, sigma_fall: 1.0 }, 100);
+        // 9 taps, peak tap 4.
+        assert_eq!(plan.len(), 9);
+        assert_eq!(plan.positions_inside(&(0..20)), 4..16);
+        assert!(plan.positions_inside(&(0..5)).is_empty());
+    }
+}

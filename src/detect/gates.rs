@@ -1,0 +1,121 @@
+//! Where in a frame returns are sought (range gate) and where the noise model
+//! is fitted and false alarms are counted (noise gates), in sample indices.
+
+use std::ops::Range;
+
+/// Inputs that place the gates on one frame.
+#[derive(Debug, Clone, Copy)]
+pub struct GateInputs {
+    /// Samples in the frame.
+    pub samples: usize,
+    /// Sampling period, s.
+    pub dt_s: f64,
+    /// Time of sample 0 relative to the trigger, s.
+    pub first_sample_offset_s: f64,
+    /// Time reference (start instant) relative to the trigger, s.
+    pub t_ref_s: f64,
+    /// Calibrated system delay, s.
+    pub delay_s: f64,
+    /// Speed of light in the medium, m/s.
+    pub c_m_per_s: f64,
+    /// Range gate, m.
+    pub min_range_m: f64,
+    /// Range gate, m.
+    pub max_range_m: f64,
+    /// Pulse support before its peak, samples (negative).
+    pub support_lo: f64,
+    /// Pulse support after its peak, samples.
+    pub support_hi: f64,
+    /// Timing point relative to the peak, samples (negative: on the leading edge).
+    pub timing_offset: f64,
+    /// Guard between the gates and any possible return, s.
+    pub guard_s: f64,
+    /// Use samples before the reference.
+    pub pre: bool,
+    /// Use samples beyond the range gate.
+    pub beyond: bool,
+}
+
+/// Gate positions on one frame.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct Gates {
+    /// Peak positions (sample indices) where a return inside the range gate may lie.
+    pub range: Range<usize>,
+    /// Noise gate before the first possible return.
+    pub pre: Range<usize>,
+    /// Noise gate after the last possible return.
+    pub beyond: Range<usize>,
+}
+
+impl Gates {
+    /// Places the gates. Ranges are empty where the frame does not reach.
+    pub fn place(g: &GateInputs) -> Gates {
+        let n = g.samples as f64;
+        // Continuous sample index of time t (relative to the trigger).
+        let idx = |t_s: f64| (t_s - g.first_sample_offset_s) / g.dt_s;
+        let clamp = |x: f64| x.clamp(0.0, n) as usize;
+        // Times in seconds divided by dt land a rounding error off integers;
+        // snap within 1e-6 sample so gate edges do not depend on it.
+        let floor = |x: f64| (x + 1e-6).floor();
+        let ceil = |x: f64| (x - 1e-6).ceil();
+        let tof = |r_m: f64| 2.0 * r_m / g.c_m_per_s;
+        // Peak position p of a pulse whose timing point has time of flight `tof`.
+        let peak_at = |tof_s: f64| idx(g.t_ref_s + g.delay_s + tof_s) - g.timing_offset;
+        let p_min = peak_at(tof(g.min_range_m));
+        let p_max = peak_at(tof(g.max_range_m));
+        let range = clamp(ceil(p_min))..clamp(floor(p_max) + 1.0);
+        let guard = g.guard_s / g.dt_s;
+        let pre_end = (idx(g.t_ref_s) - guard).min(p_min + g.support_lo - guard);
+        let beyond_start = p_max + g.support_hi + guard;
+        let pre = if g.pre { 0..clamp(floor(pre_end)) } else { 0..0 };
+        let beyond = if g.beyond { clamp(ceil(beyond_start))..g.samples } else { g.samples..g.samples };
+        Gates { range, pre, beyond }
+    }
+
+    /// Samples in the noise gates.
+    pub fn noise_samples(&self) -> usize {
+        self.pre.len() + self.beyond.len()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn inputs() -> GateInputs {
+        GateInputs {
+            samples: 2500,
+            dt_s: 1e-9,
+            first_sample_offset_s: -500e-9,
+            t_ref_s: 0.0,
+            delay_s: 0.0,
+            c_m_per_s: 3e8,
+            min_range_m: 0.0,
+            max_range_m: 150.0,
+            support_lo: -20.0,
+            support_hi: 70.0,
+            timing_offset: -5.0,
+            guard_s: 20e-9,
+            pre: true,
+            beyond: true,
+        }
+    }
+
+    #[test]
+    fn gates_follow_the_geometry() {
+        let g = Gates::place(&inputs());
+        // tof 0 -> timing point at index 500 -> peak at 505; 150 m -> 1 us -> 1505.
+        assert_eq!(g.range, 505..1506);
+        assert_eq!(g.pre, 0..465);
+        assert_eq!(g.beyond, 1595..2500);
+    }
+
+    #[test]
+    fn gates_clamp_to_short_frames() {
+        let mut i = inputs();
+        i.samples = 600;
+        let g = Gates::place(&i);
+        assert_eq!(g.range, 505..600);
+        assert!(g.beyond.is_empty());
+    }
+}

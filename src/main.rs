@@ -1,1 +1,304 @@
-fn main() {}
+//! The `tofwave` command: parse, load configuration, call the library.
+
+use anyhow::{bail, Context, Result};
+use clap::{Args, Parser, Subcommand};
+use std::io::Write;
+use std::path::PathBuf;
+use tofwave::capture::{self, Format, ReadOptions};
+use tofwave::frame::Report;
+use tofwave::pipeline::{report_json, Pipeline};
+use tofwave::scene::{CalibrationFile, CalibrationMeasurement, Scene, TimingMethod, DEFAULT_SCENE_TOML};
+
+/// Waveform processing and detection for direct-detection time-of-flight lidar.
+///
+/// Turns digitised start/stop waveforms (oscilloscope captures or gRPC frames)
+/// into ranges with uncertainties and honest false-alarm statistics. Every
+/// command runs on the embedded default scene (the source prototype: 1 GS/s,
+/// start on CH1, stop on CH2) unless --scene names another.
+#[derive(Parser, Debug)]
+#[command(name = "tofwave", version, propagate_version = true)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Process capture files offline; prints one JSON report per frame (or averaged group).
+    Process(ProcessArgs),
+    /// Measure the fixed start-to-stop system delay from captures of a target at a known range.
+    Calibrate(CalibrateArgs),
+    /// Print the embedded default scene (commented TOML), or check a scene file.
+    Scene(SceneArgs),
+}
+
+#[derive(Args, Debug)]
+struct SceneInput {
+    /// Capture files or directories (every capture in a directory, in name order).
+    /// Multi-segment files give one frame per segment.
+    #[arg(long, short, required = true, num_args = 1.., value_name = "PATH")]
+    input: Vec<PathBuf>,
+    /// Scene file (TOML). Default: the embedded prototype scene (`tofwave scene` prints it).
+    #[arg(long, value_name = "FILE")]
+    scene: Option<PathBuf>,
+    /// Capture format: auto detects it from the content.
+    #[arg(long, default_value = "auto", value_name = "FORMAT", value_parser = parse_format)]
+    format: Format,
+    /// Average this many consecutive frames per report (overrides averaging.frames). 1: no averaging.
+    #[arg(long, value_name = "N")]
+    average: Option<u32>,
+    /// Design false-alarm probability per report over the whole range gate (overrides detector.pfa), in (0, 0.5].
+    #[arg(long, value_name = "P")]
+    pfa: Option<f64>,
+    /// Start (transmitted-pulse) channel name, e.g. CH1 (overrides channels.start; CH1, Ch1, C1 and 1 match).
+    #[arg(long, value_name = "NAME")]
+    start_channel: Option<String>,
+    /// Stop (receiver) channel name, e.g. CH2 (overrides channels.stop).
+    #[arg(long, value_name = "NAME")]
+    stop_channel: Option<String>,
+    /// Timing method (overrides timing.method): constant_fraction, leading_edge, peak_parabolic, peak_gaussian, ml.
+    #[arg(long, value_name = "METHOD", value_parser = parse_timing)]
+    timing: Option<TimingMethod>,
+    /// Sensor id written into the reports.
+    #[arg(long, default_value = "capture", value_name = "ID")]
+    sensor: String,
+}
+
+#[derive(Args, Debug)]
+struct ProcessArgs {
+    #[command(flatten)]
+    common: SceneInput,
+    /// Calibration file from `tofwave calibrate`: its delay (seconds) is subtracted from every time of flight.
+    #[arg(long, value_name = "FILE")]
+    calibration: Option<PathBuf>,
+    /// Where the JSON lines go; `-` is standard output.
+    #[arg(long, short, default_value = "-", value_name = "FILE")]
+    output: PathBuf,
+}
+
+#[derive(Args, Debug)]
+struct CalibrateArgs {
+    #[command(flatten)]
+    common: SceneInput,
+    /// True range of the calibration target, metres (from the timing point of the start pulse's
+    /// optical reference to the target).
+    #[arg(long, value_name = "R")]
+    known_range_m: f64,
+    /// Calibration file to write (TOML); pass it to `process --calibration`.
+    #[arg(long, value_name = "FILE")]
+    out: PathBuf,
+}
+
+#[derive(Args, Debug)]
+struct SceneArgs {
+    /// Print the embedded default scene, commented (the default action).
+    #[arg(long)]
+    default: bool,
+    /// Validate this scene file and print it as resolved (every default filled in).
+    #[arg(long, value_name = "FILE", conflicts_with = "default")]
+    check: Option<PathBuf>,
+}
+
+fn parse_format(s: &str) -> Result<Format, String> {
+    s.parse::<Format>().map_err(|e| e.to_string())
+}
+
+fn parse_timing(s: &str) -> Result<TimingMethod, String> {
+    [
+        TimingMethod::ConstantFraction,
+        TimingMethod::LeadingEdge,
+        TimingMethod::PeakParabolic,
+        TimingMethod::PeakGaussian,
+        TimingMethod::Ml,
+    ]
+    .into_iter()
+    .find(|m| m.name() == s)
+    .ok_or_else(|| {
+        format!("unknown timing method {s:?}: one of constant_fraction, leading_edge, peak_parabolic, peak_gaussian, ml")
+    })
+}
+
+fn main() {
+    tofwave::telemetry::init_tracing();
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Process(a) => process(a),
+        Command::Calibrate(a) => calibrate(a),
+        Command::Scene(a) => scene(a),
+    };
+    match result {
+        Ok(code) => std::process::exit(code),
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            std::process::exit(2);
+        }
+    }
+}
+
+/// The scene with command-line overrides applied and validated again.
+fn load_scene(c: &SceneInput) -> Result<Scene> {
+    let (mut scene, origin) = match &c.scene {
+        Some(p) => (Scene::load(p)?, p.display().to_string()),
+        None => (Scene::default_scene(), "embedded default".to_string()),
+    };
+    if let Some(n) = c.average {
+        scene.averaging.frames = n;
+    }
+    if let Some(p) = c.pfa {
+        scene.detector.pfa = p;
+    }
+    if let Some(s) = &c.start_channel {
+        scene.channels.start = s.clone();
+    }
+    if let Some(s) = &c.stop_channel {
+        scene.channels.stop = s.clone();
+    }
+    if let Some(m) = c.timing {
+        scene.timing.method = m;
+    }
+    scene
+        .validate(&format!("{origin} with command-line overrides"))
+        .context("invalid option")?;
+    Ok(scene)
+}
+
+/// Runs the pipeline over the inputs; returns the reports and the number of refused frames.
+fn run(scene: &Scene, c: &SceneInput) -> Result<(Vec<Report>, usize)> {
+    let opts = ReadOptions { format: c.format, sensor_id: c.sensor.clone() };
+    let frames = capture::read_paths(&c.input, &opts)?;
+    if frames.is_empty() {
+        bail!("no frames in {}", c.input.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(", "));
+    }
+    let bar = indicatif::ProgressBar::new(frames.len() as u64).with_style(
+        indicatif::ProgressStyle::with_template("{bar:40} {pos}/{len} frames {per_sec} eta {eta}")
+            .expect("static template"),
+    );
+    if frames.len() < 2000 {
+        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
+    }
+    let mut pipeline = Pipeline::new(scene, &c.sensor);
+    let mut reports = Vec::new();
+    let mut refused = 0;
+    for frame in frames {
+        if let Err(e) = pipeline.push(frame, &mut reports) {
+            refused += 1;
+            bar.suspend(|| eprintln!("refused: {e}"));
+        }
+        bar.inc(1);
+    }
+    pipeline.flush(&mut reports);
+    bar.finish_and_clear();
+    Ok((reports, refused))
+}
+
+fn process(a: ProcessArgs) -> Result<i32> {
+    let mut scene = load_scene(&a.common)?;
+    if let Some(p) = &a.calibration {
+        CalibrationFile::load(p)?.apply(&mut scene, &p.display().to_string())?;
+    }
+    let (reports, refused) = run(&scene, &a.common)?;
+    let mut out: Box<dyn Write> = if a.output.as_os_str() == "-" {
+        Box::new(std::io::BufWriter::new(std::io::stdout().lock()))
+    } else {
+        let f = std::fs::File::create(&a.output).with_context(|| format!("cannot create {}", a.output.display()))?;
+        Box::new(std::io::BufWriter::new(f))
+    };
+    let mut returns = 0;
+    for r in &reports {
+        returns += r.returns.len();
+        writeln!(out, "{}", report_json(r))?;
+    }
+    out.flush()?;
+    eprintln!(
+        "tofwave process: {} reports, {} returns, {} frames refused",
+        reports.len(),
+        returns,
+        refused
+    );
+    Ok(if refused > 0 { 1 } else { 0 })
+}
+
+fn calibrate(a: CalibrateArgs) -> Result<i32> {
+    let r = a.known_range_m;
+    if !(r.is_finite() && r > 0.0) {
+        bail!("--known-range-m {r}: must be a positive, finite range in metres");
+    }
+    let mut scene = load_scene(&a.common)?;
+    scene.calibration.delay_s = 0.0;
+    let (reports, refused) = run(&scene, &a.common)?;
+    let true_tof_s = 2.0 * r / scene.c_medium_m_per_s();
+    // The strongest return of each report is the calibration target.
+    let mut delays = Vec::new();
+    let mut amplitudes = Vec::new();
+    for rep in &reports {
+        if let Some(ret) = rep.returns.iter().max_by(|x, y| x.amplitude_v.total_cmp(&y.amplitude_v)) {
+            delays.push(ret.tof_s - true_tof_s);
+            amplitudes.push(ret.amplitude_v);
+        }
+    }
+    if delays.is_empty() {
+        bail!("no returns detected in {} reports: nothing to calibrate on", reports.len());
+    }
+    // Outliers (a false alarm taken for the target) are rejected beyond 5 robust sigmas of the median.
+    let mut sorted = delays.clone();
+    sorted.sort_by(f64::total_cmp);
+    let median = sorted[sorted.len() / 2];
+    let mut dev: Vec<f64> = sorted.iter().map(|d| (d - median).abs()).collect();
+    dev.sort_by(f64::total_cmp);
+    let robust = 1.4826 * dev[dev.len() / 2];
+    let keep: Vec<usize> = (0..delays.len())
+        .filter(|&i| robust == 0.0 || (delays[i] - median).abs() <= 5.0 * robust)
+        .collect();
+    let n = keep.len() as f64;
+    let mean = keep.iter().map(|&i| delays[i]).sum::<f64>() / n;
+    let var = if keep.len() > 1 {
+        keep.iter().map(|&i| (delays[i] - mean).powi(2)).sum::<f64>() / (n - 1.0)
+    } else {
+        0.0
+    };
+    let mean_amp = keep.iter().map(|&i| amplitudes[i]).sum::<f64>() / n;
+    let file = CalibrationFile {
+        calibration: tofwave::scene::CalibrationConfig { delay_s: mean },
+        measurement: CalibrationMeasurement {
+            known_range_m: r,
+            returns: keep.len() as u64,
+            excluded: (reports.len() - keep.len()) as u64,
+            delay_std_s: var.sqrt(),
+            delay_sem_s: (var / n).sqrt(),
+            mean_amplitude_v: mean_amp,
+            timing_method: scene.timing.method,
+            timing_fraction: scene.timing.fraction,
+            frames_averaged: scene.averaging.frames,
+            inputs: a.common.input.iter().map(|p| p.display().to_string()).collect(),
+        },
+    };
+    let text = format!(
+        "# tofwave calibration: the fixed start-to-stop delay of the system, seconds.\n\
+         # Apply with `tofwave process --calibration {}`.\n{}",
+        a.out.display(),
+        toml::to_string(&file)?
+    );
+    std::fs::write(&a.out, text).with_context(|| format!("cannot write {}", a.out.display()))?;
+    eprintln!(
+        "tofwave calibrate: delay {:.4} ns ± {:.4} ns (standard error; {} returns, std {:.4} ns, {} excluded) -> {}",
+        mean * 1e9,
+        (var / n).sqrt() * 1e9,
+        keep.len(),
+        var.sqrt() * 1e9,
+        reports.len() - keep.len(),
+        a.out.display()
+    );
+    Ok(if refused > 0 { 1 } else { 0 })
+}
+
+fn scene(a: SceneArgs) -> Result<i32> {
+    match a.check {
+        Some(p) => {
+            let s = Scene::load(&p)?;
+            print!("{}", s.to_toml());
+            eprintln!("{}: valid", p.display());
+        }
+        None => print!("{DEFAULT_SCENE_TOML}"),
+    }
+    Ok(0)
+}

@@ -565,3 +565,79 @@ mod tests {
         assert_eq!(s.return_pulse.fwhm_s, 26.04e-9);
     }
 }
+
+/// A calibration file written by `tofwave calibrate` and applied by
+/// `tofwave process --calibration`: the measured delay plus how it was measured,
+/// so a scene timed differently can be refused rather than silently biased.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CalibrationFile {
+    /// The delay to apply.
+    pub calibration: CalibrationConfig,
+    /// How it was measured.
+    pub measurement: CalibrationMeasurement,
+}
+
+/// Provenance and statistics of a calibration.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CalibrationMeasurement {
+    /// Range of the calibration target, m.
+    pub known_range_m: f64,
+    /// Returns used.
+    pub returns: u64,
+    /// Reports without a usable return, or rejected as outliers.
+    pub excluded: u64,
+    /// Standard deviation of the per-report delay, s.
+    pub delay_std_s: f64,
+    /// Standard error of the mean delay, s.
+    pub delay_sem_s: f64,
+    /// Mean amplitude of the returns used, V.
+    pub mean_amplitude_v: f64,
+    /// Timing method the delay belongs to.
+    pub timing_method: TimingMethod,
+    /// Timing fraction the delay belongs to.
+    pub timing_fraction: f64,
+    /// Frames averaged per report when measured.
+    pub frames_averaged: u32,
+    /// Inputs measured.
+    pub inputs: Vec<String>,
+}
+
+impl CalibrationFile {
+    /// Reads a calibration file.
+    pub fn load(path: &Path) -> Result<CalibrationFile, SceneError> {
+        let text = std::fs::read_to_string(path).map_err(|source| SceneError::Io {
+            path: path.display().to_string(),
+            source,
+        })?;
+        let f: CalibrationFile = toml::from_str(&text).map_err(|e| SceneError::Parse {
+            origin: path.display().to_string(),
+            message: e.to_string().trim_end().to_string(),
+        })?;
+        if !f.calibration.delay_s.is_finite() || f.calibration.delay_s.abs() > 1.0 {
+            return Err(SceneError::Invalid {
+                origin: path.display().to_string(),
+                field: "calibration.delay_s",
+                value: f.calibration.delay_s.to_string(),
+                allowed: "[-1, 1] s",
+            });
+        }
+        Ok(f)
+    }
+
+    /// Applies the delay to `scene`, refusing a scene timed differently from the calibration.
+    pub fn apply(&self, scene: &mut Scene, origin: &str) -> Result<(), SceneError> {
+        let m = &self.measurement;
+        if m.timing_method != scene.timing.method || m.timing_fraction != scene.timing.fraction {
+            return Err(SceneError::Invalid {
+                origin: origin.to_string(),
+                field: "measurement.timing_method",
+                value: format!("{} at fraction {}", m.timing_method.name(), m.timing_fraction),
+                allowed: "the scene's timing.method and timing.fraction (re-run `tofwave calibrate` with this scene)",
+            });
+        }
+        scene.calibration.delay_s = self.calibration.delay_s;
+        Ok(())
+    }
+}

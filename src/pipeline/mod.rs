@@ -1,34 +1,137 @@
 //! The per-sensor pipeline: stages built from a scene, frames in, reports out.
 //!
-//! (Interface fixed; the stages are being filled in.)
+//! Every stage has one shape ([`Stage`]): it takes a unit of work and pushes
+//! 0..n units on (1:1 for most, N:1 for averaging). Stages never see async
+//! code; the service runs a sensor's pipeline on a blocking worker. The
+//! pipeline holds only the stages its scene needs, and each report names the
+//! stages that ran.
 
+mod average;
+mod detect;
+mod noise;
+mod start;
+mod timing;
+mod validate;
+
+use crate::detect::gates::Gates;
 use crate::frame::{Frame, NoiseSummary, Report};
 use crate::scene::Scene;
 
 /// A frame the pipeline refused; the pipeline itself carries on.
-#[derive(Debug, thiserror::Error)]
+#[derive(Debug, Clone, thiserror::Error)]
 #[error("frame {sequence} of sensor {sensor}: {field}: {message}")]
 pub struct FrameError {
     /// Sensor id.
     pub sensor: String,
     /// Sequence number.
     pub sequence: u64,
-    /// Field at fault, e.g. `sample_interval_s` or `channels[CH2].samples[17]`.
+    /// Field at fault, e.g. `sample_interval_s` or `channels[CH2].samples`.
     pub field: String,
     /// What was wrong and what was expected.
     pub message: String,
+}
+
+impl FrameError {
+    fn new(frame: &Frame, field: impl Into<String>, message: impl Into<String>) -> FrameError {
+        FrameError {
+            sensor: frame.sensor_id.clone(),
+            sequence: frame.sequence,
+            field: field.into(),
+            message: message.into(),
+        }
+    }
+}
+
+/// One unit of work moving through the stages: a frame (or an averaged group)
+/// and what the stages have found so far.
+#[derive(Debug, Clone)]
+pub struct Work {
+    /// The frame (after averaging: the mean frame, F64 volts).
+    pub frame: Frame,
+    /// Index of the stop channel in `frame.channels`.
+    pub stop: usize,
+    /// Index of the start channel, if the frame has one.
+    pub start: Option<usize>,
+    /// Last sequence number in the group.
+    pub seq_last: u64,
+    /// Frames in the group.
+    pub frames_averaged: u32,
+    /// Clip levels of the stop channel, volts (low, high), if known.
+    pub clip_v: Option<(f64, f64)>,
+    /// Quantisation step of the stop channel, volts (0 for float data).
+    pub lsb_v: f64,
+    /// Stop channel in volts.
+    pub stop_v: Vec<f64>,
+    /// Time reference relative to the trigger, s.
+    pub t_ref_s: f64,
+    /// One-sigma uncertainty of the reference, s.
+    pub t_ref_sigma_s: f64,
+    /// Range and noise gates on this frame.
+    pub gates: Gates,
+    /// Noise model of the stop channel.
+    pub noise: NoiseSummary,
+    /// Noise sigma used for thresholds (floored where the gate had none).
+    pub sigma_v: f64,
+    /// Detector output indexed by peak position.
+    pub detector_output: Vec<f64>,
+    /// Detected peak positions, strongest first.
+    pub detections: Vec<usize>,
+    /// Threshold in units of the output sigma.
+    pub threshold_u: f64,
+    /// The report being built.
+    pub report: Report,
+}
+
+/// A pipeline step.
+pub trait Stage: Send {
+    /// Name in reports: the file name and the scene's word for it.
+    fn name(&self) -> &'static str;
+    /// Processes one unit; pushes 0..n units to `out`.
+    fn process(&mut self, work: Work, out: &mut Vec<Work>) -> Result<(), FrameError>;
+    /// End of input: pushes whatever is held back.
+    fn flush(&mut self, _out: &mut Vec<Work>) {}
 }
 
 /// One sensor's pipeline.
 pub struct Pipeline {
     scene: Scene,
     sensor: String,
+    validate: validate::Validate,
+    stages: Vec<Box<dyn Stage>>,
+    last_noise: Option<NoiseSummary>,
+    a: Vec<Work>,
+    b: Vec<Work>,
+}
+
+impl std::fmt::Debug for Pipeline {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Pipeline")
+            .field("sensor", &self.sensor)
+            .field("stages", &self.stage_names())
+            .finish()
+    }
 }
 
 impl Pipeline {
-    /// Builds the stages `scene` needs.
+    /// Builds the stages `scene` needs (the scene is already validated).
     pub fn new(scene: &Scene, sensor: &str) -> Pipeline {
-        Pipeline { scene: scene.clone(), sensor: sensor.to_string() }
+        let mut stages: Vec<Box<dyn Stage>> = Vec::new();
+        if scene.averaging.frames > 1 {
+            stages.push(Box::new(average::Average::new(scene.averaging.frames)));
+        }
+        stages.push(Box::new(start::Start::new(scene)));
+        stages.push(Box::new(noise::Noise::new(scene)));
+        stages.push(Box::new(detect::Detect::new(scene)));
+        stages.push(Box::new(timing::Timing::new(scene)));
+        Pipeline {
+            scene: scene.clone(),
+            sensor: sensor.to_string(),
+            validate: validate::Validate::new(scene),
+            stages,
+            last_noise: None,
+            a: Vec::new(),
+            b: Vec::new(),
+        }
     }
 
     /// The scene this pipeline was built from.
@@ -36,20 +139,57 @@ impl Pipeline {
         &self.scene
     }
 
+    /// Names of the stages, in order.
+    pub fn stage_names(&self) -> Vec<&'static str> {
+        std::iter::once(self.validate.name()).chain(self.stages.iter().map(|s| s.name())).collect()
+    }
+
     /// Processes one frame; pushes 0..n reports (0 while an average fills).
+    /// A refused frame changes nothing else.
     pub fn push(&mut self, frame: Frame, out: &mut Vec<Report>) -> Result<(), FrameError> {
-        let _ = (frame, out, &self.sensor);
-        Ok(())
+        let mut a = std::mem::take(&mut self.a);
+        a.clear();
+        let result = self.validate.process(frame, &mut a).and_then(|()| self.run_from(0, &mut a, out));
+        self.a = a;
+        result
     }
 
     /// Emits what a partly filled average holds (end of input).
     pub fn flush(&mut self, out: &mut Vec<Report>) {
-        let _ = out;
+        for i in 0..self.stages.len() {
+            let mut a = Vec::new();
+            self.stages[i].flush(&mut a);
+            if !a.is_empty() {
+                // Errors past validation are not expected; a failing flush loses only that group.
+                let _ = self.run_from(i + 1, &mut a, out);
+            }
+        }
+    }
+
+    fn run_from(&mut self, first: usize, a: &mut Vec<Work>, out: &mut Vec<Report>) -> Result<(), FrameError> {
+        let mut b = std::mem::take(&mut self.b);
+        let mut result = Ok(());
+        for stage in &mut self.stages[first..] {
+            b.clear();
+            for mut w in a.drain(..) {
+                w.report.stages.push(stage.name().to_string());
+                if let Err(e) = stage.process(w, &mut b) {
+                    result = Err(e);
+                }
+            }
+            std::mem::swap(a, &mut b);
+        }
+        for w in a.drain(..) {
+            self.last_noise = Some(w.report.noise);
+            out.push(w.report);
+        }
+        self.b = b;
+        result
     }
 
     /// The latest noise model, if any frame has been processed.
     pub fn noise_model(&self) -> Option<NoiseSummary> {
-        None
+        self.last_noise
     }
 }
 

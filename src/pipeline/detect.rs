@@ -1,0 +1,126 @@
+//! detect: the Neyman-Pearson detector ("matched_filter" or "threshold", as the
+//! scene's `detector.kind` says). The threshold holds the design false-alarm
+//! probability over the range gate, with the detector output's correlation
+//! between neighbouring cells accounted for; threshold crossings in the noise
+//! gates are counted against the same design, cumulatively per sensor.
+
+use super::{FrameError, Stage, Work};
+use crate::detect::detector::{local_maxima, upcrossings, DetectorPlan};
+use crate::detect::extreme::{threshold_for_report, ReportThreshold};
+use crate::detect::qfunc;
+use crate::detect::stats::clopper_pearson;
+use crate::dsp::pulse::Pulse;
+use crate::frame::{DetectorSummary, FalseAlarmStats};
+use crate::scene::{DetectorKind, PfaScope, Scene};
+
+/// Runs the detector on the stop channel.
+#[derive(Debug)]
+pub struct Detect {
+    kind: DetectorKind,
+    pfa: f64,
+    scope: PfaScope,
+    pulse_cfg: crate::scene::PulseConfig,
+    plan: Option<(f64, usize, DetectorPlan)>,
+    /// Thresholds already solved, by range-gate size.
+    thresholds: Vec<(usize, ReportThreshold)>,
+    /// Noise-gate crossings since the pipeline started.
+    observed_total: u64,
+    /// Effective noise-gate cells since the pipeline started.
+    cells_total: f64,
+}
+
+impl Detect {
+    /// From the scene's detector and return-pulse sections.
+    pub fn new(scene: &Scene) -> Detect {
+        Detect {
+            kind: scene.detector.kind,
+            pfa: scene.detector.pfa,
+            scope: scene.detector.pfa_scope,
+            pulse_cfg: scene.return_pulse.clone(),
+            plan: None,
+            thresholds: Vec::new(),
+            observed_total: 0,
+            cells_total: 0.0,
+        }
+    }
+
+    fn threshold(&mut self, cells: usize, rho1: f64) -> ReportThreshold {
+        if let Some(t) = self.thresholds.iter().find(|t| t.0 == cells) {
+            return t.1;
+        }
+        let t = match self.scope {
+            PfaScope::Report => threshold_for_report(self.pfa, cells.max(1), rho1),
+            PfaScope::Sample => ReportThreshold {
+                u: qfunc::q_inv(self.pfa),
+                p_cell: self.pfa,
+                cells_effective: cells as f64,
+            },
+        };
+        if self.thresholds.len() >= 16 {
+            self.thresholds.remove(0);
+        }
+        self.thresholds.push((cells, t));
+        t
+    }
+}
+
+impl Stage for Detect {
+    fn name(&self) -> &'static str {
+        self.kind.name()
+    }
+
+    fn process(&mut self, mut w: Work, out: &mut Vec<Work>) -> Result<(), FrameError> {
+        let dt = w.frame.sample_interval_s;
+        let n = w.stop_v.len();
+        if self.plan.as_ref().is_none_or(|p| p.0 != dt || p.1 < n) {
+            let plan = match self.kind {
+                DetectorKind::MatchedFilter => DetectorPlan::matched_filter(&Pulse::from_config(&self.pulse_cfg, dt), n),
+                DetectorKind::Threshold => DetectorPlan::threshold(n),
+            };
+            self.plan = Some((dt, n, plan));
+        }
+        let (_, _, plan) = self.plan.as_mut().expect("built above");
+        let (norm, rho1) = (plan.norm(), plan.rho1());
+        let pre_pos = plan.positions_inside(&w.gates.pre);
+        let beyond_pos = plan.positions_inside(&w.gates.beyond);
+        let y = plan.run(&w.stop_v, w.noise.mean_v);
+        w.detector_output.clear();
+        w.detector_output.extend_from_slice(y);
+        let cells = w.gates.range.len();
+        let t = self.threshold(cells, rho1);
+        let thr = t.u * w.sigma_v;
+        local_maxima(&w.detector_output, w.gates.range.clone(), thr, &mut w.detections);
+        w.threshold_u = t.u;
+        // Empirical false alarms: excursions above the same threshold in the
+        // noise gates, where no return can be. Each gate position counts as
+        // cells_effective / cells effective cells, as in the range gate.
+        let y = &w.detector_output;
+        let observed = upcrossings(y, pre_pos.clone(), thr) + upcrossings(y, beyond_pos.clone(), thr);
+        let per_position = if cells > 0 { t.cells_effective / cells as f64 } else { 1.0 };
+        let gate_cells = (pre_pos.len() + beyond_pos.len()) as f64 * per_position;
+        self.observed_total += observed;
+        self.cells_total += gate_cells;
+        let trials = self.cells_total.round() as u64;
+        let (lo, hi) = clopper_pearson(self.observed_total.min(trials), trials, 0.95);
+        w.report.detector = DetectorSummary {
+            kind: self.kind.name().into(),
+            pfa_design: self.pfa,
+            threshold: thr / norm,
+            pfa_cell: t.p_cell,
+            cells_effective: t.cells_effective,
+        };
+        w.report.false_alarm = FalseAlarmStats {
+            expected_per_frame: gate_cells * t.p_cell,
+            observed: self.observed_total,
+            cells: self.cells_total,
+            rate: if self.cells_total > 0.0 { self.observed_total as f64 / self.cells_total } else { 0.0 },
+            ci95: [lo, hi],
+            excess: trials > 0 && lo > t.p_cell,
+        };
+        if w.report.false_alarm.excess {
+            w.report.flags.push("false_alarm_excess".into());
+        }
+        out.push(w);
+        Ok(())
+    }
+}

@@ -1,0 +1,102 @@
+//! noise: converts the stop channel to volts, places the range and noise gates
+//! from the time reference, and fits the noise model on the noise gates.
+
+use super::{FrameError, Stage, Work};
+use crate::detect::gates::{GateInputs, Gates};
+use crate::detect::noise::NoiseFitter;
+use crate::dsp::pulse::Pulse;
+use crate::scene::Scene;
+
+/// Fits the stop channel's noise model.
+#[derive(Debug)]
+pub struct Noise {
+    scene: Scene,
+    fitter: NoiseFitter,
+    pulse: Option<(f64, Pulse)>,
+}
+
+impl Noise {
+    /// From the scene's gates and return-pulse shape.
+    pub fn new(scene: &Scene) -> Noise {
+        Noise { scene: scene.clone(), fitter: NoiseFitter::default(), pulse: None }
+    }
+}
+
+impl Stage for Noise {
+    fn name(&self) -> &'static str {
+        "noise"
+    }
+
+    fn process(&mut self, mut w: Work, out: &mut Vec<Work>) -> Result<(), FrameError> {
+        let s = &self.scene;
+        let dt = w.frame.sample_interval_s;
+        if self.pulse.is_none_or(|p| p.0 != dt) {
+            self.pulse = Some((dt, Pulse::from_config(&s.return_pulse, dt)));
+        }
+        let pulse = self.pulse.expect("set above").1;
+        let mut stop_v = std::mem::take(&mut w.stop_v);
+        w.frame.channels[w.stop].volts_into(&mut stop_v);
+        let (lo, hi) = pulse.support();
+        w.gates = Gates::place(&GateInputs {
+            samples: stop_v.len(),
+            dt_s: dt,
+            first_sample_offset_s: w.frame.first_sample_offset_s,
+            t_ref_s: w.t_ref_s,
+            delay_s: s.calibration.delay_s,
+            c_m_per_s: s.c_medium_m_per_s(),
+            min_range_m: s.range_gate.min_m,
+            max_range_m: s.range_gate.max_m,
+            support_lo: lo,
+            support_hi: hi,
+            timing_offset: pulse.fraction_offset(s.timing.fraction),
+            guard_s: s.noise_gate.guard_s,
+            pre: s.noise_gate.pre_trigger,
+            beyond: s.noise_gate.beyond_range,
+        });
+        // Non-finite samples (a float capture's NaN/Inf) are held at the last
+        // finite value so nothing downstream sees them; the report says how many.
+        let bad = stop_v.iter().filter(|v| !v.is_finite()).count();
+        if bad > 0 {
+            let mut last = stop_v.iter().copied().find(|v| v.is_finite()).unwrap_or(0.0);
+            for v in stop_v.iter_mut() {
+                if v.is_finite() {
+                    last = *v;
+                } else {
+                    *v = last;
+                }
+            }
+            w.report.flags.push(format!("non_finite_samples:{bad}"));
+        }
+        let g = &w.gates;
+        let noise = self
+            .fitter
+            .fit(&[&stop_v[g.pre.clone()], &stop_v[g.beyond.clone()]], s.detector.normality_alpha);
+        if (noise.samples as usize) < s.noise_gate.min_samples {
+            w.report.flags.push("noise_gate_small".into());
+        }
+        // A gate with no spread (noise-free or clipped data) still needs a
+        // finite threshold: floor sigma at the quantisation noise, or at 1e-12
+        // of the signal scale for float data.
+        let floor = if w.lsb_v > 0.0 {
+            w.lsb_v / 12f64.sqrt()
+        } else {
+            1e-12 * noise.mean_v.abs().max(1e-3)
+        };
+        w.sigma_v = noise.sigma_v;
+        if !(noise.sigma_v > floor) {
+            w.sigma_v = floor;
+            w.report.flags.push(if noise.samples < 2 { "no_noise_estimate".into() } else { "zero_noise".into() });
+        }
+        if !noise.gaussian && noise.samples >= 8 {
+            w.report.flags.push("non_gaussian_noise".into());
+        }
+        if noise.contaminated {
+            w.report.flags.push("noise_gate_contaminated".into());
+        }
+        w.noise = noise;
+        w.report.noise = noise;
+        w.stop_v = stop_v;
+        out.push(w);
+        Ok(())
+    }
+}

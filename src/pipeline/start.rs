@@ -1,0 +1,134 @@
+//! start: the time reference. With a start channel, the start pulse is timed
+//! with the scene's method and the start pulse shape; without one (or when the
+//! pulse is missing: laser off, a dropped tap) the reference is the trigger
+//! plus `channels.reference_offset_s`, and the report says so.
+
+use super::{FrameError, Stage, Work};
+use crate::detect::detector::DetectorPlan;
+use crate::detect::noise::{mad_sigma, Moments};
+use crate::detect::timing::{time_pulse, TimingInput};
+use crate::dsp::pulse::Pulse;
+use crate::scene::{Scene, TimingMethod};
+
+/// Times the start pulse.
+#[derive(Debug)]
+pub struct Start {
+    method: TimingMethod,
+    fraction: f64,
+    leading_edge_v: f64,
+    min_amplitude_v: f64,
+    reference_offset_s: f64,
+    pulse_cfg: crate::scene::PulseConfig,
+    /// Plan for the current sampling period (rebuilt when it changes).
+    plan: Option<(f64, Pulse, DetectorPlan)>,
+    volts: Vec<f64>,
+    scratch: Vec<f64>,
+}
+
+impl Start {
+    /// From the scene's channel, start-pulse and timing sections.
+    pub fn new(scene: &Scene) -> Start {
+        Start {
+            method: scene.timing.method,
+            fraction: scene.timing.fraction,
+            leading_edge_v: scene.timing.leading_edge_v,
+            min_amplitude_v: scene.channels.start_min_amplitude_v,
+            reference_offset_s: scene.channels.reference_offset_s,
+            pulse_cfg: scene.start_pulse.clone(),
+            plan: None,
+            volts: Vec::new(),
+            scratch: Vec::new(),
+        }
+    }
+}
+
+impl Stage for Start {
+    fn name(&self) -> &'static str {
+        "start"
+    }
+
+    fn process(&mut self, mut w: Work, out: &mut Vec<Work>) -> Result<(), FrameError> {
+        w.t_ref_s = self.reference_offset_s;
+        w.t_ref_sigma_s = 0.0;
+        let Some(s) = w.start else {
+            w.report.flags.push("no_start_channel".into());
+            w.report.t_start_s = w.t_ref_s;
+            out.push(w);
+            return Ok(());
+        };
+        let dt = w.frame.sample_interval_s;
+        w.frame.channels[s].volts_into(&mut self.volts);
+        let x = &mut self.volts;
+        // Keep the reference finite whatever the samples hold.
+        let finite_mean = {
+            let (sum, n) = x.iter().filter(|v| v.is_finite()).fold((0.0, 0usize), |(s, n), v| (s + v, n + 1));
+            if n > 0 { sum / n as f64 } else { 0.0 }
+        };
+        x.iter_mut().filter(|v| !v.is_finite()).for_each(|v| *v = finite_mean);
+        // The start pulse occupies a small part of the channel: the median
+        // locates the baseline, the largest excursion the pulse; the noise is
+        // then measured on the samples well away from the pulse.
+        self.scratch.clear();
+        self.scratch.extend_from_slice(x);
+        let n = self.scratch.len();
+        let median = *self.scratch.select_nth_unstable_by(n / 2, |a, b| a.total_cmp(b)).1;
+        let robust_sigma = mad_sigma(&mut self.scratch);
+        let peak = (0..n).max_by(|&a, &b| x[a].total_cmp(&x[b])).unwrap_or(0);
+        if self.plan.as_ref().is_none_or(|p| p.0 != dt || p.2.len() > n + 1) {
+            let pulse = Pulse::from_config(&self.pulse_cfg, dt);
+            self.plan = Some((dt, pulse, DetectorPlan::matched_filter(&pulse, n)));
+        }
+        let (lo, hi) = self.plan.as_ref().expect("built above").1.support();
+        let away_lo = (peak as f64 + 2.0 * lo).floor();
+        let away_hi = (peak as f64 + 2.0 * hi).ceil();
+        let mut m = Moments::default();
+        for (k, &v) in x.iter().enumerate() {
+            if (k as f64) < away_lo || (k as f64) > away_hi {
+                m.push(v);
+            }
+        }
+        let (baseline, sigma) = if m.count() >= 8 {
+            (m.mean(), m.variance().sqrt())
+        } else {
+            (median, robust_sigma)
+        };
+        let sigma = sigma.max(f64::MIN_POSITIVE);
+        let amplitude = x[peak] - baseline;
+        if !(amplitude >= self.min_amplitude_v.max(6.0 * sigma)) {
+            w.report.flags.push("no_start_pulse".into());
+            w.report.t_start_s = w.t_ref_s;
+            out.push(w);
+            return Ok(());
+        }
+        let (_, pulse, plan) = self.plan.as_mut().expect("built above");
+        // The detector output peak is searched near the raw peak: the template may not match exactly.
+        let norm = plan.norm();
+        let y = plan.run(x, baseline);
+        let w_half = (pulse.fwhm() * 0.5).ceil() as usize + 1;
+        let lo = peak.saturating_sub(w_half);
+        let hi = (peak + w_half + 1).min(n);
+        let y_peak = (lo..hi).max_by(|&a, &b| y[a].total_cmp(&y[b])).unwrap_or(peak);
+        let timed = time_pulse(
+            self.method,
+            &TimingInput {
+                x,
+                mean_v: baseline,
+                sigma_v: sigma,
+                y,
+                norm,
+                pulse,
+                peak: y_peak,
+                fraction: self.fraction,
+                leading_edge_v: self.leading_edge_v,
+            },
+        );
+        w.t_ref_s = w.frame.sample_time_s(timed.index);
+        w.t_ref_sigma_s = timed.sigma_samples * dt;
+        if timed.fallback {
+            w.report.flags.push("start_timing_fallback".into());
+        }
+        w.report.t_start_s = w.t_ref_s;
+        out.push(w);
+        Ok(())
+    }
+}

@@ -1,0 +1,131 @@
+//! timing: times each detection on the stop channel, subtracts the time
+//! reference and the calibrated delay, and turns it into a range with its
+//! uncertainty, amplitude, SNR, probability of detection and flags.
+
+use super::{FrameError, Stage, Work};
+use crate::detect::qfunc;
+use crate::detect::timing::{time_pulse, TimingInput};
+use crate::dsp::pulse::Pulse;
+use crate::frame::Return;
+use crate::scene::{DetectorKind, Scene, TimingMethod};
+
+/// At most this many returns per report (the strongest).
+const MAX_RETURNS: usize = 32;
+
+/// Times detections and forms ranges.
+#[derive(Debug)]
+pub struct Timing {
+    method: TimingMethod,
+    fraction: f64,
+    leading_edge_v: f64,
+    delay_s: f64,
+    c_m_per_s: f64,
+    matched: bool,
+    pulse_cfg: crate::scene::PulseConfig,
+    pulse: Option<(f64, Pulse)>,
+}
+
+impl Timing {
+    /// From the scene's timing, calibration, medium and return-pulse sections.
+    pub fn new(scene: &Scene) -> Timing {
+        Timing {
+            method: scene.timing.method,
+            fraction: scene.timing.fraction,
+            leading_edge_v: scene.timing.leading_edge_v,
+            delay_s: scene.calibration.delay_s,
+            c_m_per_s: scene.c_medium_m_per_s(),
+            matched: scene.detector.kind == DetectorKind::MatchedFilter,
+            pulse_cfg: scene.return_pulse.clone(),
+            pulse: None,
+        }
+    }
+}
+
+impl Stage for Timing {
+    fn name(&self) -> &'static str {
+        self.method.name()
+    }
+
+    fn process(&mut self, mut w: Work, out: &mut Vec<Work>) -> Result<(), FrameError> {
+        let dt = w.frame.sample_interval_s;
+        if self.pulse.is_none_or(|p| p.0 != dt) {
+            self.pulse = Some((dt, Pulse::from_config(&self.pulse_cfg, dt)));
+        }
+        let pulse = self.pulse.expect("set above").1;
+        let norm = if self.matched {
+            pulse.template().0.iter().map(|v| v * v).sum::<f64>().sqrt()
+        } else {
+            1.0
+        };
+        let x = &w.stop_v;
+        let n = x.len();
+        let (lo, hi) = pulse.support();
+        let fwhm = pulse.fwhm();
+        let mut returns = Vec::with_capacity(w.detections.len().min(MAX_RETURNS));
+        for (rank, &p) in w.detections.iter().take(MAX_RETURNS).enumerate() {
+            let timed = time_pulse(
+                self.method,
+                &TimingInput {
+                    x,
+                    mean_v: w.noise.mean_v,
+                    sigma_v: w.sigma_v,
+                    y: &w.detector_output,
+                    norm,
+                    pulse: &pulse,
+                    peak: p,
+                    fraction: self.fraction,
+                    leading_edge_v: self.leading_edge_v,
+                },
+            );
+            let t_stop_s = w.frame.sample_time_s(timed.index);
+            let tof_s = t_stop_s - w.t_ref_s - self.delay_s;
+            let sigma_t = ((timed.sigma_samples * dt).powi(2) + w.t_ref_sigma_s.powi(2)).sqrt();
+            let amplitude_v = timed.amplitude_v;
+            let d = amplitude_v * norm / w.sigma_v;
+            let mut flags = Vec::new();
+            let first = (p as f64 + lo).floor();
+            let last = (p as f64 + hi).ceil();
+            if first < 0.0 || last > (n - 1) as f64 {
+                flags.push("frame_edge".to_string());
+            }
+            if let Some((clip_lo, clip_hi)) = w.clip_v {
+                let a = first.max(0.0) as usize;
+                let b = (last.max(0.0) as usize).min(n - 1);
+                // Within a quarter step of the rail counts as clipped.
+                let margin = 0.25 * w.lsb_v;
+                if x[a..=b].iter().any(|&v| v >= clip_hi - margin || v <= clip_lo + margin) {
+                    flags.push("saturated".to_string());
+                }
+            }
+            let pd = qfunc::q(w.threshold_u - d);
+            if pd < 0.5 {
+                flags.push("weak".to_string());
+            }
+            if !w.noise.gaussian && w.noise.samples >= 8 {
+                flags.push("non_gaussian_noise".to_string());
+            }
+            if w.detections.iter().enumerate().any(|(j, &q)| j != rank && (q as f64 - p as f64).abs() < fwhm) {
+                flags.push("overlapping".to_string());
+            }
+            if timed.fallback {
+                flags.push("timing_fallback".to_string());
+            }
+            returns.push(Return {
+                range_m: 0.5 * self.c_m_per_s * tof_s,
+                range_sigma_m: 0.5 * self.c_m_per_s * sigma_t,
+                tof_s,
+                amplitude_v,
+                snr_db: 20.0 * (amplitude_v.abs().max(f64::MIN_POSITIVE) / w.sigma_v).log10(),
+                score: w.detector_output[p] / (w.threshold_u * w.sigma_v),
+                pd,
+                t_stop_s,
+                t_peak_s: w.frame.sample_time_s(timed.peak_index),
+                flags,
+            });
+        }
+        returns.sort_by(|a, b| a.tof_s.total_cmp(&b.tof_s));
+        w.report.returns = returns;
+        out.push(w);
+        Ok(())
+    }
+}

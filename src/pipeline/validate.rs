@@ -1,0 +1,152 @@
+//! validate: checks a frame against the scene and picks its start and stop
+//! channels. The only stage that turns a frame into work; a bad frame is
+//! refused here with the field at fault named.
+
+use super::{FrameError, Work};
+use crate::detect::gates::Gates;
+use crate::frame::{channel_key, ChannelRole, Frame, NoiseSummary, Report, Samples};
+use crate::scene::Scene;
+
+/// Checks frames and starts their work.
+#[derive(Debug)]
+pub struct Validate {
+    stop_key: String,
+    start_key: String,
+    stop_name: String,
+    start_name: String,
+    sample_interval_s: f64,
+    samples_per_frame: usize,
+    full_scale_v: Option<(f64, f64)>,
+}
+
+impl Validate {
+    /// From the scene's digitiser and channel sections.
+    pub fn new(scene: &Scene) -> Validate {
+        let d = &scene.digitiser;
+        Validate {
+            stop_key: channel_key(&scene.channels.stop),
+            start_key: channel_key(&scene.channels.start),
+            stop_name: scene.channels.stop.clone(),
+            start_name: scene.channels.start.clone(),
+            sample_interval_s: d.sample_interval_s,
+            samples_per_frame: d.samples_per_frame,
+            full_scale_v: (d.full_scale_low_v != 0.0 || d.full_scale_high_v != 0.0)
+                .then_some((d.full_scale_low_v, d.full_scale_high_v)),
+        }
+    }
+
+    /// The stage name.
+    pub fn name(&self) -> &'static str {
+        "validate"
+    }
+
+    /// Validates `frame` and pushes its work.
+    pub fn process(&mut self, frame: Frame, out: &mut Vec<Work>) -> Result<(), FrameError> {
+        let err = |field: &str, msg: String| Err(FrameError::new(&frame, field, msg));
+        if frame.channels.is_empty() {
+            return err("channels", "the frame has no channels".into());
+        }
+        let dt = frame.sample_interval_s;
+        if !(dt.is_finite() && dt > 0.0) {
+            return err("sample_interval_s", format!("{dt} is not a positive, finite period"));
+        }
+        if self.sample_interval_s > 0.0 && ((dt - self.sample_interval_s) / self.sample_interval_s).abs() > 1e-6 {
+            return err(
+                "sample_interval_s",
+                format!("{dt} s does not match the scene's digitiser.sample_interval_s = {} s", self.sample_interval_s),
+            );
+        }
+        if !frame.first_sample_offset_s.is_finite() || !frame.trigger_time_s.is_finite() {
+            return err("first_sample_offset_s", "trigger time and first-sample offset must be finite".into());
+        }
+        let n = frame.channels[0].samples.len();
+        if n == 0 {
+            return err(&format!("channels[{}].samples", frame.channels[0].name), "no samples".into());
+        }
+        for c in &frame.channels {
+            if c.samples.len() != n {
+                return err(
+                    &format!("channels[{}].samples", c.name),
+                    format!("{} samples, but channel {} has {n}", c.samples.len(), frame.channels[0].name),
+                );
+            }
+            if !(c.volts_per_code.is_finite() && c.volts_per_code != 0.0 && c.offset_v.is_finite()) {
+                return err(
+                    &format!("channels[{}].volts_per_code", c.name),
+                    format!("scale {} / offset {} must be finite and the scale non-zero", c.volts_per_code, c.offset_v),
+                );
+            }
+        }
+        if self.samples_per_frame > 0 && n != self.samples_per_frame {
+            return err(
+                "samples",
+                format!("{n} samples per channel, the scene's digitiser.samples_per_frame is {}", self.samples_per_frame),
+            );
+        }
+        let by_key = |key: &str| frame.channels.iter().position(|c| channel_key(&c.name) == key);
+        let by_role = |role| frame.channels.iter().position(|c| c.role == role);
+        let stop = by_role(ChannelRole::Stop).or_else(|| by_key(&self.stop_key)).or_else(|| {
+            // A capture with a single channel is the stop channel, timed from the trigger.
+            (frame.channels.len() == 1).then_some(0)
+        });
+        let Some(stop) = stop else {
+            return err(
+                "channels",
+                format!(
+                    "no stop channel {:?} (channels.stop in the scene); the frame has {}",
+                    self.stop_name,
+                    frame.channel_names().join(", ")
+                ),
+            );
+        };
+        let start = by_role(ChannelRole::Start).or_else(|| by_key(&self.start_key)).filter(|&s| s != stop);
+        let _ = &self.start_name;
+        let ch = &frame.channels[stop];
+        let clip_v = self.full_scale_v.or_else(|| code_limits_v(&ch.samples, ch.volts_per_code, ch.offset_v));
+        let lsb_v = if ch.samples.is_integer() { ch.volts_per_code.abs() } else { 0.0 };
+        let mut report = Report {
+            sensor: frame.sensor_id.clone(),
+            seq_first: frame.sequence,
+            seq_last: frame.sequence,
+            frames_averaged: 1,
+            time_s: frame.trigger_time_s,
+            stages: vec![self.name().to_string()],
+            ..Report::default()
+        };
+        if frame.laser_off {
+            report.flags.push("laser_off".into());
+        }
+        out.push(Work {
+            seq_last: frame.sequence,
+            frame,
+            stop,
+            start,
+            frames_averaged: 1,
+            clip_v,
+            lsb_v,
+            stop_v: Vec::new(),
+            t_ref_s: 0.0,
+            t_ref_sigma_s: 0.0,
+            gates: Gates::default(),
+            noise: NoiseSummary::default(),
+            sigma_v: 0.0,
+            detector_output: Vec::new(),
+            detections: Vec::new(),
+            threshold_u: 0.0,
+            report,
+        });
+        Ok(())
+    }
+}
+
+/// Volts of the extreme codes of an integer sample type: where an ADC clips.
+fn code_limits_v(s: &Samples, scale: f64, offset: f64) -> Option<(f64, f64)> {
+    let (lo, hi) = match s {
+        Samples::I8(_) => (i8::MIN as f64, i8::MAX as f64),
+        Samples::I16(_) => (i16::MIN as f64, i16::MAX as f64),
+        Samples::I32(_) => (i32::MIN as f64, i32::MAX as f64),
+        _ => return None,
+    };
+    let (a, b) = (lo * scale + offset, hi * scale + offset);
+    Some((a.min(b), a.max(b)))
+}

@@ -139,6 +139,9 @@ pub enum PulseModel {
     Bigaussian,
     /// Symmetric Gaussian (rise time is implied by the FWHM).
     Gaussian,
+    /// A measured shape: `table` values (unit peak) every `table_step_s`,
+    /// the first at `table_first_s` relative to the peak. `tofwave template` learns one.
+    Table,
 }
 
 /// A pulse shape.
@@ -150,8 +153,29 @@ pub struct PulseConfig {
     /// 10-90 % rise time, seconds (bigaussian only).
     #[serde(default)]
     pub rise_time_s: f64,
-    /// Full width at half maximum, seconds.
+    /// Full width at half maximum, seconds (parametric models).
+    #[serde(default)]
     pub fwhm_s: f64,
+    /// Table model: spacing of the values, seconds.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub table_step_s: f64,
+    /// Table model: time of the first value relative to the peak, seconds (negative).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub table_first_s: f64,
+    /// Table model: the shape, unit peak.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub table: Vec<f64>,
+}
+
+impl Default for PulseConfig {
+    /// The source's measured return pulse.
+    fn default() -> Self {
+        PulseConfig::default_return()
+    }
+}
+
+fn is_zero(x: &f64) -> bool {
+    *x == 0.0
 }
 
 impl PulseConfig {
@@ -160,6 +184,9 @@ impl PulseConfig {
             model: PulseModel::Bigaussian,
             rise_time_s: 8.08e-9,
             fwhm_s: 26.04e-9,
+            table_step_s: 0.0,
+            table_first_s: 0.0,
+            table: Vec::new(),
         }
     }
     fn default_start() -> Self {
@@ -167,6 +194,9 @@ impl PulseConfig {
             model: PulseModel::Bigaussian,
             rise_time_s: 3.02e-9,
             fwhm_s: 8.0e-9,
+            table_step_s: 0.0,
+            table_first_s: 0.0,
+            table: Vec::new(),
         }
     }
 }
@@ -448,16 +478,32 @@ impl Scene {
                 "[0, inf) V",
             ));
         }
-        for (p, fwhm_field, rise_field) in [
-            (&self.return_pulse, "return_pulse.fwhm_s", "return_pulse.rise_time_s"),
-            (&self.start_pulse, "start_pulse.fwhm_s", "start_pulse.rise_time_s"),
+        for (p, fwhm_field, rise_field, table_field) in [
+            (&self.return_pulse, "return_pulse.fwhm_s", "return_pulse.rise_time_s", "return_pulse.table"),
+            (&self.start_pulse, "start_pulse.fwhm_s", "start_pulse.rise_time_s", "start_pulse.table"),
         ] {
+            if p.model == PulseModel::Table {
+                let peak = p.table.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+                if p.table.len() < 4
+                    || p.table.iter().any(|v| !v.is_finite())
+                    || (peak - 1.0).abs() > 0.01
+                    || !(p.table_step_s.is_finite() && p.table_step_s > 0.0)
+                    || !(p.table_first_s.is_finite() && p.table_first_s < 0.0)
+                {
+                    return Err(bad(
+                        table_field,
+                        format!("{} values, step {} s, first {} s, peak {peak}", p.table.len(), p.table_step_s, p.table_first_s),
+                        "at least 4 finite values with peak 1 (within 1 %), table_step_s > 0, table_first_s < 0",
+                    ));
+                }
+                continue;
+            }
             if !(p.fwhm_s.is_finite() && p.fwhm_s > 0.0 && p.fwhm_s <= 1e-3) {
                 return Err(bad(fwhm_field, p.fwhm_s.to_string(), "(0, 1e-3] s"));
             }
             if p.model == PulseModel::Bigaussian {
-                // The rising half's FWHM share is 1.1774/1.6866 of the rise time;
-                // it must leave a positive falling half.
+                // The rising half's share of the FWHM is 1.1774/1.6869 of the
+                // rise time; it must leave a positive falling half.
                 let max_rise = p.fwhm_s * 1.686_922_421_262_926_4 / 1.177_410_022_515_474_6;
                 if !(p.rise_time_s.is_finite() && p.rise_time_s > 0.0 && p.rise_time_s < max_rise) {
                     return Err(bad(

@@ -3,7 +3,7 @@
 //! threshold, and threshold upcrossings counted in the noise gates.
 
 use crate::dsp::correlate::Correlator;
-use crate::dsp::pulse::Pulse;
+use crate::dsp::pulse::Shape;
 use std::ops::Range;
 
 /// Detector output planned for one pulse shape.
@@ -22,7 +22,7 @@ pub struct DetectorPlan {
 
 impl DetectorPlan {
     /// Matched filter for `pulse`, for frames up to `max_samples` long.
-    pub fn matched_filter(pulse: &Pulse, max_samples: usize) -> DetectorPlan {
+    pub fn matched_filter(pulse: &Shape, max_samples: usize) -> DetectorPlan {
         let (taps, peak_tap) = pulse.template();
         Self::from_taps(taps, peak_tap, max_samples)
     }
@@ -142,7 +142,7 @@ mod tests {
 
     #[test]
     fn output_is_indexed_by_peak_position_and_scaled_by_norm() {
-        let pulse = Pulse { sigma_rise: 2.0, sigma_fall: 5.0 };
+        let pulse = Shape::Parametric(crate::dsp::pulse::Pulse { sigma_rise: 2.0, sigma_fall: 5.0 });
         let mut plan = DetectorPlan::matched_filter(&pulse, 200);
         let mut x = vec![0.1; 200];
         for (i, v) in x.iter_mut().enumerate() {
@@ -154,7 +154,7 @@ mod tests {
         assert!((y[80] / plan.norm() - 0.7).abs() < 1e-9);
     }
 
-    fn pulse_value(p: &Pulse, t: f64) -> f64 {
+    fn pulse_value(p: &Shape, t: f64) -> f64 {
         use crate::dsp::pulse::PulseShape;
         p.value_and_slope(t).0
     }
@@ -171,7 +171,7 @@ mod tests {
 
     #[test]
     fn positions_inside_gate() {
-        let plan = DetectorPlan::matched_filter(&Pulse { sigma_rise: 1.0, sigma_fall: 1.0 }, 100);
+        let plan = DetectorPlan::matched_filter(&Shape::Parametric(crate::dsp::pulse::Pulse { sigma_rise: 1.0, sigma_fall: 1.0 }), 100);
         // 9 taps, peak tap 4.
         assert_eq!(plan.len(), 9);
         assert_eq!(plan.positions_inside(&(0..20)), 4..16);

@@ -4,7 +4,7 @@
 use crate::dsp::crossing;
 use crate::dsp::interp;
 use crate::dsp::mlfit;
-use crate::dsp::pulse::{Pulse, PulseShape};
+use crate::dsp::pulse::{PulseShape, Shape};
 use crate::scene::TimingMethod;
 
 /// What the timing methods need about one pulse.
@@ -21,7 +21,7 @@ pub struct TimingInput<'a> {
     /// ‖template‖: amplitude = y / norm.
     pub norm: f64,
     /// Pulse shape (samples).
-    pub pulse: &'a Pulse,
+    pub pulse: &'a Shape,
     /// Sample index of the detector's local maximum.
     pub peak: usize,
     /// Constant fraction (also the timing point of the model-based methods).
@@ -60,7 +60,7 @@ pub fn time_pulse(method: TimingMethod, input: &TimingInput) -> Timed {
 }
 
 /// Cramer-Rao bound of the delay, samples: sigma / (A sqrt(Σ s'(k - peak)²)).
-pub fn crlb_samples(pulse: &Pulse, n: usize, peak_index: f64, amplitude_v: f64, sigma_v: f64) -> f64 {
+pub fn crlb_samples(pulse: &Shape, n: usize, peak_index: f64, amplitude_v: f64, sigma_v: f64) -> f64 {
     let (lo, hi) = pulse.support();
     let first = (peak_index + lo).floor().max(0.0) as usize;
     let last = ((peak_index + hi).ceil().max(0.0) as usize).min(n.saturating_sub(1));
@@ -164,13 +164,13 @@ mod tests {
     use super::*;
     use crate::detect::detector::DetectorPlan;
 
-    fn synth(pulse: &Pulse, peak: f64, amp: f64, n: usize) -> Vec<f64> {
+    fn synth(pulse: &Shape, peak: f64, amp: f64, n: usize) -> Vec<f64> {
         (0..n).map(|k| 0.01 + amp * pulse.value_and_slope(k as f64 - peak).0).collect()
     }
 
     #[test]
     fn noise_free_pulse_is_timed_at_its_fraction_crossing() {
-        let pulse = Pulse { sigma_rise: 4.79, sigma_fall: 17.3 };
+        let pulse = Shape::Parametric(crate::dsp::pulse::Pulse { sigma_rise: 4.79, sigma_fall: 17.3 });
         let peak = 300.37;
         let x = synth(&pulse, peak, 0.8, 600);
         let mut plan = DetectorPlan::matched_filter(&pulse, 600);

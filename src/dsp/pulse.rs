@@ -24,9 +24,14 @@ pub struct Pulse {
 }
 
 impl Pulse {
-    /// Builds the shape from a scene pulse at sampling period `dt_s`.
+    /// Builds the shape from a parametric scene pulse at sampling period `dt_s`
+    /// (a table model is read by [`Shape::from_config`]; here it falls back to its FWHM as a Gaussian).
     pub fn from_config(cfg: &PulseConfig, dt_s: f64) -> Pulse {
         match cfg.model {
+            PulseModel::Table => {
+                let s = Shape::from_config(cfg, dt_s).fwhm() / (2.0 * HWHM_PER_SIGMA);
+                Pulse { sigma_rise: s, sigma_fall: s }
+            }
             PulseModel::Gaussian => {
                 let s = cfg.fwhm_s / (2.0 * HWHM_PER_SIGMA) / dt_s;
                 Pulse { sigma_rise: s, sigma_fall: s }
@@ -80,13 +85,184 @@ impl PulseShape for Pulse {
     }
 }
 
+/// A measured shape on a fine grid, interpolated with cubic Hermite splines
+/// (value and slope continuous), peak 1 at t = 0, in units of samples.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TablePulse {
+    /// Grid spacing, samples.
+    step: f64,
+    /// Time of `values[0]` relative to the peak, samples.
+    first: f64,
+    values: Vec<f64>,
+    /// d value / d t at the grid points, per sample.
+    slopes: Vec<f64>,
+}
+
+impl TablePulse {
+    /// From values every `step` samples, the first at `first` samples from the peak.
+    /// Needs at least 4 values.
+    pub fn new(values: Vec<f64>, step: f64, first: f64) -> TablePulse {
+        let n = values.len();
+        let slopes = (0..n)
+            .map(|i| {
+                let (a, b) = (i.saturating_sub(1), (i + 1).min(n - 1));
+                (values[b] - values[a]) / ((b - a).max(1) as f64 * step)
+            })
+            .collect();
+        TablePulse { step, first, values, slopes }
+    }
+
+    /// The values on the grid.
+    pub fn values(&self) -> &[f64] {
+        &self.values
+    }
+
+    /// Grid spacing, samples.
+    pub fn step(&self) -> f64 {
+        self.step
+    }
+
+    /// Time of the first value relative to the peak, samples.
+    pub fn first(&self) -> f64 {
+        self.first
+    }
+
+    fn crossing(&self, fraction: f64, rising: bool) -> f64 {
+        let peak = ((-self.first / self.step).round() as usize).min(self.values.len() - 1);
+        let v = &self.values;
+        let mut i = peak;
+        loop {
+            let next = if rising { i.checked_sub(1) } else { (i + 1 < v.len()).then_some(i + 1) };
+            let Some(j) = next else {
+                return self.first + i as f64 * self.step;
+            };
+            if v[j] <= fraction {
+                let f = (v[i] - fraction) / (v[i] - v[j]).max(f64::MIN_POSITIVE);
+                let t = i as f64 + if rising { -f } else { f };
+                return self.first + t * self.step;
+            }
+            i = j;
+        }
+    }
+}
+
+impl PulseShape for TablePulse {
+    #[inline]
+    fn value_and_slope(&self, t: f64) -> (f64, f64) {
+        let u = (t - self.first) / self.step;
+        let n = self.values.len();
+        if !(u >= 0.0) || u >= (n - 1) as f64 {
+            return (0.0, 0.0);
+        }
+        let i = u as usize;
+        let s = u - i as f64;
+        let (p0, p1) = (self.values[i], self.values[i + 1]);
+        let (m0, m1) = (self.slopes[i] * self.step, self.slopes[i + 1] * self.step);
+        let (s2, s3) = (s * s, s * s * s);
+        let v = (2.0 * s3 - 3.0 * s2 + 1.0) * p0 + (s3 - 2.0 * s2 + s) * m0 + (-2.0 * s3 + 3.0 * s2) * p1 + (s3 - s2) * m1;
+        let dv = (6.0 * s2 - 6.0 * s) * p0 + (3.0 * s2 - 4.0 * s + 1.0) * m0 + (-6.0 * s2 + 6.0 * s) * p1 + (3.0 * s2 - 2.0 * s) * m1;
+        (v, dv / self.step)
+    }
+}
+
+/// Any pulse shape a scene can describe.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Shape {
+    /// Bigaussian or Gaussian.
+    Parametric(Pulse),
+    /// Measured.
+    Table(TablePulse),
+}
+
+impl Shape {
+    /// From a scene pulse at sampling period `dt_s`.
+    pub fn from_config(cfg: &PulseConfig, dt_s: f64) -> Shape {
+        match cfg.model {
+            PulseModel::Table => Shape::Table(TablePulse::new(
+                cfg.table.clone(),
+                cfg.table_step_s / dt_s,
+                cfg.table_first_s / dt_s,
+            )),
+            _ => Shape::Parametric(Pulse::from_config(cfg, dt_s)),
+        }
+    }
+
+    /// Time where the leading edge reaches `fraction` of the peak, relative to the peak, samples.
+    pub fn fraction_offset(&self, fraction: f64) -> f64 {
+        match self {
+            Shape::Parametric(p) => p.fraction_offset(fraction),
+            Shape::Table(t) => t.crossing(fraction, true),
+        }
+    }
+
+    /// Time of the 50 % leading-edge crossing relative to the peak, samples.
+    pub fn half_rise_offset(&self) -> f64 {
+        self.fraction_offset(0.5)
+    }
+
+    /// Support [lo, hi] relative to the peak, samples.
+    pub fn support(&self) -> (f64, f64) {
+        match self {
+            Shape::Parametric(p) => p.support(),
+            Shape::Table(t) => (t.first, t.first + (t.values.len() - 1) as f64 * t.step),
+        }
+    }
+
+    /// Full width at half maximum, samples.
+    pub fn fwhm(&self) -> f64 {
+        match self {
+            Shape::Parametric(p) => p.fwhm(),
+            Shape::Table(t) => t.crossing(0.5, false) - t.crossing(0.5, true),
+        }
+    }
+
+    /// Samples the shape on the integer grid covering its support; returns the
+    /// taps and the index of the tap at the peak (tap `i` is at time `i - peak_index`).
+    pub fn template(&self) -> (Vec<f64>, usize) {
+        let (lo, hi) = self.support();
+        let first = lo.ceil() as i64;
+        let last = hi.floor() as i64;
+        let taps = (first..=last).map(|k| self.value_and_slope(k as f64).0).collect();
+        (taps, (-first).max(0) as usize)
+    }
+}
+
+impl PulseShape for Shape {
+    #[inline]
+    fn value_and_slope(&self, t: f64) -> (f64, f64) {
+        match self {
+            Shape::Parametric(p) => p.value_and_slope(t),
+            Shape::Table(tp) => tp.value_and_slope(t),
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
     #[test]
+    fn table_reproduces_the_shape_it_samples() {
+        let p = Pulse { sigma_rise: 4.79, sigma_fall: 17.3 };
+        let step = 0.125;
+        let first = -30.0;
+        let values: Vec<f64> = (0..800).map(|i| p.value_and_slope(first + i as f64 * step).0).collect();
+        let t = Shape::Table(TablePulse::new(values, step, first));
+        let shape = Shape::Parametric(p);
+        for &x in &[-12.3, -5.64, -0.2, 0.0, 3.3, 20.7] {
+            let (a, da) = t.value_and_slope(x);
+            let (b, db) = shape.value_and_slope(x);
+            assert!((a - b).abs() < 2e-4, "{x}: {a} vs {b}");
+            assert!((da - db).abs() < 2e-3, "{x}: {da} vs {db}");
+        }
+        assert!((t.half_rise_offset() - shape.half_rise_offset()).abs() < 1e-3);
+        assert!((t.fwhm() - shape.fwhm()).abs() < 1e-2);
+    }
+
+
+    #[test]
     fn bigaussian_matches_rise_and_fwhm() {
-        let cfg = PulseConfig { model: PulseModel::Bigaussian, rise_time_s: 8.08e-9, fwhm_s: 26.04e-9 };
+        let cfg = PulseConfig { model: PulseModel::Bigaussian, rise_time_s: 8.08e-9, fwhm_s: 26.04e-9, ..PulseConfig::default() };
         let p = Pulse::from_config(&cfg, 1e-9);
         assert!((p.fwhm() - 26.04).abs() < 1e-9);
         let t10 = p.fraction_offset(0.1);

@@ -9,7 +9,7 @@ use crate::detect::detector::{local_maxima, upcrossings, DetectorPlan};
 use crate::detect::extreme::{threshold_for_report, ReportThreshold};
 use crate::detect::qfunc;
 use crate::detect::stats::clopper_pearson;
-use crate::dsp::pulse::Pulse;
+use crate::dsp::pulse::Shape;
 use crate::frame::{DetectorSummary, FalseAlarmStats};
 use crate::scene::{DetectorKind, PfaScope, Scene};
 
@@ -74,7 +74,7 @@ impl Stage for Detect {
         let n = w.stop_v.len();
         if self.plan.as_ref().is_none_or(|p| p.0 != dt || p.1 < n) {
             let plan = match self.kind {
-                DetectorKind::MatchedFilter => DetectorPlan::matched_filter(&Pulse::from_config(&self.pulse_cfg, dt), n),
+                DetectorKind::MatchedFilter => DetectorPlan::matched_filter(&Shape::from_config(&self.pulse_cfg, dt), n),
                 DetectorKind::Threshold => DetectorPlan::threshold(n),
             };
             self.plan = Some((dt, n, plan));

@@ -4,7 +4,7 @@
 use super::{FrameError, Stage, Work};
 use crate::detect::gates::{GateInputs, Gates};
 use crate::detect::noise::NoiseFitter;
-use crate::dsp::pulse::Pulse;
+use crate::dsp::pulse::Shape;
 use crate::scene::Scene;
 
 /// Fits the stop channel's noise model.
@@ -12,7 +12,7 @@ use crate::scene::Scene;
 pub struct Noise {
     scene: Scene,
     fitter: NoiseFitter,
-    pulse: Option<(f64, Pulse)>,
+    pulse: Option<(f64, Shape)>,
 }
 
 impl Noise {
@@ -30,10 +30,10 @@ impl Stage for Noise {
     fn process(&mut self, mut w: Work, out: &mut Vec<Work>) -> Result<(), FrameError> {
         let s = &self.scene;
         let dt = w.frame.sample_interval_s;
-        if self.pulse.is_none_or(|p| p.0 != dt) {
-            self.pulse = Some((dt, Pulse::from_config(&s.return_pulse, dt)));
+        if self.pulse.as_ref().is_none_or(|p| p.0 != dt) {
+            self.pulse = Some((dt, Shape::from_config(&s.return_pulse, dt)));
         }
-        let pulse = self.pulse.expect("set above").1;
+        let pulse = &self.pulse.as_ref().expect("set above").1;
         let mut stop_v = std::mem::take(&mut w.stop_v);
         w.frame.channels[w.stop].volts_into(&mut stop_v);
         let (lo, hi) = pulse.support();

@@ -7,7 +7,7 @@ use super::{FrameError, Stage, Work};
 use crate::detect::detector::DetectorPlan;
 use crate::detect::noise::{mad_sigma, Moments};
 use crate::detect::timing::{time_pulse, TimingInput};
-use crate::dsp::pulse::Pulse;
+use crate::dsp::pulse::Shape;
 use crate::scene::{Scene, TimingMethod};
 
 /// Times the start pulse.
@@ -20,7 +20,7 @@ pub struct Start {
     reference_offset_s: f64,
     pulse_cfg: crate::scene::PulseConfig,
     /// Plan for the current sampling period (rebuilt when it changes).
-    plan: Option<(f64, Pulse, DetectorPlan)>,
+    plan: Option<(f64, Shape, DetectorPlan)>,
     volts: Vec<f64>,
     scratch: Vec<f64>,
 }
@@ -75,8 +75,9 @@ impl Stage for Start {
         let robust_sigma = mad_sigma(&mut self.scratch);
         let peak = (0..n).max_by(|&a, &b| x[a].total_cmp(&x[b])).unwrap_or(0);
         if self.plan.as_ref().is_none_or(|p| p.0 != dt || p.2.len() > n + 1) {
-            let pulse = Pulse::from_config(&self.pulse_cfg, dt);
-            self.plan = Some((dt, pulse, DetectorPlan::matched_filter(&pulse, n)));
+            let pulse = Shape::from_config(&self.pulse_cfg, dt);
+            let plan = DetectorPlan::matched_filter(&pulse, n);
+            self.plan = Some((dt, pulse, plan));
         }
         let (lo, hi) = self.plan.as_ref().expect("built above").1.support();
         let away_lo = (peak as f64 + 2.0 * lo).floor();

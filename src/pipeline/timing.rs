@@ -5,7 +5,7 @@
 use super::{FrameError, Stage, Work};
 use crate::detect::qfunc;
 use crate::detect::timing::{time_pulse, TimingInput};
-use crate::dsp::pulse::Pulse;
+use crate::dsp::pulse::Shape;
 use crate::frame::Return;
 use crate::scene::{DetectorKind, Scene, TimingMethod};
 
@@ -22,7 +22,8 @@ pub struct Timing {
     c_m_per_s: f64,
     matched: bool,
     pulse_cfg: crate::scene::PulseConfig,
-    pulse: Option<(f64, Pulse)>,
+    /// Shape and its template norm for the current sampling period.
+    pulse: Option<(f64, Shape, f64)>,
 }
 
 impl Timing {
@@ -48,15 +49,17 @@ impl Stage for Timing {
 
     fn process(&mut self, mut w: Work, out: &mut Vec<Work>) -> Result<(), FrameError> {
         let dt = w.frame.sample_interval_s;
-        if self.pulse.is_none_or(|p| p.0 != dt) {
-            self.pulse = Some((dt, Pulse::from_config(&self.pulse_cfg, dt)));
+        if self.pulse.as_ref().is_none_or(|p| p.0 != dt) {
+            let shape = Shape::from_config(&self.pulse_cfg, dt);
+            let norm = if self.matched {
+                shape.template().0.iter().map(|v| v * v).sum::<f64>().sqrt()
+            } else {
+                1.0
+            };
+            self.pulse = Some((dt, shape, norm));
         }
-        let pulse = self.pulse.expect("set above").1;
-        let norm = if self.matched {
-            pulse.template().0.iter().map(|v| v * v).sum::<f64>().sqrt()
-        } else {
-            1.0
-        };
+        let (_, pulse, norm) = self.pulse.as_ref().expect("set above");
+        let (pulse, norm) = (pulse, *norm);
         let x = &w.stop_v;
         let n = x.len();
         let (lo, hi) = pulse.support();
@@ -71,7 +74,7 @@ impl Stage for Timing {
                     sigma_v: w.sigma_v,
                     y: &w.detector_output,
                     norm,
-                    pulse: &pulse,
+                    pulse,
                     peak: p,
                     fraction: self.fraction,
                     leading_edge_v: self.leading_edge_v,

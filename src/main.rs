@@ -30,6 +30,9 @@ enum Command {
     Calibrate(CalibrateArgs),
     /// Print the embedded default scene (commented TOML), or check a scene file.
     Scene(SceneArgs),
+    /// Learn the return pulse shape from captures (equivalent-time alignment of many shots)
+    /// and write a scene that uses it.
+    Template(TemplateArgs),
 }
 
 #[derive(Args, Debug)]
@@ -90,6 +93,24 @@ struct CalibrateArgs {
 }
 
 #[derive(Args, Debug)]
+struct TemplateArgs {
+    #[command(flatten)]
+    common: SceneInput,
+    /// Scene file to write: the input scene with the learned return_pulse (model = "table").
+    #[arg(long, value_name = "FILE")]
+    out: PathBuf,
+    /// Grid points per sample period of the learned shape.
+    #[arg(long, default_value_t = 8, value_name = "N")]
+    oversample: usize,
+    /// Only returns with at least this peak SNR (dB) and no flags are used.
+    #[arg(long, default_value_t = 20.0, value_name = "DB")]
+    min_snr_db: f64,
+    /// Learning passes; each times the shots with the shape the previous pass learned.
+    #[arg(long, default_value_t = 2, value_name = "N")]
+    passes: u32,
+}
+
+#[derive(Args, Debug)]
 struct SceneArgs {
     /// Print the embedded default scene, commented (the default action).
     #[arg(long)]
@@ -125,6 +146,7 @@ fn main() {
         Command::Process(a) => process(a),
         Command::Calibrate(a) => calibrate(a),
         Command::Scene(a) => scene(a),
+        Command::Template(a) => template(a),
     };
     match result {
         Ok(code) => std::process::exit(code),
@@ -289,6 +311,64 @@ fn calibrate(a: CalibrateArgs) -> Result<i32> {
         a.out.display()
     );
     Ok(if refused > 0 { 1 } else { 0 })
+}
+
+fn template(a: TemplateArgs) -> Result<i32> {
+    use std::sync::{Arc, Mutex};
+    use tofwave::detect::template::TemplateLearner;
+    use tofwave::dsp::pulse::Shape;
+    if !(1..=64).contains(&a.oversample) {
+        bail!("--oversample {}: allowed 1..=64 grid points per sample", a.oversample);
+    }
+    let mut scene = load_scene(&a.common)?;
+    // Model-based timing gives each shot's sub-sample position; the scene
+    // written keeps the user's own method.
+    let user_method = scene.timing.method;
+    scene.timing.method = TimingMethod::Ml;
+    let opts = ReadOptions { format: a.common.format, sensor_id: a.common.sensor.clone() };
+    let frames = capture::read_paths(&a.common.input, &opts)?;
+    for pass in 0..a.passes.max(1) {
+        let dt = frames.first().map(|f| f.sample_interval_s).unwrap_or(1e-9);
+        let (lo, hi) = Shape::from_config(&scene.return_pulse, dt).support();
+        let learner = Arc::new(Mutex::new(TemplateLearner::new(a.oversample, 1.5 * lo, 1.5 * hi)));
+        let mut pipeline = Pipeline::new(&scene, &a.common.sensor);
+        let l = learner.clone();
+        let min_snr = a.min_snr_db;
+        pipeline.set_observer(Box::new(move |w| {
+            let best = w.report.returns.iter().max_by(|x, y| x.amplitude_v.total_cmp(&y.amplitude_v));
+            if let Some(r) = best.filter(|r| r.flags.is_empty() && r.snr_db >= min_snr) {
+                let peak = (r.t_peak_s - w.frame.first_sample_offset_s) / w.frame.sample_interval_s;
+                l.lock().expect("not poisoned").add(&w.stop_v, w.noise.mean_v, peak, r.amplitude_v);
+            }
+        }));
+        let mut reports = Vec::new();
+        for f in frames.iter().cloned() {
+            if let Err(e) = pipeline.push(f, &mut reports) {
+                eprintln!("refused: {e}");
+            }
+        }
+        pipeline.flush(&mut reports);
+        let learner = learner.lock().expect("not poisoned");
+        scene.return_pulse = learner.finish(dt).with_context(|| format!("pass {}", pass + 1))?;
+        let shape = Shape::from_config(&scene.return_pulse, dt);
+        eprintln!(
+            "tofwave template: pass {}: {} shots, FWHM {:.3} ns, half-rise {:.3} ns before the peak",
+            pass + 1,
+            learner.shots(),
+            shape.fwhm() * dt * 1e9,
+            -shape.half_rise_offset() * dt * 1e9
+        );
+    }
+    scene.timing.method = user_method;
+    scene.validate("learned scene")?;
+    let text = format!(
+        "# tofwave scene with a return pulse shape learned by `tofwave template` from {}\n{}",
+        a.common.input.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(", "),
+        scene.to_toml()
+    );
+    std::fs::write(&a.out, text).with_context(|| format!("cannot write {}", a.out.display()))?;
+    eprintln!("tofwave template: wrote {}", a.out.display());
+    Ok(0)
 }
 
 fn scene(a: SceneArgs) -> Result<i32> {

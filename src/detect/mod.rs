@@ -15,3 +15,5 @@ pub mod gates;
 pub mod detector;
 /// Timing methods and their uncertainties.
 pub mod timing;
+/// Learning the pulse shape from aligned shots (equivalent time).
+pub mod template;

@@ -92,6 +92,10 @@ pub trait Stage: Send {
     fn flush(&mut self, _out: &mut Vec<Work>) {}
 }
 
+/// Sees every finished unit of work before it becomes a report (tools that
+/// need the waveforms, e.g. template learning).
+pub type Observer = Box<dyn FnMut(&Work) + Send>;
+
 /// One sensor's pipeline.
 pub struct Pipeline {
     scene: Scene,
@@ -99,6 +103,7 @@ pub struct Pipeline {
     validate: validate::Validate,
     stages: Vec<Box<dyn Stage>>,
     last_noise: Option<NoiseSummary>,
+    observer: Option<Observer>,
     a: Vec<Work>,
     b: Vec<Work>,
 }
@@ -129,6 +134,7 @@ impl Pipeline {
             validate: validate::Validate::new(scene),
             stages,
             last_noise: None,
+            observer: None,
             a: Vec::new(),
             b: Vec::new(),
         }
@@ -180,11 +186,19 @@ impl Pipeline {
             std::mem::swap(a, &mut b);
         }
         for w in a.drain(..) {
+            if let Some(f) = &mut self.observer {
+                f(&w);
+            }
             self.last_noise = Some(w.report.noise);
             out.push(w.report);
         }
         self.b = b;
         result
+    }
+
+    /// Calls `f` with every finished unit of work.
+    pub fn set_observer(&mut self, f: Observer) {
+        self.observer = Some(f);
     }
 
     /// The latest noise model, if any frame has been processed.

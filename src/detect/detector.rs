@@ -16,6 +16,8 @@ pub struct DetectorPlan {
     norm: f64,
     /// Lag-1 correlation of the output for white input noise.
     rho1: f64,
+    /// Σ of the unit-energy taps: how a mean error enters the output.
+    dc_gain: f64,
     padded: Vec<f64>,
     output: Vec<f64>,
 }
@@ -38,12 +40,14 @@ impl DetectorPlan {
             *t /= norm;
         }
         let rho1 = taps.windows(2).map(|w| w[0] * w[1]).sum::<f64>();
+        let dc_gain = taps.iter().sum::<f64>();
         let len = taps.len();
         DetectorPlan {
             correlator: Correlator::new(&taps, max_samples + len),
             peak_tap,
             norm,
             rho1,
+            dc_gain,
             padded: Vec::with_capacity(max_samples + len),
             output: Vec::with_capacity(max_samples),
         }
@@ -67,6 +71,11 @@ impl DetectorPlan {
     /// Lag-1 correlation of the output in white noise.
     pub fn rho1(&self) -> f64 {
         self.rho1
+    }
+
+    /// Sum of the unit-energy taps (the output's gain for a constant offset).
+    pub fn dc_gain(&self) -> f64 {
+        self.dc_gain
     }
 
     /// Tap index of the template peak.

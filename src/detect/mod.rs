@@ -17,3 +17,7 @@ pub mod detector;
 pub mod timing;
 /// Learning the pulse shape from aligned shots (equivalent time).
 pub mod template;
+/// Thresholds and Pd with the noise mean and sigma estimated from a finite gate.
+pub mod finite_gate;
+/// Resolving overlapping returns by successive cancellation and joint refit.
+pub mod resolve;

@@ -7,6 +7,7 @@
 use super::{FrameError, Stage, Work};
 use crate::detect::detector::{local_maxima, upcrossings, DetectorPlan};
 use crate::detect::extreme::{threshold_for_report, ReportThreshold};
+use crate::detect::finite_gate::{mean_error_inflation, t_quantile_from_z};
 use crate::detect::qfunc;
 use crate::detect::stats::clopper_pearson;
 use crate::dsp::pulse::Shape;
@@ -80,7 +81,7 @@ impl Stage for Detect {
             self.plan = Some((dt, n, plan));
         }
         let (_, _, plan) = self.plan.as_mut().expect("built above");
-        let (norm, rho1) = (plan.norm(), plan.rho1());
+        let (norm, rho1, dc_gain) = (plan.norm(), plan.rho1(), plan.dc_gain());
         let pre_pos = plan.positions_inside(&w.gates.pre);
         let beyond_pos = plan.positions_inside(&w.gates.beyond);
         let y = plan.run(&w.stop_v, w.noise.mean_v);
@@ -88,9 +89,15 @@ impl Stage for Detect {
         w.detector_output.extend_from_slice(y);
         let cells = w.gates.range.len();
         let t = self.threshold(cells, rho1);
-        let thr = t.u * w.sigma_v;
+        // The gate's mean and sigma are estimates: Student-t on the inflated
+        // sigma keeps the design pfa for any gate size (see detect::finite_gate).
+        let samples = w.noise.samples;
+        w.nu = if samples > 1 { (samples - 1) as f64 } else { f64::INFINITY };
+        w.kappa = mean_error_inflation(dc_gain, samples);
+        w.threshold_t = t_quantile_from_z(t.u, w.nu);
+        w.threshold_u = w.threshold_t * w.kappa;
+        let thr = w.threshold_u * w.sigma_v;
         local_maxima(&w.detector_output, w.gates.range.clone(), thr, &mut w.detections);
-        w.threshold_u = t.u;
         // Empirical false alarms: excursions above the same threshold in the
         // noise gates, where no return can be. Each gate position counts as
         // cells_effective / cells effective cells, as in the range gate.

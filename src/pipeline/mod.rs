@@ -76,8 +76,14 @@ pub struct Work {
     pub detector_output: Vec<f64>,
     /// Detected peak positions, strongest first.
     pub detections: Vec<usize>,
-    /// Threshold in units of the output sigma.
+    /// Threshold in units of the fitted noise sigma.
     pub threshold_u: f64,
+    /// Student-t threshold in units of the inflated output sigma (sigma * kappa).
+    pub threshold_t: f64,
+    /// Inflation of the output sigma by the gate's mean error.
+    pub kappa: f64,
+    /// Degrees of freedom of the gate's sigma.
+    pub nu: f64,
     /// The report being built.
     pub report: Report,
 }

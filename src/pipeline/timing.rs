@@ -3,7 +3,7 @@
 //! uncertainty, amplitude, SNR, probability of detection and flags.
 
 use super::{FrameError, Stage, Work};
-use crate::detect::qfunc;
+use crate::detect::finite_gate::detection_probability;
 use crate::detect::timing::{time_pulse, TimingInput};
 use crate::dsp::pulse::Shape;
 use crate::frame::Return;
@@ -100,7 +100,7 @@ impl Stage for Timing {
                     flags.push("saturated".to_string());
                 }
             }
-            let pd = qfunc::q(w.threshold_u - d);
+            let pd = detection_probability(w.threshold_t, d, w.kappa, w.nu);
             if pd < 0.5 {
                 flags.push("weak".to_string());
             }

@@ -133,6 +133,9 @@ impl Validate {
             detector_output: Vec::new(),
             detections: Vec::new(),
             threshold_u: 0.0,
+            threshold_t: 0.0,
+            kappa: 1.0,
+            nu: f64::INFINITY,
             report,
         });
         Ok(())

@@ -236,3 +236,28 @@ fn ten_million_frame_average_of_i16_codes_is_exact() {
     assert_eq!(out[0].noise.samples, 8);
     assert!((out[0].noise.mean_v - exact_mean).abs() <= 1e-12 * exact_mean.abs().max(1.0), "{} vs {exact_mean}", out[0].noise.mean_v);
 }
+
+#[test]
+fn returns_half_and_one_pulse_width_apart_are_resolved_and_flagged() {
+    let mut scene = Scene::default_scene();
+    scene.timing.method = tofwave::scene::TimingMethod::Ml;
+    let fwhm_s = scene.return_pulse.fwhm_s;
+    for (sep, seed) in [(1.0, 31u64), (0.5, 32)] {
+        let t1 = 100e-9;
+        let t2 = t1 + sep * fwhm_s;
+        let s = Synth { returns: vec![(t1, 0.5), (t2, 0.4)], quantise_8bit: None, ..Synth::prototype() };
+        let mut errs = Vec::new();
+        for k in 0..20 {
+            let r = run(&scene, s.frame(&scene, k, &mut rng(seed + 100 * k)));
+            assert_eq!(r.returns.len(), 2, "separation {sep} FWHM: {:?}", r.returns);
+            assert!(r.returns.iter().all(|x| has(&x.flags, "overlapping")));
+            // Nearest first; t_start is the start pulse's half-max crossing.
+            let tof: Vec<f64> = r.returns.iter().map(|x| x.tof_s).collect();
+            errs.push(((tof[0] - t1) * 1e9, (tof[1] - t2) * 1e9));
+        }
+        let mean = |f: fn(&(f64, f64)) -> f64| errs.iter().map(f).sum::<f64>() / errs.len() as f64;
+        let (e1, e2) = (mean(|e| e.0), mean(|e| e.1));
+        eprintln!("separation {sep} FWHM: mean timing errors {e1:+.3} ns, {e2:+.3} ns");
+        assert!(e1.abs() < 0.3 && e2.abs() < 0.3, "{e1} {e2}");
+    }
+}

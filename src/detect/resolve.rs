@@ -63,13 +63,7 @@ impl Resolver {
         while comps.len() < max {
             let y = plan.run(&self.residual, 0.0);
             let end = range.end.min(y.len());
-            let blocked = |p: usize| {
-                comps.iter().any(|c| c.misfit > MISFIT_LIMIT && window(c.peak_index).contains(&p))
-            };
-            let Some(p) = (range.start.min(end)..end)
-                .filter(|&p| !blocked(p))
-                .max_by(|&a, &b| y[a].total_cmp(&y[b]))
-            else {
+            let Some(p) = (range.start.min(end)..end).max_by(|&a, &b| y[a].total_cmp(&y[b])) else {
                 break;
             };
             if !(y[p] > threshold) {
@@ -89,22 +83,156 @@ impl Resolver {
             self.subtract(shape, &c, &window, -1.0);
             comps.push(c);
         }
-        // Joint refinement: each pulse refitted with the others removed.
-        if comps.len() > 1 {
-            for _sweep in 0..4 {
-                for i in 0..comps.len() {
-                    let c = comps[i];
-                    self.subtract(shape, &c, &window, 1.0);
-                    let mut f = self.fit(shape, c.peak_index, c.detected_at, sigma_v, &window);
-                    if !(f.amplitude_v > 0.0) || (f.peak_index - c.peak_index).abs() > 3.0 {
-                        f = c;
-                    }
-                    self.subtract(shape, &f, &window, -1.0);
-                    comps[i] = f;
+        if comps.is_empty() {
+            return comps;
+        }
+        // Refit every pulse jointly with its overlapping neighbours.
+        self.joint_refit(x, mean_v, sigma_v, shape, &mut comps, &window);
+        // A pulse the shape cannot explain alone may be two returns closer than
+        // a pulse width: try a split and keep it if it explains the data.
+        let fwhm = shape.fwhm();
+        let mut i = 0;
+        while i < comps.len() && comps.len() < max {
+            if comps[i].misfit > MISFIT_LIMIT {
+                let before = comps.clone();
+                let old = comps[i];
+                let (a, b) = (
+                    Component { peak_index: old.peak_index - fwhm / 3.0, amplitude_v: 0.6 * old.amplitude_v, ..old },
+                    Component { peak_index: old.peak_index + fwhm / 3.0, amplitude_v: 0.6 * old.amplitude_v, ..old },
+                );
+                comps[i] = a;
+                comps.push(b);
+                self.joint_refit(x, mean_v, sigma_v, shape, &mut comps, &window);
+                let j = comps.len() - 1;
+                let worse = comps[i].misfit > 0.8 * old.misfit && comps[j].misfit > 0.8 * old.misfit;
+                let weak = [comps[i], comps[j]].iter().any(|c| !(c.amplitude_v * plan.norm() > threshold));
+                if worse || weak {
+                    comps = before;
+                    self.residual_from(x, mean_v, shape, &comps, &window);
                 }
             }
+            i += 1;
         }
+        // Each pulse must earn its place: removing it (and refitting the rest)
+        // must raise the residual sum of squares by more than the detection
+        // threshold squared, the generalised likelihood-ratio form of the same
+        // Neyman-Pearson test (for one pulse at a known delay ΔRSS = y²).
+        // Otherwise it was the others' leftover or fitted noise.
+        while comps.len() > 1 {
+            self.residual_from(x, mean_v, shape, &comps, &window);
+            let (a, b) = span(&comps, &window);
+            let rss_all: f64 = self.residual[a..b].iter().map(|v| v * v).sum();
+            let mut weakest: Option<(usize, f64)> = None;
+            for j in 0..comps.len() {
+                let mut rest: Vec<Component> = comps.iter().enumerate().filter(|&(i, _)| i != j).map(|(_, c)| *c).collect();
+                self.joint_refit(x, mean_v, sigma_v, shape, &mut rest, &window);
+                let rss_rest: f64 = self.residual[a..b].iter().map(|v| v * v).sum();
+                let gain = rss_rest - rss_all;
+                if weakest.is_none_or(|w| gain < w.1) {
+                    weakest = Some((j, gain));
+                }
+            }
+            match weakest {
+                Some((j, gain)) if !(gain > threshold * threshold) => {
+                    comps.remove(j);
+                    self.joint_refit(x, mean_v, sigma_v, shape, &mut comps, &window);
+                }
+                _ => break,
+            }
+        }
+        comps.retain(|c| c.amplitude_v > 0.0);
+        self.residual_from(x, mean_v, shape, &comps, &window);
         comps
+    }
+
+    /// residual = x - mean - Σ pulses.
+    fn residual_from(&mut self, x: &[f64], mean_v: f64, shape: &Shape, comps: &[Component], window: &dyn Fn(f64) -> Range<usize>) {
+        self.residual.clear();
+        self.residual.extend(x.iter().map(|v| v - mean_v));
+        for c in comps {
+            self.subtract(shape, c, window, -1.0);
+        }
+    }
+
+    /// Gauss-Newton (Levenberg-Marquardt damped) on all amplitudes and delays
+    /// of pulses whose windows overlap; leaves `residual` consistent with the result.
+    fn joint_refit(
+        &mut self,
+        x: &[f64],
+        mean_v: f64,
+        sigma_v: f64,
+        shape: &Shape,
+        comps: &mut [Component],
+        window: &dyn Fn(f64) -> Range<usize>,
+    ) {
+        let k = comps.len();
+        let m = 2 * k;
+        let mut lambda = 1e-3;
+        self.residual_from(x, mean_v, shape, comps, window);
+        let rss = |r: &[f64], comps: &[Component]| -> f64 {
+            let (a, b) = span(comps, window);
+            r[a..b].iter().map(|v| v * v).sum()
+        };
+        let mut cost = rss(&self.residual, comps);
+        for _it in 0..40 {
+            let (a, b) = span(comps, window);
+            let mut jtj = vec![0.0; m * m];
+            let mut jtr = vec![0.0; m];
+            let mut row = vec![0.0; m];
+            for t in a..b {
+                for (i, c) in comps.iter().enumerate() {
+                    let (v, dv) = shape.value_and_slope(t as f64 - c.peak_index);
+                    row[2 * i] = v;
+                    row[2 * i + 1] = -c.amplitude_v * dv;
+                }
+                let r = self.residual[t];
+                for p in 0..m {
+                    jtr[p] += row[p] * r;
+                    for q in 0..m {
+                        jtj[p * m + q] += row[p] * row[q];
+                    }
+                }
+            }
+            let mut improved = false;
+            for _try in 0..8 {
+                let mut aug = jtj.clone();
+                for p in 0..m {
+                    aug[p * m + p] *= 1.0 + lambda;
+                    aug[p * m + p] += 1e-30;
+                }
+                let Some(step) = solve(&mut aug, &jtr, m) else { break };
+                let trial: Vec<Component> = comps
+                    .iter()
+                    .enumerate()
+                    .map(|(i, c)| Component {
+                        amplitude_v: c.amplitude_v + step[2 * i],
+                        peak_index: c.peak_index + step[2 * i + 1].clamp(-2.0, 2.0),
+                        ..*c
+                    })
+                    .collect();
+                self.residual_from(x, mean_v, shape, &trial, window);
+                let new_cost = rss(&self.residual, &trial);
+                if new_cost.is_finite() && new_cost < cost {
+                    let small = step.iter().all(|s| s.abs() < 1e-9 * (1.0 + s.abs()));
+                    comps.copy_from_slice(&trial);
+                    cost = new_cost;
+                    lambda = (lambda * 0.3).max(1e-9);
+                    improved = !small;
+                    break;
+                }
+                lambda *= 10.0;
+            }
+            if !improved {
+                break;
+            }
+        }
+        self.residual_from(x, mean_v, shape, comps, window);
+        for i in 0..k {
+            let w = window(comps[i].peak_index);
+            let len = w.len().max(1) as f64;
+            let ss: f64 = self.residual[w].iter().map(|v| v * v).sum();
+            comps[i].misfit = if sigma_v > 0.0 { (ss / len).sqrt() / sigma_v } else { 0.0 };
+        }
     }
 
     fn fit(&self, shape: &Shape, start: f64, detected_at: usize, sigma_v: f64, window: &dyn Fn(f64) -> Range<usize>) -> Component {
@@ -125,4 +253,41 @@ impl Resolver {
             self.residual[k] += sign * c.amplitude_v * shape.value_and_slope(k as f64 - c.peak_index).0;
         }
     }
+}
+
+/// Sample span covering every component's window.
+fn span(comps: &[Component], window: &dyn Fn(f64) -> Range<usize>) -> (usize, usize) {
+    comps.iter().map(|c| window(c.peak_index)).fold((usize::MAX, 0), |(a, b), w| (a.min(w.start), b.max(w.end)))
+}
+
+/// Solves the m x m system in place by Gaussian elimination with partial pivoting.
+fn solve(a: &mut [f64], b: &[f64], m: usize) -> Option<Vec<f64>> {
+    let mut x = b.to_vec();
+    for col in 0..m {
+        let piv = (col..m).max_by(|&i, &j| a[i * m + col].abs().total_cmp(&a[j * m + col].abs()))?;
+        if !(a[piv * m + col].abs() > 0.0) {
+            return None;
+        }
+        if piv != col {
+            for k in 0..m {
+                a.swap(col * m + k, piv * m + k);
+            }
+            x.swap(col, piv);
+        }
+        for r in col + 1..m {
+            let f = a[r * m + col] / a[col * m + col];
+            for k in col..m {
+                a[r * m + k] -= f * a[col * m + k];
+            }
+            x[r] -= f * x[col];
+        }
+    }
+    for col in (0..m).rev() {
+        let mut v = x[col];
+        for k in col + 1..m {
+            v -= a[col * m + k] * x[k];
+        }
+        x[col] = v / a[col * m + col];
+    }
+    x.iter().all(|v| v.is_finite()).then_some(x)
 }

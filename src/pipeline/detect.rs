@@ -12,7 +12,11 @@ use crate::detect::qfunc;
 use crate::detect::stats::clopper_pearson;
 use crate::dsp::pulse::Shape;
 use crate::frame::{DetectorSummary, FalseAlarmStats};
-use crate::scene::{DetectorKind, PfaScope, Scene};
+use crate::detect::resolve::Resolver;
+use crate::scene::{DetectorKind, PfaScope, Scene, TimingMethod};
+
+/// At most this many pulses are resolved per report.
+const MAX_RESOLVED: usize = 32;
 
 /// Runs the detector on the stop channel.
 #[derive(Debug)]
@@ -21,7 +25,10 @@ pub struct Detect {
     pfa: f64,
     scope: PfaScope,
     pulse_cfg: crate::scene::PulseConfig,
-    plan: Option<(f64, usize, DetectorPlan)>,
+    /// Maximum-likelihood timing resolves overlapping returns here.
+    resolve: bool,
+    resolver: Resolver,
+    plan: Option<(f64, usize, Shape, DetectorPlan)>,
     /// Thresholds already solved, by range-gate size.
     thresholds: Vec<(usize, ReportThreshold)>,
     /// Noise-gate crossings since the pipeline started.
@@ -38,6 +45,8 @@ impl Detect {
             pfa: scene.detector.pfa,
             scope: scene.detector.pfa_scope,
             pulse_cfg: scene.return_pulse.clone(),
+            resolve: scene.timing.method == TimingMethod::Ml && scene.detector.kind == DetectorKind::MatchedFilter,
+            resolver: Resolver::default(),
             plan: None,
             thresholds: Vec::new(),
             observed_total: 0,
@@ -74,21 +83,23 @@ impl Stage for Detect {
         let dt = w.frame.sample_interval_s;
         let n = w.stop_v.len();
         if self.plan.as_ref().is_none_or(|p| p.0 != dt || p.1 < n) {
+            let shape = Shape::from_config(&self.pulse_cfg, dt);
             let plan = match self.kind {
-                DetectorKind::MatchedFilter => DetectorPlan::matched_filter(&Shape::from_config(&self.pulse_cfg, dt), n),
+                DetectorKind::MatchedFilter => DetectorPlan::matched_filter(&shape, n),
                 DetectorKind::Threshold => DetectorPlan::threshold(n),
             };
-            self.plan = Some((dt, n, plan));
+            self.plan = Some((dt, n, shape, plan));
         }
-        let (_, _, plan) = self.plan.as_mut().expect("built above");
-        let (norm, rho1, dc_gain) = (plan.norm(), plan.rho1(), plan.dc_gain());
+        let rho1 = self.plan.as_ref().expect("built above").3.rho1();
+        let cells = w.gates.range.len();
+        let t = self.threshold(cells, rho1);
+        let (_, _, shape, plan) = self.plan.as_mut().expect("built above");
+        let (norm, dc_gain) = (plan.norm(), plan.dc_gain());
         let pre_pos = plan.positions_inside(&w.gates.pre);
         let beyond_pos = plan.positions_inside(&w.gates.beyond);
         let y = plan.run(&w.stop_v, w.noise.mean_v);
         w.detector_output.clear();
         w.detector_output.extend_from_slice(y);
-        let cells = w.gates.range.len();
-        let t = self.threshold(cells, rho1);
         // The gate's mean and sigma are estimates: Student-t on the inflated
         // sigma keeps the design pfa for any gate size (see detect::finite_gate).
         let samples = w.noise.samples;
@@ -98,6 +109,19 @@ impl Stage for Detect {
         w.threshold_u = w.threshold_t * w.kappa;
         let thr = w.threshold_u * w.sigma_v;
         local_maxima(&w.detector_output, w.gates.range.clone(), thr, &mut w.detections);
+        w.components.clear();
+        if self.resolve && !w.detections.is_empty() {
+            w.components = self.resolver.resolve(
+                &w.stop_v,
+                w.noise.mean_v,
+                w.sigma_v,
+                shape,
+                plan,
+                w.gates.range.clone(),
+                thr,
+                MAX_RESOLVED,
+            );
+        }
         // Empirical false alarms: excursions above the same threshold in the
         // noise gates, where no return can be. Each gate position counts as
         // cells_effective / cells effective cells, as in the range gate.

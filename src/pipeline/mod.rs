@@ -76,6 +76,8 @@ pub struct Work {
     pub detector_output: Vec<f64>,
     /// Detected peak positions, strongest first.
     pub detections: Vec<usize>,
+    /// Pulses resolved by successive cancellation (maximum-likelihood timing only).
+    pub components: Vec<crate::detect::resolve::Component>,
     /// Threshold in units of the fitted noise sigma.
     pub threshold_u: f64,
     /// Student-t threshold in units of the inflated output sigma (sigma * kappa).

@@ -4,10 +4,15 @@
 
 use super::{FrameError, Stage, Work};
 use crate::detect::finite_gate::detection_probability;
-use crate::detect::timing::{time_pulse, TimingInput};
+use crate::detect::resolve::MISFIT_LIMIT;
+use crate::detect::timing::{crlb_samples, time_pulse, Timed, TimingInput};
 use crate::dsp::pulse::Shape;
 use crate::frame::Return;
 use crate::scene::{DetectorKind, Scene, TimingMethod};
+
+/// Returns closer than this many pulse widths are flagged "overlapping":
+/// their tails add, so each one's timing depends on the other's fit.
+const OVERLAP_FWHM: f64 = 2.0;
 
 /// At most this many returns per report (the strongest).
 const MAX_RETURNS: usize = 32;
@@ -64,36 +69,57 @@ impl Stage for Timing {
         let n = x.len();
         let (lo, hi) = pulse.support();
         let fwhm = pulse.fwhm();
-        let mut returns = Vec::with_capacity(w.detections.len().min(MAX_RETURNS));
-        for (rank, &p) in w.detections.iter().take(MAX_RETURNS).enumerate() {
-            let timed = time_pulse(
-                self.method,
-                &TimingInput {
-                    x,
-                    mean_v: w.noise.mean_v,
-                    sigma_v: w.sigma_v,
-                    y: &w.detector_output,
-                    norm,
-                    pulse,
-                    peak: p,
-                    fraction: self.fraction,
-                    leading_edge_v: self.leading_edge_v,
-                },
-            );
-            let t_stop_s = w.frame.sample_time_s(timed.index);
+        // Each pulse: where the detector found it, how it was timed, how well the shape fitted.
+        let mut timed: Vec<(usize, Timed, f64)> = Vec::with_capacity(w.detections.len().min(MAX_RETURNS));
+        if !w.components.is_empty() {
+            for c in w.components.iter().take(MAX_RETURNS) {
+                let crlb = crlb_samples(pulse, n, c.peak_index, c.amplitude_v, w.sigma_v);
+                let t = Timed {
+                    index: c.peak_index + pulse.fraction_offset(self.fraction),
+                    peak_index: c.peak_index,
+                    amplitude_v: c.amplitude_v,
+                    sigma_samples: crlb,
+                    crlb_samples: crlb,
+                    fallback: false,
+                };
+                timed.push((c.detected_at, t, c.misfit));
+            }
+        } else {
+            for &p in w.detections.iter().take(MAX_RETURNS) {
+                let t = time_pulse(
+                    self.method,
+                    &TimingInput {
+                        x,
+                        mean_v: w.noise.mean_v,
+                        sigma_v: w.sigma_v,
+                        y: &w.detector_output,
+                        norm,
+                        pulse,
+                        peak: p,
+                        fraction: self.fraction,
+                        leading_edge_v: self.leading_edge_v,
+                    },
+                );
+                timed.push((p, t, 0.0));
+            }
+        }
+        let mut returns = Vec::with_capacity(timed.len());
+        for (rank, &(p, one, misfit)) in timed.iter().enumerate() {
+            let timed_peak = one.peak_index;
+            let t_stop_s = w.frame.sample_time_s(one.index);
             let tof_s = t_stop_s - w.t_ref_s - self.delay_s;
-            let sigma_t = ((timed.sigma_samples * dt).powi(2) + w.t_ref_sigma_s.powi(2)).sqrt();
-            let amplitude_v = timed.amplitude_v;
+            let sigma_t = ((one.sigma_samples * dt).powi(2) + w.t_ref_sigma_s.powi(2)).sqrt();
+            let amplitude_v = one.amplitude_v;
             let d = amplitude_v * norm / w.sigma_v;
             let mut flags = Vec::new();
-            let first = (p as f64 + lo).floor();
-            let last = (p as f64 + hi).ceil();
+            let first = (one.peak_index + lo).floor();
+            let last = (one.peak_index + hi).ceil();
             if first < 0.0 || last > (n - 1) as f64 {
                 flags.push("frame_edge".to_string());
             }
             if let Some((clip_lo, clip_hi)) = w.clip_v {
-                let a = first.max(0.0) as usize;
-                let b = (last.max(0.0) as usize).min(n - 1);
+                let a = first.clamp(0.0, (n - 1) as f64) as usize;
+                let b = last.clamp(0.0, (n - 1) as f64) as usize;
                 // Within a quarter step of the rail counts as clipped.
                 let margin = 0.25 * w.lsb_v;
                 if x[a..=b].iter().any(|&v| v >= clip_hi - margin || v <= clip_lo + margin) {
@@ -107,11 +133,14 @@ impl Stage for Timing {
             if !w.noise.gaussian && w.noise.samples >= 8 {
                 flags.push("non_gaussian_noise".to_string());
             }
-            if w.detections.iter().enumerate().any(|(j, &q)| j != rank && (q as f64 - p as f64).abs() < fwhm) {
+            if timed.iter().enumerate().any(|(j, o)| j != rank && (o.1.peak_index - timed_peak).abs() < OVERLAP_FWHM * fwhm) {
                 flags.push("overlapping".to_string());
             }
-            if timed.fallback {
+            if one.fallback {
                 flags.push("timing_fallback".to_string());
+            }
+            if misfit > MISFIT_LIMIT {
+                flags.push("shape_mismatch".to_string());
             }
             returns.push(Return {
                 range_m: 0.5 * self.c_m_per_s * tof_s,
@@ -122,7 +151,7 @@ impl Stage for Timing {
                 score: w.detector_output[p] / (w.threshold_u * w.sigma_v),
                 pd,
                 t_stop_s,
-                t_peak_s: w.frame.sample_time_s(timed.peak_index),
+                t_peak_s: w.frame.sample_time_s(one.peak_index),
                 flags,
             });
         }

@@ -132,6 +132,7 @@ impl Validate {
             sigma_v: 0.0,
             detector_output: Vec::new(),
             detections: Vec::new(),
+            components: Vec::new(),
             threshold_u: 0.0,
             threshold_t: 0.0,
             kappa: 1.0,

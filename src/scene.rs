@@ -275,6 +275,18 @@ pub enum PfaScope {
     Sample,
 }
 
+/// Where the threshold's tail probability comes from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ThresholdMode {
+    /// Gaussian noise model: mean + sigma * Q⁻¹(p), Student-t for the gate size.
+    Gaussian,
+    /// Empirical quantile of the detector output in the noise gates, accumulated
+    /// over frames (exponential tail beyond what was observed); Gaussian until
+    /// 10 000 gate cells have been seen.
+    Empirical,
+}
+
 /// Detector configuration.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -287,6 +299,8 @@ pub struct DetectorConfig {
     pub pfa_scope: PfaScope,
     /// Jarque-Bera significance level.
     pub normality_alpha: f64,
+    /// Gaussian or empirical threshold.
+    pub threshold_mode: ThresholdMode,
 }
 
 impl Default for DetectorConfig {
@@ -296,6 +310,7 @@ impl Default for DetectorConfig {
             pfa: 1e-6,
             pfa_scope: PfaScope::Report,
             normality_alpha: 1e-3,
+            threshold_mode: ThresholdMode::Gaussian,
         }
     }
 }

@@ -21,3 +21,5 @@ pub mod template;
 pub mod finite_gate;
 /// Resolving overlapping returns by successive cancellation and joint refit.
 pub mod resolve;
+/// Empirical-quantile thresholds for non-Gaussian noise.
+pub mod empirical;

@@ -12,8 +12,9 @@ use crate::detect::qfunc;
 use crate::detect::stats::clopper_pearson;
 use crate::dsp::pulse::Shape;
 use crate::frame::{DetectorSummary, FalseAlarmStats};
+use crate::detect::empirical::EmpiricalTail;
 use crate::detect::resolve::Resolver;
-use crate::scene::{DetectorKind, PfaScope, Scene, TimingMethod};
+use crate::scene::{DetectorKind, PfaScope, Scene, ThresholdMode, TimingMethod};
 
 /// At most this many pulses are resolved per report.
 const MAX_RESOLVED: usize = 32;
@@ -31,6 +32,8 @@ pub struct Detect {
     plan: Option<(f64, usize, Shape, DetectorPlan)>,
     /// Thresholds already solved, by range-gate size.
     thresholds: Vec<(usize, ReportThreshold)>,
+    /// Normalised gate outputs, for the empirical threshold mode.
+    tail: Option<EmpiricalTail>,
     /// Noise-gate crossings since the pipeline started.
     observed_total: u64,
     /// Effective noise-gate cells since the pipeline started.
@@ -49,6 +52,7 @@ impl Detect {
             resolver: Resolver::default(),
             plan: None,
             thresholds: Vec::new(),
+            tail: (scene.detector.threshold_mode == ThresholdMode::Empirical).then(EmpiricalTail::default),
             observed_total: 0,
             cells_total: 0.0,
         }
@@ -107,6 +111,16 @@ impl Stage for Detect {
         w.kappa = mean_error_inflation(dc_gain, samples);
         w.threshold_t = t_quantile_from_z(t.u, w.nu);
         w.threshold_u = w.threshold_t * w.kappa;
+        if let Some(tail) = &self.tail {
+            match tail.quantile(t.p_cell) {
+                Some(z) => {
+                    w.threshold_u = z;
+                    w.threshold_t = z / w.kappa;
+                    w.report.flags.push("empirical_threshold".into());
+                }
+                None => w.report.flags.push("empirical_threshold_warming_up".into()),
+            }
+        }
         let thr = w.threshold_u * w.sigma_v;
         local_maxima(&w.detector_output, w.gates.range.clone(), thr, &mut w.detections);
         w.components.clear();
@@ -126,6 +140,11 @@ impl Stage for Detect {
         // noise gates, where no return can be. Each gate position counts as
         // cells_effective / cells effective cells, as in the range gate.
         let y = &w.detector_output;
+        if let Some(tail) = &mut self.tail {
+            for p in pre_pos.clone().chain(beyond_pos.clone()) {
+                tail.add(y[p] / w.sigma_v);
+            }
+        }
         let observed = upcrossings(y, pre_pos.clone(), thr) + upcrossings(y, beyond_pos.clone(), thr);
         let per_position = if cells > 0 { t.cells_effective / cells as f64 } else { 1.0 };
         let gate_cells = (pre_pos.len() + beyond_pos.len()) as f64 * per_position;

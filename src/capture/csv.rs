@@ -91,7 +91,9 @@ pub(crate) fn sniff(head: &[u8]) -> Option<Format> {
         return Some(Format::TekCsv);
     }
     let delim = guess_delim(first);
-    if split(first, delim).iter().any(|c| time_column(c).is_some()) {
+    let cells = split(first, delim);
+    let named = cells.iter().filter(|c| !c.is_empty()).count();
+    if named >= 2 && cells.iter().any(|c| time_column(c).is_some()) {
         return Some(Format::GenericCsv);
     }
     None

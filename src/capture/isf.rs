@@ -47,8 +47,7 @@ fn canonical(key: &str) -> Option<&'static str> {
 pub(crate) fn looks_like_isf(head: &[u8]) -> bool {
     let end = head.iter().position(|&b| b == b'#').unwrap_or(head.len());
     let text = String::from_utf8_lossy(&head[..end]).to_ascii_uppercase();
-    let starts = text.starts_with(":WFMP") || text.starts_with("WFMP") || text.starts_with("BYT_N");
-    starts && text.contains("BYT_N") && (text.contains("YMU") || text.contains("CURV"))
+    text.starts_with(":WFMP") || text.starts_with("WFMP") || text.starts_with("BYT_N") || text.starts_with(":BYT_N")
 }
 
 /// Index of the first `#` outside double quotes.

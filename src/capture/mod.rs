@@ -280,7 +280,8 @@ pub fn detect_format(path: &Path, head: &[u8]) -> Result<Format, CaptureError> {
             path: path.to_path_buf(),
         });
     }
-    if head.starts_with(RECORDING_MAGIC) {
+    // A recording cut inside its magic is still a (truncated) recording.
+    if head.starts_with(RECORDING_MAGIC) || RECORDING_MAGIC.starts_with(head) {
         return Ok(Format::Tofwave);
     }
     if trc::find_wavedesc(head).is_some() {

@@ -40,6 +40,18 @@ pub(crate) fn find_wavedesc(head: &[u8]) -> Option<usize> {
     None
 }
 
+/// The f64 nearest the shortest decimal that reads back as `x`.
+///
+/// The scope stores decimal settings (1e-9 s, 1.24995e-4 V) as binary32;
+/// widening the bits would give 9.9999997e-10 s, a 3e-8 relative error that
+/// accumulates along long records. The shortest decimal is the value meant.
+fn f32_decimal(x: f32) -> f64 {
+    if !x.is_finite() {
+        return x as f64;
+    }
+    x.to_string().parse().unwrap_or(x as f64)
+}
+
 /// Days since 1970-01-01 of a proleptic Gregorian date (H. Hinnant's algorithm).
 fn days_from_civil(y: i64, m: i64, d: i64) -> i64 {
     let y = if m <= 2 { y - 1 } else { y };
@@ -161,15 +173,15 @@ pub(crate) fn read(path: &Path, data: &[u8]) -> Result<Vec<Frame>, CaptureError>
             format!("{trig_len} bytes"),
         ));
     }
-    let gain = v.f32(base + 156, order, "VERTICAL_GAIN")? as f64;
+    let gain = f32_decimal(v.f32(base + 156, order, "VERTICAL_GAIN")?);
     if !(gain.is_finite() && gain != 0.0) {
         return Err(v.malformed(base + 156, "a finite non-zero VERTICAL_GAIN", gain.to_string()));
     }
-    let voffset = v.f32(base + 160, order, "VERTICAL_OFFSET")? as f64;
+    let voffset = f32_decimal(v.f32(base + 160, order, "VERTICAL_OFFSET")?);
     if !voffset.is_finite() {
         return Err(v.malformed(base + 160, "a finite VERTICAL_OFFSET", voffset.to_string()));
     }
-    let dt = v.f32(base + 176, order, "HORIZ_INTERVAL")? as f64;
+    let dt = f32_decimal(v.f32(base + 176, order, "HORIZ_INTERVAL")?);
     if !(dt.is_finite() && dt > 0.0) {
         return Err(v.malformed(base + 176, "HORIZ_INTERVAL > 0 s", dt.to_string()));
     }
@@ -370,6 +382,14 @@ mod tests {
             let (y, m, d) = civil_from_days(z);
             assert_eq!(days_from_civil(y, m, d), z);
         }
+    }
+
+    #[test]
+    fn binary32_settings_read_as_their_decimal() {
+        assert_eq!(f32_decimal(1e-9f32), 1e-9);
+        assert_eq!(f32_decimal(1.24995e-4f32), 1.24995e-4);
+        assert_eq!(f32_decimal(-1.0), -1.0);
+        assert_eq!(f32_decimal(0.1f32) as f32, 0.1f32);
     }
 
     #[test]

@@ -7,17 +7,21 @@ use std::path::{Path, PathBuf};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use tofwave::capture::{
-    CaptureError, Format, ReadOptions, RecordingReader, RecordingWriter, detect_format, frames, read_bytes,
-    read_paths, write_csv, write_isf, write_keysight_bin, write_recording, write_trc,
+    CaptureError, Format, ReadOptions, RecordingReader, RecordingWriter, detect_format, frames,
+    read_bytes, read_paths, write_csv, write_isf, write_keysight_bin, write_recording, write_trc,
 };
 use tofwave::frame::{Channel, ChannelRole, Frame, Samples};
 
 fn replay(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("replay-data").join(name)
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("replay-data")
+        .join(name)
 }
 
 fn data(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/capture").join(name)
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data/capture")
+        .join(name)
 }
 
 fn read_one(path: &Path) -> Vec<Frame> {
@@ -26,7 +30,11 @@ fn read_one(path: &Path) -> Vec<Frame> {
 
 fn read_err(path: &Path) -> String {
     match read_paths(&[path.to_path_buf()], &ReadOptions::default()) {
-        Ok(f) => panic!("{} read as {} frames, expected an error", path.display(), f.len()),
+        Ok(f) => panic!(
+            "{} read as {} frames, expected an error",
+            path.display(),
+            f.len()
+        ),
         Err(e) => e.to_string(),
     }
 }
@@ -70,7 +78,11 @@ fn lecroy_4_single_pulse_has_the_documented_shape_and_time_axis() {
     let t50 = f.sample_time_s(k as f64 - 1.0 + (level - v[k - 1]) / (v[k] - v[k - 1]));
     assert!((t50 - 0.77e-9).abs() < 0.02e-9, "t50 {t50:e}");
     // TRIGGER_TIME 2022-11-09 09:23:52.11 (scope clock, read as UTC).
-    assert!((f.trigger_time_s - 1_667_985_832.112).abs() < 1e-3, "{}", f.trigger_time_s);
+    assert!(
+        (f.trigger_time_s - 1_667_985_832.112).abs() < 1e-3,
+        "{}",
+        f.trigger_time_s
+    );
 }
 
 #[test]
@@ -82,7 +94,10 @@ fn lecroy_3_sequence_gives_one_frame_per_segment_with_trigtime() {
     // f64 at ~1.7e9 s resolves 2.4e-7 s: tolerance 1e-6 s.
     assert!((rel[1] - 7.4584e-3).abs() < 1e-6, "{}", rel[1]);
     assert!((rel[2] - 1.7308e-2).abs() < 1e-6, "{}", rel[2]);
-    assert!(rel.windows(2).all(|w| w[1] > w[0]), "trigger times increase");
+    assert!(
+        rel.windows(2).all(|w| w[1] > w[0]),
+        "trigger times increase"
+    );
     assert_eq!(frames[0].first_sample_offset_s, -3.645793678514268e-7);
     assert_eq!(frames[1].first_sample_offset_s, -3.643285602155971e-7);
     assert_eq!(frames[2].first_sample_offset_s, -3.644754030937176e-7);
@@ -127,7 +142,9 @@ fn agilent_1_bin_reads_float_volts() {
     assert_eq!(f.channels[0].name, "1");
     assert!(matches!(f.channels[0].samples, Samples::F32(_)));
     let v = f.channels[0].volts();
-    let (lo, hi) = v.iter().fold((f64::MAX, f64::MIN), |(a, b), &x| (a.min(x), b.max(x)));
+    let (lo, hi) = v
+        .iter()
+        .fold((f64::MAX, f64::MIN), |(a, b), &x| (a.min(x), b.max(x)));
     assert!(lo > -2.2 && lo < -1.9, "min {lo}");
     assert!(hi < 2.2 && hi > 1.8, "max {hi}");
 }
@@ -157,18 +174,26 @@ fn sample_frame(seq: u64, samples: Vec<Samples>) -> Frame {
 }
 
 fn i16_ramp(n: usize, k: i32) -> Vec<i16> {
-    (0..n as i32).map(|i| ((i * 977 + k * 31) % 65536 - 32768) as i16).collect()
+    (0..n as i32)
+        .map(|i| ((i * 977 + k * 31) % 65536 - 32768) as i16)
+        .collect()
 }
 
 fn pulse_volts(n: usize, shift: f64) -> Vec<f64> {
     (0..n)
-        .map(|i| 0.01 + 2.5 * (-((i as f64 - 40.0 - shift) / 3.0).powi(2)).exp() + 1e-3 * (i as f64 * 0.7).sin())
+        .map(|i| {
+            0.01 + 2.5 * (-((i as f64 - 40.0 - shift) / 3.0).powi(2)).exp()
+                + 1e-3 * (i as f64 * 0.7).sin()
+        })
         .collect()
 }
 
 fn max_abs_diff(a: &[f64], b: &[f64]) -> f64 {
     assert_eq!(a.len(), b.len());
-    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max)
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f64::max)
 }
 
 #[test]
@@ -189,13 +214,22 @@ fn trc_round_trip_keeps_codes_exact() {
     assert!((b.trigger_time_s - f.trigger_time_s).abs() < 1e-6);
 
     // i8 codes stay 8-bit.
-    let f8 = sample_frame(0, vec![Samples::I8((0..200).map(|i| (i % 256 - 128) as i8).collect())]);
+    let f8 = sample_frame(
+        0,
+        vec![Samples::I8(
+            (0..200).map(|i| (i % 256 - 128) as i8).collect(),
+        )],
+    );
     write_trc(&p, std::slice::from_ref(&f8), "ch1").unwrap();
     assert_eq!(read_one(&p)[0].channels[0].samples, f8.channels[0].samples);
 
     // Volts are quantised to i16 within half a code; a non-numbered name is kept.
     let mut fv = sample_frame(0, vec![]);
-    fv.channels.push(Channel::from_volts("stop", ChannelRole::Stop, pulse_volts(256, 0.0)));
+    fv.channels.push(Channel::from_volts(
+        "stop",
+        ChannelRole::Stop,
+        pulse_volts(256, 0.0),
+    ));
     write_trc(&p, std::slice::from_ref(&fv), "stop").unwrap();
     let b = &read_one(&p)[0];
     assert_eq!(b.channels[0].name, "stop");
@@ -209,7 +243,9 @@ fn trc_round_trip_keeps_codes_exact() {
 fn trc_sequence_round_trip_keeps_trigger_times_and_offsets() {
     let dir = tempfile::tempdir().unwrap();
     let p = dir.path().join("seq.trc");
-    let frames: Vec<Frame> = (0..5).map(|k| sample_frame(k, vec![Samples::I16(i16_ramp(128, k as i32))])).collect();
+    let frames: Vec<Frame> = (0..5)
+        .map(|k| sample_frame(k, vec![Samples::I16(i16_ramp(128, k as i32))]))
+        .collect();
     write_trc(&p, &frames, "CH1").unwrap();
     let back = read_one(&p);
     assert_eq!(back.len(), 5);
@@ -222,14 +258,23 @@ fn trc_sequence_round_trip_keeps_trigger_times_and_offsets() {
     let mut bad = frames.clone();
     bad[3] = sample_frame(3, vec![Samples::I16(i16_ramp(100, 3))]);
     let e = write_trc(&p, &bad, "CH1").unwrap_err().to_string();
-    assert!(e.contains("seq.trc: cannot write: expected 128 samples"), "{e}");
+    assert!(
+        e.contains("seq.trc: cannot write: expected 128 samples"),
+        "{e}"
+    );
 }
 
 #[test]
 fn isf_round_trip_and_hand_edited_header() {
     let dir = tempfile::tempdir().unwrap();
     let p = dir.path().join("w.isf");
-    let f = sample_frame(0, vec![Samples::I16(i16_ramp(500, 1)), Samples::I16(i16_ramp(500, 2))]);
+    let f = sample_frame(
+        0,
+        vec![
+            Samples::I16(i16_ramp(500, 1)),
+            Samples::I16(i16_ramp(500, 2)),
+        ],
+    );
     write_isf(&p, &f, "CH2").unwrap();
     let b = &read_one(&p)[0];
     assert_eq!(b.channels.len(), 1);
@@ -240,12 +285,19 @@ fn isf_round_trip_and_hand_edited_header() {
     assert_eq!(b.sample_interval_s, 1e-9);
     assert_eq!(b.first_sample_offset_s, f.first_sample_offset_s);
 
-    let f8 = sample_frame(0, vec![Samples::I8((0..256).map(|i| (i - 128) as i8).collect())]);
+    let f8 = sample_frame(
+        0,
+        vec![Samples::I8((0..256).map(|i| (i - 128) as i8).collect())],
+    );
     write_isf(&p, &f8, "1").unwrap();
     assert_eq!(read_one(&p)[0].channels[0].samples, f8.channels[0].samples);
 
     let mut fv = sample_frame(0, vec![]);
-    fv.channels.push(Channel::from_volts("CH1", ChannelRole::Unspecified, pulse_volts(300, 0.3)));
+    fv.channels.push(Channel::from_volts(
+        "CH1",
+        ChannelRole::Unspecified,
+        pulse_volts(300, 0.3),
+    ));
     write_isf(&p, &fv, "CH1").unwrap();
     let b = &read_one(&p)[0];
     let lsb = b.channels[0].volts_per_code;
@@ -262,7 +314,10 @@ NR_P 4;PT_F Y;XUN \"s\";XIN 2.0E-9;PT_O 10;XZE -1.0E-8;YUN \"V\";YZE 5.0E-1;YMU 
     std::fs::write(&p, &bytes).unwrap();
     let b = &read_one(&p)[0];
     assert_eq!(b.channels[0].name, "Ch3");
-    assert_eq!(b.channels[0].samples, Samples::I32(codes.iter().map(|&c| c as i32).collect()));
+    assert_eq!(
+        b.channels[0].samples,
+        Samples::I32(codes.iter().map(|&c| c as i32).collect())
+    );
     let v = b.channels[0].volts();
     for (got, want) in v.iter().zip([0.5, 1.5, -0.5, 0.5 + 32.767]) {
         assert!((got - want).abs() < 1e-9, "{got} vs {want}");
@@ -299,7 +354,11 @@ fn keysight_bin_round_trip_is_exact_for_f32_volts() {
     let b = &read_one(&p)[0];
     let want = fi.channels[0].volts();
     let got = b.channels[0].volts();
-    assert!(want.iter().zip(&got).all(|(w, g)| (w - g).abs() <= w.abs() * 1e-7));
+    assert!(
+        want.iter()
+            .zip(&got)
+            .all(|(w, g)| (w - g).abs() <= w.abs() * 1e-7)
+    );
 }
 
 #[test]
@@ -308,8 +367,16 @@ fn csv_dialects_round_trip_f64_values_exactly() {
     let mut f = sample_frame(0, vec![]);
     f.trigger_time_s = 0.0;
     f.first_sample_offset_s = -1.2074500661794662e-7;
-    f.channels.push(Channel::from_volts("CH1", ChannelRole::Unspecified, pulse_volts(600, 0.0)));
-    f.channels.push(Channel::from_volts("CH2", ChannelRole::Unspecified, pulse_volts(600, 7.25)));
+    f.channels.push(Channel::from_volts(
+        "CH1",
+        ChannelRole::Unspecified,
+        pulse_volts(600, 0.0),
+    ));
+    f.channels.push(Channel::from_volts(
+        "CH2",
+        ChannelRole::Unspecified,
+        pulse_volts(600, 7.25),
+    ));
     for (dialect, ext) in [
         (Format::TekCsv, "csv"),
         (Format::RigolCsv, "csv"),
@@ -319,14 +386,28 @@ fn csv_dialects_round_trip_f64_values_exactly() {
         let p = dir.path().join(format!("{}.{ext}", dialect.name()));
         write_csv(&p, &f, dialect).unwrap();
         let head = std::fs::read(&p).unwrap();
-        assert_eq!(detect_format(&p, &head).unwrap(), dialect, "{}", p.display());
+        assert_eq!(
+            detect_format(&p, &head).unwrap(),
+            dialect,
+            "{}",
+            p.display()
+        );
         let b = &read_one(&p)[0];
         assert_eq!(b.channels, f.channels, "{dialect}");
-        assert_eq!(b.first_sample_offset_s, f.first_sample_offset_s, "{dialect}");
-        assert!((b.sample_interval_s / 1e-9 - 1.0).abs() < 1e-12, "{dialect} dt {}", b.sample_interval_s);
+        assert_eq!(
+            b.first_sample_offset_s, f.first_sample_offset_s,
+            "{dialect}"
+        );
+        assert!(
+            (b.sample_interval_s / 1e-9 - 1.0).abs() < 1e-12,
+            "{dialect} dt {}",
+            b.sample_interval_s
+        );
         assert_eq!(b.trigger_time_s, 0.0);
     }
-    let e = write_csv(&dir.path().join("x.csv"), &f, Format::LecroyTrc).unwrap_err().to_string();
+    let e = write_csv(&dir.path().join("x.csv"), &f, Format::LecroyTrc)
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("expected a CSV dialect"), "{e}");
 }
 
@@ -345,7 +426,10 @@ fn hand_made_csv_variants_read() {
     assert_eq!(f.channel_names(), vec!["start", "stop"]);
     assert!((f.sample_interval_s - 1e-9).abs() < 1e-21);
     assert!((f.first_sample_offset_s + 2e-9).abs() < 1e-21);
-    assert!((f.channels[1].volts()[2] - 0.0125).abs() < 1e-15, "mV scaled to volts");
+    assert!(
+        (f.channels[1].volts()[2] - 0.0125).abs() < 1e-15,
+        "mV scaled to volts"
+    );
 
     // Tab-separated, time in microseconds.
     let f = &read_one(&data("generic_tab_us.tsv"))[0];
@@ -364,18 +448,38 @@ fn recording_round_trip_is_bit_exact() {
     let dir = tempfile::tempdir().unwrap();
     let p = dir.path().join("r.twr");
     let mut frames = vec![
-        sample_frame(10, vec![Samples::I16(i16_ramp(64, 0)), Samples::I8(vec![-3; 64])]),
-        sample_frame(11, vec![Samples::I32((0..64).map(|i| i * 100_000).collect())]),
-        sample_frame(12, vec![Samples::F32((0..64).map(|i| i as f32 * 0.1).collect())]),
+        sample_frame(
+            10,
+            vec![Samples::I16(i16_ramp(64, 0)), Samples::I8(vec![-3; 64])],
+        ),
+        sample_frame(
+            11,
+            vec![Samples::I32((0..64).map(|i| i * 100_000).collect())],
+        ),
+        sample_frame(
+            12,
+            vec![Samples::F32((0..64).map(|i| i as f32 * 0.1).collect())],
+        ),
     ];
     let mut f64_frame = sample_frame(13, vec![]);
-    f64_frame.channels.push(Channel::from_volts("avg", ChannelRole::Stop, (0..64).map(|i| (i as f64).sqrt() / 3.0).collect()));
-    f64_frame.channels.push(Channel::from_volts("ref", ChannelRole::Start, (0..64).map(|i| -(i as f64) / 7.0).collect()));
+    f64_frame.channels.push(Channel::from_volts(
+        "avg",
+        ChannelRole::Stop,
+        (0..64).map(|i| (i as f64).sqrt() / 3.0).collect(),
+    ));
+    f64_frame.channels.push(Channel::from_volts(
+        "ref",
+        ChannelRole::Start,
+        (0..64).map(|i| -(i as f64) / 7.0).collect(),
+    ));
     f64_frame.laser_off = true;
     frames.push(f64_frame);
     write_recording(&p, &frames).unwrap();
     let back = read_one(&p);
-    assert_eq!(back, frames, "recorded ids, roles and every sample type survive");
+    assert_eq!(
+        back, frames,
+        "recorded ids, roles and every sample type survive"
+    );
 
     // The streaming writer produces the same bytes.
     let mut w = RecordingWriter::new(Vec::new()).unwrap();
@@ -390,7 +494,10 @@ fn recording_round_trip_is_bit_exact() {
         .collect::<Result<_, _>>()
         .unwrap();
     assert_eq!(streamed, frames);
-    assert_eq!(detect_format(Path::new("x.dat"), &bytes).unwrap(), Format::Tofwave);
+    assert_eq!(
+        detect_format(Path::new("x.dat"), &bytes).unwrap(),
+        Format::Tofwave
+    );
 }
 
 // ---------------------------------------------------------------- directories
@@ -399,10 +506,16 @@ fn recording_round_trip_is_bit_exact() {
 fn directory_reads_in_name_order_with_consecutive_sequence_numbers() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let seq: Vec<Frame> = (0..3).map(|k| sample_frame(k, vec![Samples::I16(i16_ramp(32, k as i32))])).collect();
+    let seq: Vec<Frame> = (0..3)
+        .map(|k| sample_frame(k, vec![Samples::I16(i16_ramp(32, k as i32))]))
+        .collect();
     write_trc(&d.join("b_seq.trc"), &seq, "CH1").unwrap();
     let mut single = sample_frame(0, vec![]);
-    single.channels.push(Channel::from_volts("CH1", ChannelRole::Unspecified, vec![0.0, 1.0, 0.5]));
+    single.channels.push(Channel::from_volts(
+        "CH1",
+        ChannelRole::Unspecified,
+        vec![0.0, 1.0, 0.5],
+    ));
     write_csv(&d.join("a_first.csv"), &single, Format::GenericCsv).unwrap();
     write_csv(&d.join(".hidden.csv"), &single, Format::GenericCsv).unwrap();
     std::fs::write(d.join("notes.md"), "not a capture").unwrap();
@@ -418,7 +531,10 @@ fn directory_reads_in_name_order_with_consecutive_sequence_numbers() {
     // A file before the directory: numbering continues across both.
     let extra = d.join("b_seq.trc");
     let all = read_paths(&[extra.clone(), d.to_path_buf()], &opts).unwrap();
-    let ids: Vec<(String, u64, usize)> = all.iter().map(|f| (f.sensor_id.clone(), f.sequence, f.len())).collect();
+    let ids: Vec<(String, u64, usize)> = all
+        .iter()
+        .map(|f| (f.sensor_id.clone(), f.sequence, f.len()))
+        .collect();
     let b = |s: u64| ("bench".to_string(), s, 32);
     assert_eq!(
         ids,
@@ -435,13 +551,19 @@ fn directory_reads_in_name_order_with_consecutive_sequence_numbers() {
         ]
     );
     // The lazy source yields the same frames.
-    let lazy: Vec<Frame> = frames(&[extra, d.to_path_buf()], &opts).unwrap().map(Result::unwrap).collect();
+    let lazy: Vec<Frame> = frames(&[extra, d.to_path_buf()], &opts)
+        .unwrap()
+        .map(Result::unwrap)
+        .collect();
     assert_eq!(lazy, all);
 
     let empty = tempfile::tempdir().unwrap();
     std::fs::write(empty.path().join("readme.md"), "x").unwrap();
     let e = read_err(empty.path());
-    assert!(e.contains("expected capture files") && e.contains("found none"), "{e}");
+    assert!(
+        e.contains("expected capture files") && e.contains("found none"),
+        "{e}"
+    );
 }
 
 #[test]
@@ -450,8 +572,13 @@ fn forced_format_overrides_detection() {
         format: Format::KeysightBin,
         sensor_id: "x".into(),
     };
-    let e = read_paths(&[replay("lecroy_4.trc")], &opts).unwrap_err().to_string();
-    assert!(e.contains("lecroy_4.trc: byte 0: expected \"AG\" + 2 version digits"), "{e}");
+    let e = read_paths(&[replay("lecroy_4.trc")], &opts)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("lecroy_4.trc: byte 0: expected \"AG\" + 2 version digits"),
+        "{e}"
+    );
 }
 
 #[test]
@@ -479,7 +606,11 @@ fn format_is_detected_from_content_not_extension() {
         // Misleading extensions: the content decides.
         for name in ["capture.dat", "capture.bin", "capture.csv"] {
             let head = &bytes[..bytes.len().min(4096)];
-            assert_eq!(detect_format(Path::new(name), head).unwrap(), *fmt, "{name} holding {fmt}");
+            assert_eq!(
+                detect_format(Path::new(name), head).unwrap(),
+                *fmt,
+                "{name} holding {fmt}"
+            );
         }
         let frames = read_bytes(Path::new("capture.dat"), &bytes, Format::Auto).unwrap();
         assert!(!frames.is_empty());
@@ -498,11 +629,24 @@ fn write_tmp(dir: &Path, name: &str, bytes: &[u8]) -> PathBuf {
 fn truncated_binary_files_give_offset_errors_never_panics() {
     let dir = tempfile::tempdir().unwrap();
     let isf = dir.path().join("w.isf");
-    write_isf(&isf, &sample_frame(0, vec![Samples::I16(i16_ramp(200, 0))]), "CH1").unwrap();
+    write_isf(
+        &isf,
+        &sample_frame(0, vec![Samples::I16(i16_ramp(200, 0))]),
+        "CH1",
+    )
+    .unwrap();
     let twr = dir.path().join("w.twr");
-    let rec_frames: Vec<Frame> = (0..3).map(|k| sample_frame(k, vec![Samples::I16(i16_ramp(40, 0))])).collect();
+    let rec_frames: Vec<Frame> = (0..3)
+        .map(|k| sample_frame(k, vec![Samples::I16(i16_ramp(40, 0))]))
+        .collect();
     write_recording(&twr, &rec_frames).unwrap();
-    for path in [replay("lecroy_4.trc"), replay("lecroy_3.trc"), replay("agilent_1.bin"), isf, twr] {
+    for path in [
+        replay("lecroy_4.trc"),
+        replay("lecroy_3.trc"),
+        replay("agilent_1.bin"),
+        isf,
+        twr,
+    ] {
         let good = std::fs::read(&path).unwrap();
         let name = path.file_name().unwrap().to_string_lossy().to_string();
         let is_twr = name.ends_with(".twr");
@@ -513,7 +657,10 @@ fn truncated_binary_files_give_offset_errors_never_panics() {
                 Err(e) => {
                     let msg = e.to_string();
                     assert!(msg.contains(&name), "{msg}");
-                    assert!(msg.contains("byte ") && msg.contains("expected"), "cut {cut}: {msg}");
+                    assert!(
+                        msg.contains("byte ") && msg.contains("expected"),
+                        "cut {cut}: {msg}"
+                    );
                 }
                 // A recording cut exactly between frames is a valid shorter recording.
                 Ok(frames) if is_twr => assert!(frames.len() < rec_frames.len()),
@@ -527,8 +674,17 @@ fn truncated_binary_files_give_offset_errors_never_panics() {
     let good = std::fs::read(replay("lecroy_4.trc")).unwrap();
     let p = write_tmp(dir.path(), "cut.trc", &good[..800]);
     let e = read_err(&p);
-    assert!(e.contains("cut.trc: byte 357: expected WAVE_ARRAY_1 (samples) (1004 bytes), found only 443 bytes"), "{e}");
-    let p = write_tmp(dir.path(), "cut.bin", &std::fs::read(replay("agilent_1.bin")).unwrap()[..5000]);
+    assert!(
+        e.contains(
+            "cut.trc: byte 357: expected WAVE_ARRAY_1 (samples) (1004 bytes), found only 443 bytes"
+        ),
+        "{e}"
+    );
+    let p = write_tmp(
+        dir.path(),
+        "cut.bin",
+        &std::fs::read(replay("agilent_1.bin")).unwrap()[..5000],
+    );
     let e = read_err(&p);
     assert!(e.contains("cut.bin: byte 0: expected the file size declared at byte 4 (8164 bytes), found only 5000"), "{e}");
 }
@@ -541,7 +697,10 @@ fn wrong_magic_and_length_mismatches_are_named() {
     let mut bad = good.clone();
     bad[11 + 7] = b'X'; // WAVEDESX
     let e = read_err(&write_tmp(dir.path(), "magic.trc", &bad));
-    assert!(e.contains("magic.trc: byte 0: expected \"WAVEDESC\""), "{e}");
+    assert!(
+        e.contains("magic.trc: byte 0: expected \"WAVEDESC\""),
+        "{e}"
+    );
 
     let mut bad = good.clone();
     bad[11 + 116..11 + 120].copy_from_slice(&501i32.to_le_bytes()); // WAVE_ARRAY_COUNT
@@ -554,55 +713,111 @@ fn wrong_magic_and_length_mismatches_are_named() {
     let mut bad = good.clone();
     bad[11 + 60..11 + 64].copy_from_slice(&i32::MAX.to_le_bytes()); // huge WAVE_ARRAY_1 length
     let e = read_err(&write_tmp(dir.path(), "huge.trc", &bad));
-    assert!(e.contains("huge.trc: byte 357: expected WAVE_ARRAY_1 (samples) (2147483647 bytes)"), "{e}");
+    assert!(
+        e.contains("huge.trc: byte 357: expected WAVE_ARRAY_1 (samples) (2147483647 bytes)"),
+        "{e}"
+    );
 
     let mut bad = good.clone();
     bad[11 + 32] = 7; // COMM_TYPE
     let e = read_err(&write_tmp(dir.path(), "type.trc", &bad));
-    assert!(e.contains("type.trc: byte 43: expected COMM_TYPE 0 (i8) or 1 (i16), found 7"), "{e}");
+    assert!(
+        e.contains("type.trc: byte 43: expected COMM_TYPE 0 (i8) or 1 (i16), found 7"),
+        "{e}"
+    );
 
     let agilent = std::fs::read(replay("agilent_1.bin")).unwrap();
     let mut bad = agilent.clone();
     bad[0] = b'X';
     let e = read_err(&write_tmp(dir.path(), "magic.bin", &bad));
-    assert!(e.contains("magic.bin: byte 0: expected \"AG\" + 2 version digits"), "{e}");
+    assert!(
+        e.contains("magic.bin: byte 0: expected \"AG\" + 2 version digits"),
+        "{e}"
+    );
     let mut bad = agilent.clone();
     bad[12 + 12..12 + 16].copy_from_slice(&1999u32.to_le_bytes()); // points
     let e = read_err(&write_tmp(dir.path(), "points.bin", &bad));
-    assert!(e.contains("points.bin: byte 160: expected 1999 points x 4 bytes = 7996 bytes"), "{e}");
+    assert!(
+        e.contains("points.bin: byte 160: expected 1999 points x 4 bytes = 7996 bytes"),
+        "{e}"
+    );
     assert!(e.contains("found 8000 bytes"), "{e}");
 
     let e = read_err(&data("isf_nr_pt_mismatch.isf"));
-    assert!(e.contains("isf_nr_pt_mismatch.isf: byte ") && e.contains("expected a curve of NR_PT (5) x BYT_NR (2) bytes, found 8 bytes"), "{e}");
+    assert!(
+        e.contains("isf_nr_pt_mismatch.isf: byte ")
+            && e.contains("expected a curve of NR_PT (5) x BYT_NR (2) bytes, found 8 bytes"),
+        "{e}"
+    );
 
     let mut rec = Vec::new();
     let mut w = RecordingWriter::new(&mut rec).unwrap();
-    w.write_frame(&sample_frame(0, vec![Samples::I8(vec![1, 2])])).unwrap();
+    w.write_frame(&sample_frame(0, vec![Samples::I8(vec![1, 2])]))
+        .unwrap();
     drop(w);
     let mut bad = rec.clone();
     bad[12] = 9; // version
     let e = read_err(&write_tmp(dir.path(), "v.twr", &bad));
-    assert!(e.contains("v.twr: byte 12: expected recording format version 1, found version 9"), "{e}");
+    assert!(
+        e.contains("v.twr: byte 12: expected recording format version 1, found version 9"),
+        "{e}"
+    );
     let mut bad = rec.clone();
     bad[0] = b'X';
     let e = read_err(&write_tmp(dir.path(), "m.twr", &bad));
-    assert!(e.contains("m.twr: byte 0: expected the tofwave recording magic"), "{e}");
+    assert!(
+        e.contains("m.twr: byte 0: expected the tofwave recording magic"),
+        "{e}"
+    );
 }
 
 #[test]
 fn csv_errors_name_line_and_column() {
     let cases: &[(&str, &str)] = &[
-        ("non_numeric.csv", "non_numeric.csv: line 5, column 3: expected a finite number for CH2, found \"abc\""),
-        ("missing_cell.csv", "missing_cell.csv: line 4, column 3: expected a value for CH2, found end of row"),
-        ("no_channel.csv", "no_channel.csv: line 1: expected at least one channel column"),
-        ("header_only.csv", "header_only.csv: line 1: expected at least 2 data rows after the header (to know the sample interval), found none"),
-        ("no_time_column.csv", "no_time_column.csv: line 1: expected a header row with a time column"),
-        ("nonuniform.csv", "nonuniform.csv: line 6: expected a time step of"),
-        ("comments_only.csv", "comments_only.csv: line 3: expected a CSV header row, found only blank or comment lines"),
-        ("tek_short.csv", "tek_short.csv: line 2: expected 5 data rows as this Record Length says, found 3 rows"),
-        ("tek_no_time.csv", "tek_no_time.csv: line 4: expected a \"TIME,CH1,...\" column header"),
-        ("rigol_gap.csv", "rigol_gap.csv: line 5, column 1: expected sample index 2, found 3"),
-        ("bad_unit.csv", "bad_unit.csv: line 1, column 1: expected a time unit s, ms, us, ns or ps, found \"time (h)\""),
+        (
+            "non_numeric.csv",
+            "non_numeric.csv: line 5, column 3: expected a finite number for CH2, found \"abc\"",
+        ),
+        (
+            "missing_cell.csv",
+            "missing_cell.csv: line 4, column 3: expected a value for CH2, found end of row",
+        ),
+        (
+            "no_channel.csv",
+            "no_channel.csv: line 1: expected at least one channel column",
+        ),
+        (
+            "header_only.csv",
+            "header_only.csv: line 1: expected at least 2 data rows after the header (to know the sample interval), found none",
+        ),
+        (
+            "no_time_column.csv",
+            "no_time_column.csv: line 1: expected a header row with a time column",
+        ),
+        (
+            "nonuniform.csv",
+            "nonuniform.csv: line 6: expected a time step of",
+        ),
+        (
+            "comments_only.csv",
+            "comments_only.csv: line 3: expected a CSV header row, found only blank or comment lines",
+        ),
+        (
+            "tek_short.csv",
+            "tek_short.csv: line 2: expected 5 data rows as this Record Length says, found 3 rows",
+        ),
+        (
+            "tek_no_time.csv",
+            "tek_no_time.csv: line 4: expected a \"TIME,CH1,...\" column header",
+        ),
+        (
+            "rigol_gap.csv",
+            "rigol_gap.csv: line 5, column 1: expected sample index 2, found 3",
+        ),
+        (
+            "bad_unit.csv",
+            "bad_unit.csv: line 1, column 1: expected a time unit s, ms, us, ns or ps, found \"time (h)\"",
+        ),
     ];
     for (file, want) in cases {
         let e = read_err(&data(file));
@@ -615,15 +830,37 @@ fn empty_and_unrecognised_files() {
     let dir = tempfile::tempdir().unwrap();
     for name in ["zero.trc", "zero.csv", "zero.twr", "zero.bin", "zero.isf"] {
         let e = read_err(&write_tmp(dir.path(), name, b""));
-        assert!(e.contains(&format!("{name}: byte 0: expected capture data, found an empty file")), "{e}");
+        assert!(
+            e.contains(&format!(
+                "{name}: byte 0: expected capture data, found an empty file"
+            )),
+            "{e}"
+        );
     }
     let e = read_err(&write_tmp(dir.path(), "blank.csv", b"\n\r\n  \n"));
-    assert!(e.contains("blank.csv: line 4: expected a CSV header row"), "{e}");
-    let e = read_err(&write_tmp(dir.path(), "mystery.dat", &[0x7f, 0x45, 0x4c, 0x46, 0, 1, 2]));
-    assert!(e.contains("mystery.dat: byte 0: expected a capture file (LeCroy .trc"), "{e}");
+    assert!(
+        e.contains("blank.csv: line 4: expected a CSV header row"),
+        "{e}"
+    );
+    let e = read_err(&write_tmp(
+        dir.path(),
+        "mystery.dat",
+        &[0x7f, 0x45, 0x4c, 0x46, 0, 1, 2],
+    ));
+    assert!(
+        e.contains("mystery.dat: byte 0: expected a capture file (LeCroy .trc"),
+        "{e}"
+    );
     assert!(e.contains("found \"\\x7fELF\\x00\\x01\\x02\""), "{e}");
-    let e = read_err(&write_tmp(dir.path(), "prose.dat", b"hello world\nthis is not a capture\n"));
-    assert!(e.contains("prose.dat: byte 0: expected a capture file"), "{e}");
+    let e = read_err(&write_tmp(
+        dir.path(),
+        "prose.dat",
+        b"hello world\nthis is not a capture\n",
+    ));
+    assert!(
+        e.contains("prose.dat: byte 0: expected a capture file"),
+        "{e}"
+    );
     let e = read_err(&dir.path().join("missing.trc"));
     assert!(e.contains("missing.trc: byte 0: open failed"), "{e}");
 }
@@ -636,12 +873,25 @@ fn empty_and_unrecognised_files() {
 fn random_corruption_never_panics() {
     let dir = tempfile::tempdir().unwrap();
     let isf = dir.path().join("w.isf");
-    write_isf(&isf, &sample_frame(0, vec![Samples::I16(i16_ramp(200, 0))]), "CH1").unwrap();
+    write_isf(
+        &isf,
+        &sample_frame(0, vec![Samples::I16(i16_ramp(200, 0))]),
+        "CH1",
+    )
+    .unwrap();
     let twr = dir.path().join("w.twr");
-    write_recording(&twr, &[sample_frame(0, vec![Samples::I16(i16_ramp(40, 0))])]).unwrap();
+    write_recording(
+        &twr,
+        &[sample_frame(0, vec![Samples::I16(i16_ramp(40, 0))])],
+    )
+    .unwrap();
     let csv = dir.path().join("w.csv");
     let mut f = sample_frame(0, vec![]);
-    f.channels.push(Channel::from_volts("CH1", ChannelRole::Unspecified, pulse_volts(100, 0.0)));
+    f.channels.push(Channel::from_volts(
+        "CH1",
+        ChannelRole::Unspecified,
+        pulse_volts(100, 0.0),
+    ));
     write_csv(&csv, &f, Format::TekCsv).unwrap();
     let mut rng = ChaCha8Rng::seed_from_u64(0x7e57_ca97);
     let mut auto_errors = 0usize;
@@ -659,7 +909,11 @@ fn random_corruption_never_panics() {
         for i in 0..400 {
             let mut bad = good.clone();
             // Headers hold most of the structure: aim half the hits at the first 512 bytes.
-            let span = if i % 2 == 0 { good.len().min(512) } else { good.len() };
+            let span = if i % 2 == 0 {
+                good.len().min(512)
+            } else {
+                good.len()
+            };
             for _ in 0..rng.random_range(1..=16) {
                 let at = rng.random_range(0..span);
                 bad[at] = rng.random();
@@ -672,13 +926,20 @@ fn random_corruption_never_panics() {
                 auto_errors += 1;
             }
             // Every parser, forced onto any bytes, must fail cleanly or succeed.
-            for fmt in Format::ALL_NAMES.iter().skip(1).map(|n| n.parse::<Format>().unwrap()) {
+            for fmt in Format::ALL_NAMES
+                .iter()
+                .skip(1)
+                .map(|n| n.parse::<Format>().unwrap())
+            {
                 let _ = read_bytes(&path, &bad, fmt);
             }
         }
     }
     // The corruption is real: a good share of files must be refused.
-    assert!(auto_errors * 10 > total, "{auto_errors} errors in {total} corrupted files");
+    assert!(
+        auto_errors * 10 > total,
+        "{auto_errors} errors in {total} corrupted files"
+    );
 }
 
 #[test]
@@ -686,5 +947,16 @@ fn capture_error_variants_are_matchable() {
     let e = read_bytes(Path::new("x.trc"), b"", Format::Auto).unwrap_err();
     assert!(matches!(e, CaptureError::Empty { .. }));
     let e = read_bytes(Path::new("x.trc"), b"WAVEDESC", Format::Auto).unwrap_err();
-    assert!(matches!(e, CaptureError::Truncated { offset: 0, needed: 346, available: 8, .. }), "{e:?}");
+    assert!(
+        matches!(
+            e,
+            CaptureError::Truncated {
+                offset: 0,
+                needed: 346,
+                available: 8,
+                ..
+            }
+        ),
+        "{e:?}"
+    );
 }

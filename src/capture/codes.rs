@@ -36,7 +36,12 @@ fn invalid(path: &Path, expected: impl Into<String>, found: impl Into<String>) -
 /// Encodes channels into shared-scale codes. `allow_i8` lets i8 input stay
 /// 8-bit. Scales and offsets are rounded to f32 first when `f32_scale`
 /// (formats that store them as binary32), so the codes match the stored scale.
-pub(crate) fn encode(path: &Path, chans: &[&Channel], allow_i8: bool, f32_scale: bool) -> Result<Encoded, CaptureError> {
+pub(crate) fn encode(
+    path: &Path,
+    chans: &[&Channel],
+    allow_i8: bool,
+    f32_scale: bool,
+) -> Result<Encoded, CaptureError> {
     let Some(first) = chans.first() else {
         return Err(invalid(path, "at least one channel", "none"));
     };
@@ -45,7 +50,10 @@ pub(crate) fn encode(path: &Path, chans: &[&Channel], allow_i8: bool, f32_scale:
             return Err(invalid(
                 path,
                 "a finite volts_per_code and offset_v",
-                format!("{} and {} on channel {}", c.volts_per_code, c.offset_v, c.name),
+                format!(
+                    "{} and {} on channel {}",
+                    c.volts_per_code, c.offset_v, c.name
+                ),
             ));
         }
         if let Some(i) = (0..c.samples.len()).find(|&i| !c.samples.raw(i).is_finite()) {
@@ -102,7 +110,9 @@ pub(crate) fn encode(path: &Path, chans: &[&Channel], allow_i8: bool, f32_scale:
     let (lo, hi) = volts
         .iter()
         .flatten()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &v| (lo.min(v), hi.max(v)));
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &v| {
+            (lo.min(v), hi.max(v))
+        });
     if !(lo.is_finite() && hi.is_finite()) {
         // No samples at all: any scale will do.
         return Ok(Encoded {

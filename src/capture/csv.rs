@@ -84,7 +84,10 @@ pub(crate) fn sniff(head: &[u8]) -> Option<Format> {
     if lower[0] == "x-axis" {
         return Some(Format::KeysightCsv);
     }
-    if lower[0] == "x" && lower.iter().any(|c| c == "start") && lower.iter().any(|c| c == "increment") {
+    if lower[0] == "x"
+        && lower.iter().any(|c| c == "start")
+        && lower.iter().any(|c| c == "increment")
+    {
         return Some(Format::RigolCsv);
     }
     if TEK_KEYS.contains(&lower[0].as_str()) {
@@ -135,7 +138,9 @@ fn time_scale(unit: &str) -> Option<f64> {
 fn time_column(cell: &str) -> Option<Option<f64>> {
     let (name, unit) = name_unit(cell);
     let lower = name.to_ascii_lowercase();
-    const NAMES: &[&str] = &["time", "t", "x", "s", "sec", "secs", "second", "seconds", "x-axis"];
+    const NAMES: &[&str] = &[
+        "time", "t", "x", "s", "sec", "secs", "second", "seconds", "x-axis",
+    ];
     if NAMES.contains(&lower.as_str()) {
         return Some(match unit {
             None => Some(1.0),
@@ -167,7 +172,11 @@ enum TimeAxis {
     /// A column of times, scaled to seconds.
     Column { col: usize, scale: f64 },
     /// A column of sample indices (Rigol).
-    Index { col: usize, start: f64, increment: f64 },
+    Index {
+        col: usize,
+        start: f64,
+        increment: f64,
+    },
 }
 
 /// Where to find the data in the rows.
@@ -187,7 +196,13 @@ struct Ctx<'a> {
 }
 
 impl Ctx<'_> {
-    fn err(&self, line: usize, column: Option<usize>, expected: impl Into<String>, found: impl Into<String>) -> CaptureError {
+    fn err(
+        &self,
+        line: usize,
+        column: Option<usize>,
+        expected: impl Into<String>,
+        found: impl Into<String>,
+    ) -> CaptureError {
         CaptureError::Text {
             path: self.path.to_path_buf(),
             line,
@@ -197,9 +212,21 @@ impl Ctx<'_> {
         }
     }
 
-    fn number(&self, cells: &[&str], col: usize, line: usize, what: &str, decimal_comma: bool) -> Result<f64, CaptureError> {
+    fn number(
+        &self,
+        cells: &[&str],
+        col: usize,
+        line: usize,
+        what: &str,
+        decimal_comma: bool,
+    ) -> Result<f64, CaptureError> {
         let Some(cell) = cells.get(col) else {
-            return Err(self.err(line, Some(col + 1), format!("a value for {what}"), "end of row"));
+            return Err(self.err(
+                line,
+                Some(col + 1),
+                format!("a value for {what}"),
+                "end of row",
+            ));
         };
         let parsed = if decimal_comma {
             cell.replace(',', ".").parse::<f64>()
@@ -208,7 +235,12 @@ impl Ctx<'_> {
         };
         match parsed {
             Ok(x) if x.is_finite() => Ok(x),
-            _ => Err(self.err(line, Some(col + 1), format!("a finite number for {what}"), format!("{cell:?}"))),
+            _ => Err(self.err(
+                line,
+                Some(col + 1),
+                format!("a finite number for {what}"),
+                format!("{cell:?}"),
+            )),
         }
     }
 
@@ -227,8 +259,12 @@ impl Ctx<'_> {
                 continue;
             }
             let t = match layout.time {
-                TimeAxis::Column { col, scale } => self.number(&cells, col, *line, "the time", decimal_comma)? * scale,
-                TimeAxis::Index { col, .. } => self.number(&cells, col, *line, "the sample index", decimal_comma)?,
+                TimeAxis::Column { col, scale } => {
+                    self.number(&cells, col, *line, "the time", decimal_comma)? * scale
+                }
+                TimeAxis::Index { col, .. } => {
+                    self.number(&cells, col, *line, "the sample index", decimal_comma)?
+                }
             };
             for (k, (col, name, scale)) in layout.chans.iter().enumerate() {
                 values[k].push(self.number(&cells, *col, *line, name, decimal_comma)? * scale);
@@ -252,14 +288,23 @@ impl Ctx<'_> {
                 row_lines.first().copied().unwrap_or(layout.header_line),
                 None,
                 "at least 2 data rows after the header (to know the sample interval)",
-                if n == 0 { "none".to_string() } else { "1 row".to_string() },
+                if n == 0 {
+                    "none".to_string()
+                } else {
+                    "1 row".to_string()
+                },
             ));
         }
         let (first, dt) = match layout.time {
             TimeAxis::Column { .. } => {
                 let dt = (times[n - 1] - times[0]) / (n - 1) as f64;
                 if !(dt.is_finite() && dt > 0.0) {
-                    return Err(self.err(row_lines[n - 1], None, "time values increasing down the rows", format!("{} after {}", times[n - 1], times[0])));
+                    return Err(self.err(
+                        row_lines[n - 1],
+                        None,
+                        "time values increasing down the rows",
+                        format!("{} after {}", times[n - 1], times[0]),
+                    ));
                 }
                 for i in 1..n {
                     let step = times[i] - times[i - 1];
@@ -274,7 +319,9 @@ impl Ctx<'_> {
                 }
                 (times[0], dt)
             }
-            TimeAxis::Index { start, increment, .. } => {
+            TimeAxis::Index {
+                start, increment, ..
+            } => {
                 for i in 1..n {
                     if times[i] != times[0] + i as f64 {
                         return Err(self.err(
@@ -298,7 +345,9 @@ impl Ctx<'_> {
                 .chans
                 .iter()
                 .zip(values)
-                .map(|((_, name, _), v)| Channel::from_volts(name.clone(), ChannelRole::Unspecified, v))
+                .map(|((_, name, _), v)| {
+                    Channel::from_volts(name.clone(), ChannelRole::Unspecified, v)
+                })
                 .collect(),
             laser_off: false,
         })
@@ -317,7 +366,12 @@ pub(crate) fn read(path: &Path, data: &[u8], dialect: Format) -> Result<Vec<Fram
     let ctx = Ctx { path };
     let lines = text_lines(data);
     let Some(h) = first_content(&lines, ',') else {
-        return Err(ctx.err(lines.len(), None, "a CSV header row", "only blank or comment lines"));
+        return Err(ctx.err(
+            lines.len(),
+            None,
+            "a CSV header row",
+            "only blank or comment lines",
+        ));
     };
     let frame = match dialect {
         Format::TekCsv => read_tek(&ctx, &lines, h)?,
@@ -328,7 +382,12 @@ pub(crate) fn read(path: &Path, data: &[u8], dialect: Format) -> Result<Vec<Fram
     Ok(vec![frame])
 }
 
-fn channel_columns(ctx: &Ctx, cells: &[&str], skip: &[usize], line: usize) -> Result<Vec<(usize, String, f64)>, CaptureError> {
+fn channel_columns(
+    ctx: &Ctx,
+    cells: &[&str],
+    skip: &[usize],
+    line: usize,
+) -> Result<Vec<(usize, String, f64)>, CaptureError> {
     let chans: Vec<(usize, String, f64)> = cells
         .iter()
         .enumerate()
@@ -339,7 +398,12 @@ fn channel_columns(ctx: &Ctx, cells: &[&str], skip: &[usize], line: usize) -> Re
         })
         .collect();
     if chans.is_empty() {
-        return Err(ctx.err(line, None, "at least one channel column beside the time column", format!("{:?}", cells.join(","))));
+        return Err(ctx.err(
+            line,
+            None,
+            "at least one channel column beside the time column",
+            format!("{:?}", cells.join(",")),
+        ));
     }
     Ok(chans)
 }
@@ -348,7 +412,11 @@ fn read_generic(ctx: &Ctx, lines: &[(usize, String)], h: usize) -> Result<Frame,
     let (line, header) = &lines[h];
     let delim = guess_delim(header);
     let cells = split(header, delim);
-    let Some((col, scale)) = cells.iter().enumerate().find_map(|(i, c)| time_column(c).map(|s| (i, s))) else {
+    let Some((col, scale)) = cells
+        .iter()
+        .enumerate()
+        .find_map(|(i, c)| time_column(c).map(|s| (i, s)))
+    else {
         return Err(ctx.err(
             *line,
             None,
@@ -357,7 +425,12 @@ fn read_generic(ctx: &Ctx, lines: &[(usize, String)], h: usize) -> Result<Frame,
         ));
     };
     let Some(scale) = scale else {
-        return Err(ctx.err(*line, Some(col + 1), "a time unit s, ms, us, ns or ps", format!("{:?}", cells[col])));
+        return Err(ctx.err(
+            *line,
+            Some(col + 1),
+            "a time unit s, ms, us, ns or ps",
+            format!("{:?}", cells[col]),
+        ));
     };
     let chans = channel_columns(ctx, &cells, &[col], *line)?;
     ctx.rows(
@@ -376,7 +449,12 @@ fn read_keysight(ctx: &Ctx, lines: &[(usize, String)], h: usize) -> Result<Frame
     let (line, header) = &lines[h];
     let cells = split(header, ',');
     if !cells[0].eq_ignore_ascii_case("x-axis") {
-        return Err(ctx.err(*line, Some(1), "\"x-axis\" (Keysight CSV header)", format!("{:?}", cells[0])));
+        return Err(ctx.err(
+            *line,
+            Some(1),
+            "\"x-axis\" (Keysight CSV header)",
+            format!("{:?}", cells[0]),
+        ));
     }
     let chans = channel_columns(ctx, &cells, &[0], *line)?;
     // The units row ("second,Volt,Volt") is skipped when present.
@@ -403,23 +481,42 @@ fn read_rigol(ctx: &Ctx, lines: &[(usize, String)], h: usize) -> Result<Frame, C
     let cells = split(header, ',');
     let find = |name: &str| cells.iter().position(|c| c.eq_ignore_ascii_case(name));
     let (Some(s), Some(inc)) = (find("start"), find("increment")) else {
-        return Err(ctx.err(*line, None, "a Rigol header \"X,CH1,...,Start,Increment\"", format!("{header:?}")));
+        return Err(ctx.err(
+            *line,
+            None,
+            "a Rigol header \"X,CH1,...,Start,Increment\"",
+            format!("{header:?}"),
+        ));
     };
     let chans = channel_columns(ctx, &cells[..s.min(inc)], &[0], *line)?;
     let Some((uline, units)) = lines.get(h + 1) else {
-        return Err(ctx.err(line + 1, None, "the units row \"Sequence,Volt,...,<start>,<increment>\"", "end of file"));
+        return Err(ctx.err(
+            line + 1,
+            None,
+            "the units row \"Sequence,Volt,...,<start>,<increment>\"",
+            "end of file",
+        ));
     };
     let ucells = split(units, ',');
     let start = ctx.number(&ucells, s, *uline, "Start", false)?;
     let increment = ctx.number(&ucells, inc, *uline, "Increment", false)?;
     if increment <= 0.0 {
-        return Err(ctx.err(*uline, Some(inc + 1), "an Increment > 0 s", increment.to_string()));
+        return Err(ctx.err(
+            *uline,
+            Some(inc + 1),
+            "an Increment > 0 s",
+            increment.to_string(),
+        ));
     }
     ctx.rows(
         &lines[h + 2..],
         &Layout {
             delim: ',',
-            time: TimeAxis::Index { col: 0, start, increment },
+            time: TimeAxis::Index {
+                col: 0,
+                start,
+                increment,
+            },
             chans,
             header_line: *line,
             record_length: None,
@@ -467,7 +564,10 @@ fn read_tek(ctx: &Ctx, lines: &[(usize, String)], h: usize) -> Result<Frame, Cap
     for (line, text) in &lines[..t] {
         let cells = split(text, ',');
         if cells[0].eq_ignore_ascii_case("record length") {
-            record_length = Some((tek_count(ctx, cells.get(1).copied().unwrap_or(""), *line)?, *line));
+            record_length = Some((
+                tek_count(ctx, cells.get(1).copied().unwrap_or(""), *line)?,
+                *line,
+            ));
         }
     }
     let (line, header) = &lines[t];
@@ -491,7 +591,14 @@ fn tek_count(ctx: &Ctx, value: &str, line: usize) -> Result<usize, CaptureError>
         .ok()
         .filter(|x| x.is_finite() && *x >= 0.0 && x.fract() == 0.0 && *x < 1e12)
         .map(|x| x as usize)
-        .ok_or_else(|| ctx.err(line, Some(2), "a whole number for Record Length", format!("{value:?}")))
+        .ok_or_else(|| {
+            ctx.err(
+                line,
+                Some(2),
+                "a whole number for Record Length",
+                format!("{value:?}"),
+            )
+        })
 }
 
 /// Writes `frame` as CSV in `dialect` (TekCsv, RigolCsv, KeysightCsv or
@@ -506,17 +613,30 @@ pub fn write_csv(path: &Path, frame: &Frame, dialect: Format) -> Result<(), Capt
         found,
     };
     if !dialect.is_csv() {
-        return Err(invalid("a CSV dialect (tek-csv, rigol-csv, keysight-csv, csv)", dialect.name().to_string()));
+        return Err(invalid(
+            "a CSV dialect (tek-csv, rigol-csv, keysight-csv, csv)",
+            dialect.name().to_string(),
+        ));
     }
     let n = frame.len();
     if frame.channels.is_empty() || n == 0 {
-        return Err(invalid("at least one channel with samples", format!("{} channels, {n} samples", frame.channels.len())));
+        return Err(invalid(
+            "at least one channel with samples",
+            format!("{} channels, {n} samples", frame.channels.len()),
+        ));
     }
     if let Some(c) = frame.channels.iter().find(|c| c.samples.len() != n) {
-        return Err(invalid(&format!("{n} samples in every channel"), format!("{} in {}", c.samples.len(), c.name)));
+        return Err(invalid(
+            &format!("{n} samples in every channel"),
+            format!("{} in {}", c.samples.len(), c.name),
+        ));
     }
     let volts: Vec<Vec<f64>> = frame.channels.iter().map(|c| c.volts()).collect();
-    let names: Vec<String> = frame.channels.iter().map(|c| c.name.replace([',', ';', '\t', '"'], "_")).collect();
+    let names: Vec<String> = frame
+        .channels
+        .iter()
+        .map(|c| c.name.replace([',', ';', '\t', '"'], "_"))
+        .collect();
     let dt = frame.sample_interval_s;
     let t0 = frame.first_sample_offset_s;
     let mut out = String::new();
@@ -545,7 +665,11 @@ pub fn write_csv(path: &Path, frame: &Frame, dialect: Format) -> Result<(), Capt
             let _ = writeln!(out, "second,{}", vec!["Volt"; names.len()].join(","));
         }
         _ => {
-            let _ = writeln!(out, "# tofwave frame: sensor {}, sequence {}", frame.sensor_id, frame.sequence);
+            let _ = writeln!(
+                out,
+                "# tofwave frame: sensor {}, sequence {}",
+                frame.sensor_id, frame.sequence
+            );
             let _ = writeln!(out, "time (s),{}", names.join(","));
         }
     }
@@ -558,7 +682,11 @@ pub fn write_csv(path: &Path, frame: &Frame, dialect: Format) -> Result<(), Capt
         for v in &volts {
             let _ = write!(out, ",{:e}", v[i]);
         }
-        out.push_str(if dialect == Format::RigolCsv { ",\n" } else { "\n" });
+        out.push_str(if dialect == Format::RigolCsv {
+            ",\n"
+        } else {
+            "\n"
+        });
     }
     std::fs::write(path, out).map_err(|e| CaptureError::Io {
         path: path.to_path_buf(),

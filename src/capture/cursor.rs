@@ -47,7 +47,11 @@ impl<'a> View<'a> {
         }
     }
 
-    pub fn array<const N: usize>(&self, offset: usize, what: &str) -> Result<[u8; N], CaptureError> {
+    pub fn array<const N: usize>(
+        &self,
+        offset: usize,
+        what: &str,
+    ) -> Result<[u8; N], CaptureError> {
         let s = self.slice(offset, N, what)?;
         let mut a = [0u8; N];
         a.copy_from_slice(s);
@@ -99,7 +103,12 @@ impl<'a> View<'a> {
     }
 
     /// A `Malformed` error at `offset`.
-    pub fn malformed(&self, offset: usize, expected: impl Into<String>, found: impl Into<String>) -> CaptureError {
+    pub fn malformed(
+        &self,
+        offset: usize,
+        expected: impl Into<String>,
+        found: impl Into<String>,
+    ) -> CaptureError {
         CaptureError::Malformed {
             path: self.path.to_path_buf(),
             offset: offset as u64,
@@ -117,7 +126,12 @@ pub(crate) fn c_string(bytes: &[u8]) -> String {
 
 /// Decodes packed integer samples of `width` bytes (1, 2 or 4), signed or
 /// unsigned, into the narrowest [`Samples`] type that holds them exactly.
-pub(crate) fn decode_codes(raw: &[u8], width: usize, signed: bool, order: Order) -> crate::frame::Samples {
+pub(crate) fn decode_codes(
+    raw: &[u8],
+    width: usize,
+    signed: bool,
+    order: Order,
+) -> crate::frame::Samples {
     use crate::frame::Samples;
     match (width, signed) {
         (1, true) => Samples::I8(raw.iter().map(|&b| b as i8).collect()),

@@ -47,7 +47,10 @@ fn canonical(key: &str) -> Option<&'static str> {
 pub(crate) fn looks_like_isf(head: &[u8]) -> bool {
     let end = head.iter().position(|&b| b == b'#').unwrap_or(head.len());
     let text = String::from_utf8_lossy(&head[..end]).to_ascii_uppercase();
-    text.starts_with(":WFMP") || text.starts_with("WFMP") || text.starts_with("BYT_N") || text.starts_with(":BYT_N")
+    text.starts_with(":WFMP")
+        || text.starts_with("WFMP")
+        || text.starts_with("BYT_N")
+        || text.starts_with(":BYT_N")
 }
 
 /// Index of the first `#` outside double quotes.
@@ -99,9 +102,17 @@ pub(crate) fn read(path: &Path, data: &[u8]) -> Result<Vec<Frame>, CaptureError>
     };
     let header = parse_header(&data[..hash]);
     if header.is_empty() {
-        return Err(v.malformed(0, "an ISF header (\":WFMPRE:BYT_NR ...;\")", super::preview(data)));
+        return Err(v.malformed(
+            0,
+            "an ISF header (\":WFMPRE:BYT_NR ...;\")",
+            super::preview(data),
+        ));
     }
-    let text = |k: &str| header.get(k).map(|(s, o)| (s.trim_matches('"').trim().to_ascii_uppercase(), *o));
+    let text = |k: &str| {
+        header
+            .get(k)
+            .map(|(s, o)| (s.trim_matches('"').trim().to_ascii_uppercase(), *o))
+    };
     let number = |k: &str, default: Option<f64>| -> Result<f64, CaptureError> {
         match header.get(k) {
             Some((s, o)) => s
@@ -109,7 +120,8 @@ pub(crate) fn read(path: &Path, data: &[u8]) -> Result<Vec<Frame>, CaptureError>
                 .ok()
                 .filter(|x| x.is_finite())
                 .ok_or_else(|| v.malformed(*o, format!("a number for {k}"), format!("{s:?}"))),
-            None => default.ok_or_else(|| v.malformed(hash, format!("a {k} entry in the header"), "none")),
+            None => default
+                .ok_or_else(|| v.malformed(hash, format!("a {k} entry in the header"), "none")),
         }
     };
     if let Some((enc, o)) = text("ENCDG")
@@ -155,9 +167,13 @@ pub(crate) fn read(path: &Path, data: &[u8]) -> Result<Vec<Frame>, CaptureError>
 
     // SCPI definite-length block: '#', digit count n, n digits of length.
     let n_digits = v.u8(hash + 1, "the digit count after '#'")?;
-    let n_digits = (n_digits as char)
-        .to_digit(10)
-        .ok_or_else(|| v.malformed(hash + 1, "a digit 0-9 after '#'", super::preview(&[n_digits])))? as usize;
+    let n_digits = (n_digits as char).to_digit(10).ok_or_else(|| {
+        v.malformed(
+            hash + 1,
+            "a digit 0-9 after '#'",
+            super::preview(&[n_digits]),
+        )
+    })? as usize;
     let (start, len) = if n_digits == 0 {
         // Indefinite block: to the end, without a final newline.
         let start = hash + 2;
@@ -172,11 +188,19 @@ pub(crate) fn read(path: &Path, data: &[u8]) -> Result<Vec<Frame>, CaptureError>
             .ok()
             .filter(|s| s.bytes().all(|b| b.is_ascii_digit()))
             .and_then(|s| s.parse::<usize>().ok())
-            .ok_or_else(|| v.malformed(hash + 2, format!("{n_digits} ASCII digits of curve length"), super::preview(digits)))?;
+            .ok_or_else(|| {
+                v.malformed(
+                    hash + 2,
+                    format!("{n_digits} ASCII digits of curve length"),
+                    super::preview(digits),
+                )
+            })?;
         (hash + 2 + n_digits, len)
     };
     if let Some((s, o)) = header.get("NR_PT") {
-        let nr_pt: usize = s.parse().map_err(|_| v.malformed(*o, "an integer NR_PT", format!("{s:?}")))?;
+        let nr_pt: usize = s
+            .parse()
+            .map_err(|_| v.malformed(*o, "an integer NR_PT", format!("{s:?}")))?;
         if nr_pt.checked_mul(width) != Some(len) {
             return Err(v.malformed(
                 hash,
@@ -186,12 +210,23 @@ pub(crate) fn read(path: &Path, data: &[u8]) -> Result<Vec<Frame>, CaptureError>
         }
     }
     if len % width != 0 || len == 0 {
-        return Err(v.malformed(hash, format!("a non-empty curve of whole {width}-byte samples"), format!("{len} bytes")));
+        return Err(v.malformed(
+            hash,
+            format!("a non-empty curve of whole {width}-byte samples"),
+            format!("{len} bytes"),
+        ));
     }
     let raw = v.slice(start, len, "the curve data")?;
     let name = header
         .get("WFID")
-        .map(|(s, _)| s.trim_matches('"').split(',').next().unwrap_or("").trim().to_string())
+        .map(|(s, _)| {
+            s.trim_matches('"')
+                .split(',')
+                .next()
+                .unwrap_or("")
+                .trim()
+                .to_string()
+        })
         .filter(|s| !s.is_empty())
         .unwrap_or_else(|| "unnamed".to_string());
     Ok(vec![Frame {
@@ -217,16 +252,24 @@ pub(crate) fn read(path: &Path, data: &[u8]) -> Result<Vec<Frame>, CaptureError>
 /// are written with full f64 precision. The channel name goes into WFID
 /// (commas and quotes replaced, since they delimit WFID).
 pub fn write_isf(path: &Path, frame: &Frame, channel: &str) -> Result<(), CaptureError> {
-    let c = frame.channel(channel).ok_or_else(|| CaptureError::InvalidFrame {
-        path: path.to_path_buf(),
-        expected: format!("a channel named {channel:?}"),
-        found: format!("channels {:?}", frame.channel_names()),
-    })?;
-    if c.samples.is_empty() || !(frame.sample_interval_s.is_finite() && frame.sample_interval_s > 0.0) {
+    let c = frame
+        .channel(channel)
+        .ok_or_else(|| CaptureError::InvalidFrame {
+            path: path.to_path_buf(),
+            expected: format!("a channel named {channel:?}"),
+            found: format!("channels {:?}", frame.channel_names()),
+        })?;
+    if c.samples.is_empty()
+        || !(frame.sample_interval_s.is_finite() && frame.sample_interval_s > 0.0)
+    {
         return Err(CaptureError::InvalidFrame {
             path: path.to_path_buf(),
             expected: "samples and a sample interval > 0".into(),
-            found: format!("{} samples at {} s", c.samples.len(), frame.sample_interval_s),
+            found: format!(
+                "{} samples at {} s",
+                c.samples.len(),
+                frame.sample_interval_s
+            ),
         });
     }
     let enc = encode(path, &[c], true, false)?;

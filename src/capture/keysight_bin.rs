@@ -36,14 +36,26 @@ pub(crate) fn read(path: &Path, data: &[u8]) -> Result<Vec<Frame>, CaptureError>
     let le = Order::Little;
     let magic = v.slice(0, 4, "the \"AGnn\" file header")?;
     if &magic[..2] != b"AG" || !magic[2].is_ascii_digit() || !magic[3].is_ascii_digit() {
-        return Err(v.malformed(0, "\"AG\" + 2 version digits (AG01, AG03, AG10)", super::preview(data)));
+        return Err(v.malformed(
+            0,
+            "\"AG\" + 2 version digits (AG01, AG03, AG10)",
+            super::preview(data),
+        ));
     }
     let version = (magic[2] - b'0') * 10 + (magic[3] - b'0');
     let wide = version == 3;
     let (file_size, n_waveforms, mut pos) = if wide {
-        (v.u64(4, le, "file size")?, v.u32(12, le, "waveform count")?, 16)
+        (
+            v.u64(4, le, "file size")?,
+            v.u32(12, le, "waveform count")?,
+            16,
+        )
     } else {
-        (v.u32(4, le, "file size")? as u64, v.u32(8, le, "waveform count")?, 12)
+        (
+            v.u32(4, le, "file size")? as u64,
+            v.u32(8, le, "waveform count")?,
+            12,
+        )
     };
     if file_size > data.len() as u64 {
         return Err(CaptureError::Truncated {
@@ -62,7 +74,11 @@ pub(crate) fn read(path: &Path, data: &[u8]) -> Result<Vec<Frame>, CaptureError>
         let at = pos;
         let header_size = v.u32(at, le, "waveform header size")? as usize;
         if header_size < WFM_HEADER_MIN {
-            return Err(v.malformed(at, "a waveform header of >= 140 bytes", format!("{header_size} bytes")));
+            return Err(v.malformed(
+                at,
+                "a waveform header of >= 140 bytes",
+                format!("{header_size} bytes"),
+            ));
         }
         v.slice(at, header_size, "waveform header")?;
         let wave_type = v.u32(at + 4, le, "waveform type")?;
@@ -81,7 +97,11 @@ pub(crate) fn read(path: &Path, data: &[u8]) -> Result<Vec<Frame>, CaptureError>
             let dh_size = v.u32(dh, le, "data header size")? as usize;
             let min = if wide { 16 } else { 12 };
             if dh_size < min {
-                return Err(v.malformed(dh, format!("a data header of >= {min} bytes"), format!("{dh_size} bytes")));
+                return Err(v.malformed(
+                    dh,
+                    format!("a data header of >= {min} bytes"),
+                    format!("{dh_size} bytes"),
+                ));
             }
             v.slice(dh, dh_size, "data header")?;
             let btype = v.u16(dh + 4, le, "buffer type")?;
@@ -91,7 +111,9 @@ pub(crate) fn read(path: &Path, data: &[u8]) -> Result<Vec<Frame>, CaptureError>
             } else {
                 v.u32(dh + 8, le, "buffer size")? as u64
             };
-            let size = usize::try_from(size).map_err(|_| v.malformed(dh + 8, "a buffer size that fits memory", size.to_string()))?;
+            let size = usize::try_from(size).map_err(|_| {
+                v.malformed(dh + 8, "a buffer size that fits memory", size.to_string())
+            })?;
             let start = dh + dh_size;
             v.slice(start, size, "waveform data buffer")?;
             buffers.push((btype, bpp, start, size, dh));
@@ -107,13 +129,20 @@ pub(crate) fn read(path: &Path, data: &[u8]) -> Result<Vec<Frame>, CaptureError>
             continue;
         };
         if size % bpp.max(1) != 0 || bpp == 0 {
-            return Err(v.malformed(dh + 6, format!("a buffer size ({size}) that is a multiple of bytes per point"), bpp.to_string()));
+            return Err(v.malformed(
+                dh + 6,
+                format!("a buffer size ({size}) that is a multiple of bytes per point"),
+                bpp.to_string(),
+            ));
         }
         let n = size / bpp;
         if n != n_pts {
             return Err(v.malformed(
                 dh + 8,
-                format!("{n_pts} points x {bpp} bytes = {} bytes as the waveform header says", n_pts.saturating_mul(bpp)),
+                format!(
+                    "{n_pts} points x {bpp} bytes = {} bytes as the waveform header says",
+                    n_pts.saturating_mul(bpp)
+                ),
                 format!("{size} bytes"),
             ));
         }
@@ -128,9 +157,17 @@ pub(crate) fn read(path: &Path, data: &[u8]) -> Result<Vec<Frame>, CaptureError>
                     .collect(),
             ),
             (1, 1) => Samples::I8(raw.iter().map(|&b| b as i8).collect()),
-            (1, 2) => Samples::I16(raw.chunks_exact(2).map(|c| i16::from_le_bytes([c[0], c[1]])).collect()),
+            (1, 2) => Samples::I16(
+                raw.chunks_exact(2)
+                    .map(|c| i16::from_le_bytes([c[0], c[1]]))
+                    .collect(),
+            ),
             _ => {
-                return Err(v.malformed(dh + 6, format!("4 bytes per point for buffer type {btype}"), bpp.to_string()));
+                return Err(v.malformed(
+                    dh + 6,
+                    format!("4 bytes per point for buffer type {btype}"),
+                    bpp.to_string(),
+                ));
             }
         };
         if let Samples::F32(s) = &samples
@@ -142,9 +179,17 @@ pub(crate) fn read(path: &Path, data: &[u8]) -> Result<Vec<Frame>, CaptureError>
             return Err(v.malformed(at + 32, "x increment > 0 s", dt.to_string()));
         }
         if !(x_origin.is_finite() && time_tag.is_finite()) {
-            return Err(v.malformed(at + 40, "finite x origin and time tag", format!("{x_origin}, {time_tag}")));
+            return Err(v.malformed(
+                at + 40,
+                "finite x origin and time tag",
+                format!("{x_origin}, {time_tag}"),
+            ));
         }
-        let name = if label.is_empty() { format!("CH{}", w + 1) } else { label };
+        let name = if label.is_empty() {
+            format!("CH{}", w + 1)
+        } else {
+            label
+        };
         waves.push(Waveform {
             offset: at,
             segment,
@@ -161,7 +206,11 @@ pub(crate) fn read(path: &Path, data: &[u8]) -> Result<Vec<Frame>, CaptureError>
         });
     }
     if waves.is_empty() {
-        return Err(v.malformed(12, "at least one analog waveform", "only logic/unknown buffers"));
+        return Err(v.malformed(
+            12,
+            "at least one analog waveform",
+            "only logic/unknown buffers",
+        ));
     }
     // Group by segment index, in order of first appearance.
     let mut frames: Vec<(u32, Frame)> = Vec::new();
@@ -171,7 +220,11 @@ pub(crate) fn read(path: &Path, data: &[u8]) -> Result<Vec<Frame>, CaptureError>
                 if w.channel.samples.len() != f.len() || w.dt != f.sample_interval_s {
                     return Err(v.malformed(
                         w.offset,
-                        format!("{} points at {} s like the segment's first waveform", f.len(), f.sample_interval_s),
+                        format!(
+                            "{} points at {} s like the segment's first waveform",
+                            f.len(),
+                            f.sample_interval_s
+                        ),
                         format!("{} points at {} s", w.channel.samples.len(), w.dt),
                     ));
                 }
@@ -204,7 +257,10 @@ pub fn write_keysight_bin(path: &Path, frame: &Frame) -> Result<(), CaptureError
         found,
     };
     if frame.channels.is_empty() || frame.is_empty() {
-        return Err(invalid("at least one channel with samples", format!("{} channels", frame.channels.len())));
+        return Err(invalid(
+            "at least one channel with samples",
+            format!("{} channels", frame.channels.len()),
+        ));
     }
     let mut out = Vec::new();
     out.extend_from_slice(b"AG10");
@@ -213,11 +269,17 @@ pub fn write_keysight_bin(path: &Path, frame: &Frame) -> Result<(), CaptureError
     let n = frame.len();
     for c in &frame.channels {
         if c.samples.len() != n {
-            return Err(invalid(&format!("{n} samples in every channel"), format!("{} in {}", c.samples.len(), c.name)));
+            return Err(invalid(
+                &format!("{n} samples in every channel"),
+                format!("{} in {}", c.samples.len(), c.name),
+            ));
         }
         let volts: Vec<f32> = c.volts().iter().map(|&x| x as f32).collect();
         if let Some(i) = volts.iter().position(|x| !x.is_finite()) {
-            return Err(invalid("finite samples within binary32 range", format!("{} at index {i} of {}", volts[i], c.name)));
+            return Err(invalid(
+                "finite samples within binary32 range",
+                format!("{} at index {i} of {}", volts[i], c.name),
+            ));
         }
         let mut h = vec![0u8; WFM_HEADER_MIN];
         h[0..4].copy_from_slice(&(WFM_HEADER_MIN as u32).to_le_bytes());
@@ -240,11 +302,13 @@ pub fn write_keysight_bin(path: &Path, frame: &Frame) -> Result<(), CaptureError
         out.extend_from_slice(&12u32.to_le_bytes());
         out.extend_from_slice(&1u16.to_le_bytes());
         out.extend_from_slice(&4u16.to_le_bytes());
-        let size = u32::try_from(4 * n).map_err(|_| invalid("at most 4 GiB per channel", format!("{n} samples")))?;
+        let size = u32::try_from(4 * n)
+            .map_err(|_| invalid("at most 4 GiB per channel", format!("{n} samples")))?;
         out.extend_from_slice(&size.to_le_bytes());
         out.extend(volts.iter().flat_map(|x| x.to_le_bytes()));
     }
-    let total = u32::try_from(out.len()).map_err(|_| invalid("a file under 4 GiB", format!("{} bytes", out.len())))?;
+    let total = u32::try_from(out.len())
+        .map_err(|_| invalid("a file under 4 GiB", format!("{} bytes", out.len())))?;
     out[4..8].copy_from_slice(&total.to_le_bytes());
     std::fs::write(path, out).map_err(|e| CaptureError::Io {
         path: path.to_path_buf(),

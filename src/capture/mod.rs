@@ -15,13 +15,12 @@
 //! with (the recording is lossless), but still advance the counter.
 
 mod codes;
-mod cursor;
 mod csv;
+mod cursor;
 mod isf;
 mod keysight_bin;
 mod recording;
 mod trc;
-
 
 use std::fs::File;
 use std::io::{BufReader, Read};
@@ -32,7 +31,9 @@ use crate::frame::Frame;
 pub use csv::write_csv;
 pub use isf::write_isf;
 pub use keysight_bin::write_keysight_bin;
-pub use recording::{RECORDING_MAGIC, RECORDING_VERSION, RecordingReader, RecordingWriter, write_recording};
+pub use recording::{
+    RECORDING_MAGIC, RECORDING_VERSION, RecordingReader, RecordingWriter, write_recording,
+};
 pub use trc::write_trc;
 
 /// A capture format, or `Auto` to detect it per file.
@@ -129,7 +130,9 @@ impl std::str::FromStr for Format {
         Format::ALL
             .into_iter()
             .find(|f| f.name() == lower)
-            .ok_or_else(|| ParseFormatError { name: s.to_string() })
+            .ok_or_else(|| ParseFormatError {
+                name: s.to_string(),
+            })
     }
 }
 
@@ -551,7 +554,10 @@ mod tests {
         let e = detect_format(Path::new("x.dat"), &[0, 1, 2, 0xff]).unwrap_err();
         assert!(matches!(e, CaptureError::Unrecognised { .. }));
         let msg = e.to_string();
-        assert!(msg.starts_with("x.dat: byte 0: expected a capture file"), "{msg}");
+        assert!(
+            msg.starts_with("x.dat: byte 0: expected a capture file"),
+            "{msg}"
+        );
         assert!(msg.contains("\\x00\\x01\\x02\\xff"), "{msg}");
     }
 }

@@ -87,7 +87,10 @@ pub fn write_recording(path: &Path, frames: &[Frame]) -> Result<(), CaptureError
     for f in frames {
         w.write_frame(f).map_err(io)?;
     }
-    w.finish().map_err(io)?.into_inner().map_err(|e| io(e.into_error()))?;
+    w.finish()
+        .map_err(io)?
+        .into_inner()
+        .map_err(|e| io(e.into_error()))?;
     Ok(())
 }
 
@@ -191,7 +194,10 @@ impl<R: Read> RecordingReader<R> {
         Err(CaptureError::Malformed {
             path: self.path.clone(),
             offset: start,
-            expected: format!("a varint length prefix of frame {} (<= 10 bytes)", self.index),
+            expected: format!(
+                "a varint length prefix of frame {} (<= 10 bytes)",
+                self.index
+            ),
             found: "more than 10 continuation bytes".into(),
         })
     }
@@ -232,12 +238,13 @@ impl<R: Read> RecordingReader<R> {
             });
         }
         self.offset += len;
-        let msg = proto::Frame::decode(self.buf.as_slice()).map_err(|e| CaptureError::Malformed {
-            path: self.path.clone(),
-            offset: at,
-            expected: format!("a tofwave.v1.Frame message (frame {})", self.index),
-            found: e.to_string(),
-        })?;
+        let msg =
+            proto::Frame::decode(self.buf.as_slice()).map_err(|e| CaptureError::Malformed {
+                path: self.path.clone(),
+                offset: at,
+                expected: format!("a tofwave.v1.Frame message (frame {})", self.index),
+                found: e.to_string(),
+            })?;
         let frame = frame_from_proto(&msg).map_err(|e| CaptureError::Malformed {
             path: self.path.clone(),
             offset: at,

@@ -73,7 +73,15 @@ fn civil_from_days(z: i64) -> (i64, i64, i64) {
     let mp = (5 * doy + 2) / 153;
     let d = doy - (153 * mp + 2) / 5 + 1;
     let m = if mp < 10 { mp + 3 } else { mp - 9 };
-    (if m <= 2 { yoe + era * 400 + 1 } else { yoe + era * 400 }, m, d)
+    (
+        if m <= 2 {
+            yoe + era * 400 + 1
+        } else {
+            yoe + era * 400
+        },
+        m,
+        d,
+    )
 }
 
 /// The 16-byte TRIGGER_TIME stamp as seconds since the Unix epoch, if plausible.
@@ -109,7 +117,11 @@ pub(crate) fn read(path: &Path, data: &[u8]) -> Result<Vec<Frame>, CaptureError>
     v.slice(base, DESC_LEN, "the 346-byte WAVEDESC block")?;
     let template = c_string(v.slice(base + 16, 16, "TEMPLATE_NAME")?);
     if !template.starts_with("LECROY_2_") {
-        return Err(v.malformed(base + 16, "template \"LECROY_2_3\"", format!("{template:?}")));
+        return Err(v.malformed(
+            base + 16,
+            "template \"LECROY_2_3\"",
+            format!("{template:?}"),
+        ));
     }
     let order = match v.array::<2>(base + 34, "COMM_ORDER")? {
         [1, 0] => Order::Little,
@@ -132,11 +144,16 @@ pub(crate) fn read(path: &Path, data: &[u8]) -> Result<Vec<Frame>, CaptureError>
     // Block lengths: non-negative, and each block must lie inside the file.
     let len_at = |off: usize, what: &str| -> Result<usize, CaptureError> {
         let n = v.i32(base + off, order, what)?;
-        usize::try_from(n).map_err(|_| v.malformed(base + off, format!("{what} >= 0"), n.to_string()))
+        usize::try_from(n)
+            .map_err(|_| v.malformed(base + off, format!("{what} >= 0"), n.to_string()))
     };
     let desc_len = len_at(36, "WAVE_DESCRIPTOR length")?;
     if desc_len < DESC_LEN {
-        return Err(v.malformed(base + 36, "WAVE_DESCRIPTOR length >= 346", desc_len.to_string()));
+        return Err(v.malformed(
+            base + 36,
+            "WAVE_DESCRIPTOR length >= 346",
+            desc_len.to_string(),
+        ));
     }
     let user_len = len_at(40, "USER_TEXT length")?;
     let trig_len = len_at(48, "TRIGTIME_ARRAY length")?;
@@ -169,13 +186,20 @@ pub(crate) fn read(path: &Path, data: &[u8]) -> Result<Vec<Frame>, CaptureError>
     if segments > 1 && trig_len < 16 * segments {
         return Err(v.malformed(
             base + 48,
-            format!("a TRIGTIME array of 16 x {segments} segments = {} bytes", 16 * segments),
+            format!(
+                "a TRIGTIME array of 16 x {segments} segments = {} bytes",
+                16 * segments
+            ),
             format!("{trig_len} bytes"),
         ));
     }
     let gain = f32_decimal(v.f32(base + 156, order, "VERTICAL_GAIN")?);
     if !(gain.is_finite() && gain != 0.0) {
-        return Err(v.malformed(base + 156, "a finite non-zero VERTICAL_GAIN", gain.to_string()));
+        return Err(v.malformed(
+            base + 156,
+            "a finite non-zero VERTICAL_GAIN",
+            gain.to_string(),
+        ));
     }
     let voffset = f32_decimal(v.f32(base + 160, order, "VERTICAL_OFFSET")?);
     if !voffset.is_finite() {
@@ -207,7 +231,11 @@ pub(crate) fn read(path: &Path, data: &[u8]) -> Result<Vec<Frame>, CaptureError>
             let t = v.f64(at, order, "TRIGTIME trigger_time")?;
             let o = v.f64(at + 8, order, "TRIGTIME trigger_offset")?;
             if !(t.is_finite() && o.is_finite()) {
-                return Err(v.malformed(at, "finite TRIGTIME entries", format!("{t}, {o} for segment {k}")));
+                return Err(v.malformed(
+                    at,
+                    "finite TRIGTIME entries",
+                    format!("{t}, {o} for segment {k}"),
+                ));
             }
             (epoch_s + t, o)
         } else {
@@ -277,19 +305,28 @@ pub fn write_trc(path: &Path, frames: &[Frame], channel: &str) -> Result<(), Cap
         }
         if f.sample_interval_s != first.sample_interval_s {
             return Err(invalid(
-                &format!("one sample interval ({} s) for all frames", first.sample_interval_s),
+                &format!(
+                    "one sample interval ({} s) for all frames",
+                    first.sample_interval_s
+                ),
                 format!("{} s in frame {k}", f.sample_interval_s),
             ));
         }
         if !(f.sample_interval_s.is_finite() && f.sample_interval_s > 0.0) {
-            return Err(invalid("a sample interval > 0", f.sample_interval_s.to_string()));
+            return Err(invalid(
+                "a sample interval > 0",
+                f.sample_interval_s.to_string(),
+            ));
         }
         chans.push(c);
     }
     let enc = encode(path, &chans, true, true)?;
     let (width, payload): (usize, Vec<u8>) = match &enc.codes {
         Codes::I8(v) => (1, v.iter().flatten().map(|&x| x as u8).collect()),
-        Codes::I16(v) => (2, v.iter().flatten().flat_map(|x| x.to_le_bytes()).collect()),
+        Codes::I16(v) => (
+            2,
+            v.iter().flatten().flat_map(|x| x.to_le_bytes()).collect(),
+        ),
     };
     let n = frames.len();
     let trig_len = if n > 1 { 16 * n } else { 0 };
@@ -300,8 +337,19 @@ pub fn write_trc(path: &Path, frames: &[Frame], channel: &str) -> Result<(), Cap
     put(&mut d, 34, &1u16.to_le_bytes());
     put(&mut d, 36, &(DESC_LEN as i32).to_le_bytes());
     put(&mut d, 48, &(trig_len as i32).to_le_bytes());
-    let too_big = || invalid("at most 2 GiB of samples", format!("{} bytes", payload.len()));
-    put(&mut d, 60, &i32::try_from(payload.len()).map_err(|_| too_big())?.to_le_bytes());
+    let too_big = || {
+        invalid(
+            "at most 2 GiB of samples",
+            format!("{} bytes", payload.len()),
+        )
+    };
+    put(
+        &mut d,
+        60,
+        &i32::try_from(payload.len())
+            .map_err(|_| too_big())?
+            .to_le_bytes(),
+    );
     put_str(&mut d, 76, 16, "TOFWAVE");
     let key = channel_key(&chans[0].name);
     let source: u16 = match key.as_str() {
@@ -323,11 +371,19 @@ pub fn write_trc(path: &Path, frames: &[Frame], channel: &str) -> Result<(), Cap
     put(&mut d, 148, &1i32.to_le_bytes());
     put(&mut d, 156, &(enc.volts_per_code as f32).to_le_bytes());
     put(&mut d, 160, &(-enc.offset_v as f32).to_le_bytes());
-    let (lo, hi) = if width == 1 { (-128.0f32, 127.0f32) } else { (-32768.0, 32767.0) };
+    let (lo, hi) = if width == 1 {
+        (-128.0f32, 127.0f32)
+    } else {
+        (-32768.0, 32767.0)
+    };
     put(&mut d, 164, &hi.to_le_bytes());
     put(&mut d, 168, &lo.to_le_bytes());
     put(&mut d, 172, &((8 * width) as i16).to_le_bytes());
-    put(&mut d, 174, &(n.min(i16::MAX as usize) as i16).to_le_bytes());
+    put(
+        &mut d,
+        174,
+        &(n.min(i16::MAX as usize) as i16).to_le_bytes(),
+    );
     put(&mut d, 176, &(first.sample_interval_s as f32).to_le_bytes());
     put(&mut d, 180, &first.first_sample_offset_s.to_le_bytes());
     put_str(&mut d, 196, 48, "V");
@@ -335,20 +391,25 @@ pub fn write_trc(path: &Path, frames: &[Frame], channel: &str) -> Result<(), Cap
     // TRIGGER_TIME: the first frame's trigger time as a UTC date when it is
     // a plausible epoch time; otherwise 1970-01-01 00:00 plus raw seconds.
     let t0 = first.trigger_time_s;
-    let (secs, minute, hour, day, month, year) = if t0.is_finite() && (0.0..253_402_300_800.0).contains(&t0) {
-        let days = (t0 / 86400.0).floor() as i64;
-        let (y, m, dd) = civil_from_days(days);
-        let mut rem = t0 - (days * 86400) as f64;
-        let hour = ((rem / 3600.0).floor() as i64).clamp(0, 23);
-        rem -= (hour * 3600) as f64;
-        let minute = ((rem / 60.0).floor() as i64).clamp(0, 59);
-        rem -= (minute * 60) as f64;
-        (rem, minute, hour, dd, m, y)
-    } else {
-        (if t0.is_finite() { t0 } else { 0.0 }, 0, 0, 1, 1, 1970)
-    };
+    let (secs, minute, hour, day, month, year) =
+        if t0.is_finite() && (0.0..253_402_300_800.0).contains(&t0) {
+            let days = (t0 / 86400.0).floor() as i64;
+            let (y, m, dd) = civil_from_days(days);
+            let mut rem = t0 - (days * 86400) as f64;
+            let hour = ((rem / 3600.0).floor() as i64).clamp(0, 23);
+            rem -= (hour * 3600) as f64;
+            let minute = ((rem / 60.0).floor() as i64).clamp(0, 59);
+            rem -= (minute * 60) as f64;
+            (rem, minute, hour, dd, m, y)
+        } else {
+            (if t0.is_finite() { t0 } else { 0.0 }, 0, 0, 1, 1, 1970)
+        };
     put(&mut d, 296, &secs.to_le_bytes());
-    put(&mut d, 304, &[minute as u8, hour as u8, day as u8, month as u8]);
+    put(
+        &mut d,
+        304,
+        &[minute as u8, hour as u8, day as u8, month as u8],
+    );
     put(&mut d, 308, &(year as i16).to_le_bytes());
     put(&mut d, 322, &1i16.to_le_bytes());
     put(&mut d, 328, &1f32.to_le_bytes());

@@ -104,8 +104,12 @@ pub fn frame_to_proto(frame: &Frame) -> proto::Frame {
 }
 
 /// Splits `bytes` into `N`-byte little-endian chunks, refusing a ragged tail.
-fn chunks<const N: usize>(bytes: &[u8], field: &str, kind: &str) -> Result<Vec<[u8; N]>, ConvertError> {
-    if bytes.len() % N != 0 {
+fn chunks<const N: usize>(
+    bytes: &[u8],
+    field: &str,
+    kind: &str,
+) -> Result<Vec<[u8; N]>, ConvertError> {
+    if !bytes.len().is_multiple_of(N) {
         return Err(ConvertError::new(
             field,
             format!(
@@ -128,7 +132,9 @@ fn unpack(format: i32, bytes: &[u8], field: &str) -> Result<Samples, ConvertErro
     let format = proto::SampleFormat::try_from(format).map_err(|_| {
         ConvertError::new(
             field.replace(".samples", ".format"),
-            format!("expected a known sample format (I8, I16, I32, F32, F64), found value {format}"),
+            format!(
+                "expected a known sample format (I8, I16, I32, F32, F64), found value {format}"
+            ),
         )
     })?;
     Ok(match format {
@@ -207,7 +213,10 @@ pub fn frame_from_proto(msg: &proto::Frame) -> Result<Frame, ConvertError> {
     if !msg.first_sample_offset_s.is_finite() {
         return Err(ConvertError::new(
             "first_sample_offset_s",
-            format!("expected a finite time, found {}", msg.first_sample_offset_s),
+            format!(
+                "expected a finite time, found {}",
+                msg.first_sample_offset_s
+            ),
         ));
     }
     if msg.channels.is_empty() {
@@ -222,7 +231,10 @@ pub fn frame_from_proto(msg: &proto::Frame) -> Result<Frame, ConvertError> {
         let role = proto::ChannelRole::try_from(c.role).map_err(|_| {
             ConvertError::new(
                 format!("channels[{i}].role"),
-                format!("expected a known channel role (0..=3), found value {}", c.role),
+                format!(
+                    "expected a known channel role (0..=3), found value {}",
+                    c.role
+                ),
             )
         })?;
         let mut volts_per_code = c.volts_per_code;
@@ -340,7 +352,10 @@ mod tests {
     #[test]
     fn integer_codes_travel_packed_le() {
         let msg = frame_to_proto(&frame());
-        assert_eq!(msg.channels[1].samples.as_ref(), &[0x00, 0x80, 1, 0, 0xff, 0x7f]);
+        assert_eq!(
+            msg.channels[1].samples.as_ref(),
+            &[0x00, 0x80, 1, 0, 0xff, 0x7f]
+        );
         assert_eq!(msg.channels[1].format, proto::SampleFormat::I16 as i32);
         assert_eq!(msg.channels[4].format, proto::SampleFormat::F64 as i32);
         assert_eq!(msg.channels[4].samples.len(), 24);

@@ -362,6 +362,37 @@ fn keysight_bin_round_trip_is_exact_for_f32_volts() {
 }
 
 #[test]
+fn keysight_bin_segments_become_frames() {
+    // Two waveforms with segment indices 1 and 2 (segmented memory): two frames.
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("seg.bin");
+    let mut f = sample_frame(0, vec![]);
+    f.trigger_time_s = 0.0;
+    for name in ["1", "1"] {
+        f.channels.push(Channel {
+            name: name.into(),
+            role: ChannelRole::Unspecified,
+            samples: Samples::F32((0..50).map(|i| i as f32 / 8.0).collect()),
+            volts_per_code: 1.0,
+            offset_v: 0.0,
+        });
+    }
+    write_keysight_bin(&p, &f).unwrap();
+    let mut bytes = std::fs::read(&p).unwrap();
+    let second = 12 + 140 + 12 + 4 * 50;
+    for (at, seg, tag) in [(12usize, 1u32, 0.0f64), (second, 2, 2.5e-3)] {
+        bytes[at + 128..at + 136].copy_from_slice(&tag.to_le_bytes());
+        bytes[at + 136..at + 140].copy_from_slice(&seg.to_le_bytes());
+    }
+    let frames = read_bytes(&p, &bytes, Format::Auto).unwrap();
+    assert_eq!(frames.len(), 2);
+    assert_eq!(frames[0].channels.len(), 1);
+    assert_eq!(frames[1].trigger_time_s, 2.5e-3);
+    assert_eq!(frames[1].sequence, 1);
+    assert_eq!(frames[1].channels[0].samples, f.channels[1].samples);
+}
+
+#[test]
 fn csv_dialects_round_trip_f64_values_exactly() {
     let dir = tempfile::tempdir().unwrap();
     let mut f = sample_frame(0, vec![]);

@@ -337,8 +337,8 @@ pub(crate) fn preview(bytes: &[u8]) -> String {
 
 /// Parses a capture held in memory; `path` only names it in errors.
 ///
-/// `format` may be `Auto`. Frames carry sensor id `""` (recordings: as
-/// recorded) and sequence numbers counted from 0 within this file.
+/// `format` may be `Auto`. Frames carry sensor id `""` and sequence numbers
+/// counted from 0 within this file; recordings keep their recorded ids.
 pub fn read_bytes(path: &Path, data: &[u8], format: Format) -> Result<Vec<Frame>, CaptureError> {
     let format = match format {
         Format::Auto => detect_format(path, &data[..data.len().min(HEAD_LEN)])?,

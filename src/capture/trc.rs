@@ -261,6 +261,14 @@ pub(crate) fn read(path: &Path, data: &[u8]) -> Result<Vec<Frame>, CaptureError>
     Ok(frames)
 }
 
+/// Little-endian bytes reordered for `order`.
+fn ordered<const N: usize>(mut le: [u8; N], order: Order) -> [u8; N] {
+    if order == Order::Big {
+        le.reverse();
+    }
+    le
+}
+
 fn put(buf: &mut [u8], at: usize, bytes: &[u8]) {
     buf[at..at + bytes.len()].copy_from_slice(bytes);
 }
@@ -281,6 +289,23 @@ fn put_str(buf: &mut [u8], at: usize, len: usize, s: &str) {
 /// kept in WAVE_SOURCE when it is C1..C4 (any vendor spelling), else in
 /// TRACE_LABEL (16 bytes).
 pub fn write_trc(path: &Path, frames: &[Frame], channel: &str) -> Result<(), CaptureError> {
+    let out = encode_trc(path, frames, channel, Order::Little)?;
+    std::fs::write(path, out).map_err(|e| CaptureError::Io {
+        path: path.to_path_buf(),
+        offset: 0,
+        action: "write".into(),
+        source: e,
+    })
+}
+
+/// The bytes of a `.trc` in the given byte order (big-endian only for tests
+/// of the reader: scopes and tofwave write little-endian).
+fn encode_trc(
+    path: &Path,
+    frames: &[Frame],
+    channel: &str,
+    order: Order,
+) -> Result<Vec<u8>, CaptureError> {
     let invalid = |expected: &str, found: String| CaptureError::InvalidFrame {
         path: path.to_path_buf(),
         expected: expected.to_string(),
@@ -325,7 +350,10 @@ pub fn write_trc(path: &Path, frames: &[Frame], channel: &str) -> Result<(), Cap
         Codes::I8(v) => (1, v.iter().flatten().map(|&x| x as u8).collect()),
         Codes::I16(v) => (
             2,
-            v.iter().flatten().flat_map(|x| x.to_le_bytes()).collect(),
+            v.iter()
+                .flatten()
+                .flat_map(|x| ordered(x.to_le_bytes(), order))
+                .collect(),
         ),
     };
     let n = frames.len();
@@ -333,10 +361,18 @@ pub fn write_trc(path: &Path, frames: &[Frame], channel: &str) -> Result<(), Cap
     let mut d = vec![0u8; DESC_LEN];
     put(&mut d, 0, MARKER);
     put(&mut d, 16, b"LECROY_2_3");
-    put(&mut d, 32, &((width - 1) as u16).to_le_bytes());
-    put(&mut d, 34, &1u16.to_le_bytes());
-    put(&mut d, 36, &(DESC_LEN as i32).to_le_bytes());
-    put(&mut d, 48, &(trig_len as i32).to_le_bytes());
+    put(
+        &mut d,
+        32,
+        &ordered(((width - 1) as u16).to_le_bytes(), order),
+    );
+    put(
+        &mut d,
+        34,
+        &ordered(u16::from(order == Order::Little).to_le_bytes(), order),
+    );
+    put(&mut d, 36, &ordered((DESC_LEN as i32).to_le_bytes(), order));
+    put(&mut d, 48, &ordered((trig_len as i32).to_le_bytes(), order));
     let too_big = || {
         invalid(
             "at most 2 GiB of samples",
@@ -346,9 +382,12 @@ pub fn write_trc(path: &Path, frames: &[Frame], channel: &str) -> Result<(), Cap
     put(
         &mut d,
         60,
-        &i32::try_from(payload.len())
-            .map_err(|_| too_big())?
-            .to_le_bytes(),
+        &ordered(
+            i32::try_from(payload.len())
+                .map_err(|_| too_big())?
+                .to_le_bytes(),
+            order,
+        ),
     );
     put_str(&mut d, 76, 16, "TOFWAVE");
     let key = channel_key(&chans[0].name);
@@ -363,29 +402,53 @@ pub fn write_trc(path: &Path, frames: &[Frame], channel: &str) -> Result<(), Cap
         put_str(&mut d, 96, 16, &chans[0].name);
     }
     let per = first.len();
-    put(&mut d, 116, &((per * n) as i32).to_le_bytes());
-    put(&mut d, 120, &(per as i32).to_le_bytes());
-    put(&mut d, 128, &(per as i32 - 1).to_le_bytes());
-    put(&mut d, 136, &1i32.to_le_bytes());
-    put(&mut d, 144, &(n as i32).to_le_bytes());
-    put(&mut d, 148, &1i32.to_le_bytes());
-    put(&mut d, 156, &(enc.volts_per_code as f32).to_le_bytes());
-    put(&mut d, 160, &(-enc.offset_v as f32).to_le_bytes());
+    put(
+        &mut d,
+        116,
+        &ordered(((per * n) as i32).to_le_bytes(), order),
+    );
+    put(&mut d, 120, &ordered((per as i32).to_le_bytes(), order));
+    put(&mut d, 128, &ordered((per as i32 - 1).to_le_bytes(), order));
+    put(&mut d, 136, &ordered(1i32.to_le_bytes(), order));
+    put(&mut d, 144, &ordered((n as i32).to_le_bytes(), order));
+    put(&mut d, 148, &ordered(1i32.to_le_bytes(), order));
+    put(
+        &mut d,
+        156,
+        &ordered((enc.volts_per_code as f32).to_le_bytes(), order),
+    );
+    put(
+        &mut d,
+        160,
+        &ordered((-enc.offset_v as f32).to_le_bytes(), order),
+    );
     let (lo, hi) = if width == 1 {
         (-128.0f32, 127.0f32)
     } else {
         (-32768.0, 32767.0)
     };
-    put(&mut d, 164, &hi.to_le_bytes());
-    put(&mut d, 168, &lo.to_le_bytes());
-    put(&mut d, 172, &((8 * width) as i16).to_le_bytes());
+    put(&mut d, 164, &ordered(hi.to_le_bytes(), order));
+    put(&mut d, 168, &ordered(lo.to_le_bytes(), order));
+    put(
+        &mut d,
+        172,
+        &ordered(((8 * width) as i16).to_le_bytes(), order),
+    );
     put(
         &mut d,
         174,
-        &(n.min(i16::MAX as usize) as i16).to_le_bytes(),
+        &ordered((n.min(i16::MAX as usize) as i16).to_le_bytes(), order),
     );
-    put(&mut d, 176, &(first.sample_interval_s as f32).to_le_bytes());
-    put(&mut d, 180, &first.first_sample_offset_s.to_le_bytes());
+    put(
+        &mut d,
+        176,
+        &ordered((first.sample_interval_s as f32).to_le_bytes(), order),
+    );
+    put(
+        &mut d,
+        180,
+        &ordered(first.first_sample_offset_s.to_le_bytes(), order),
+    );
     put_str(&mut d, 196, 48, "V");
     put_str(&mut d, 244, 48, "S");
     // TRIGGER_TIME: the first frame's trigger time as a UTC date when it is
@@ -404,36 +467,70 @@ pub fn write_trc(path: &Path, frames: &[Frame], channel: &str) -> Result<(), Cap
         } else {
             (if t0.is_finite() { t0 } else { 0.0 }, 0, 0, 1, 1, 1970)
         };
-    put(&mut d, 296, &secs.to_le_bytes());
+    put(&mut d, 296, &ordered(secs.to_le_bytes(), order));
     put(
         &mut d,
         304,
         &[minute as u8, hour as u8, day as u8, month as u8],
     );
-    put(&mut d, 308, &(year as i16).to_le_bytes());
-    put(&mut d, 322, &1i16.to_le_bytes());
-    put(&mut d, 328, &1f32.to_le_bytes());
-    put(&mut d, 336, &1f32.to_le_bytes());
-    put(&mut d, 344, &source.to_le_bytes());
+    put(&mut d, 308, &ordered((year as i16).to_le_bytes(), order));
+    put(&mut d, 322, &ordered(1i16.to_le_bytes(), order));
+    put(&mut d, 328, &ordered(1f32.to_le_bytes(), order));
+    put(&mut d, 336, &ordered(1f32.to_le_bytes(), order));
+    put(&mut d, 344, &ordered(source.to_le_bytes(), order));
     let mut out = d;
     if n > 1 {
         for f in frames {
-            out.extend_from_slice(&(f.trigger_time_s - t0).to_le_bytes());
-            out.extend_from_slice(&f.first_sample_offset_s.to_le_bytes());
+            out.extend_from_slice(&ordered((f.trigger_time_s - t0).to_le_bytes(), order));
+            out.extend_from_slice(&ordered(f.first_sample_offset_s.to_le_bytes(), order));
         }
     }
     out.extend_from_slice(&payload);
-    std::fs::write(path, out).map_err(|e| CaptureError::Io {
-        path: path.to_path_buf(),
-        offset: 0,
-        action: "write".into(),
-        source: e,
-    })
+    Ok(out)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn big_endian_files_read_like_little_endian_ones() {
+        use crate::frame::Samples;
+        let frames: Vec<Frame> = (0..3)
+            .map(|k| Frame {
+                sensor_id: String::new(),
+                sequence: k,
+                trigger_time_s: 1.6e9 + k as f64 * 0.01,
+                sample_interval_s: 2e-9,
+                first_sample_offset_s: -1e-7 + k as f64 * 1e-11,
+                channels: vec![Channel {
+                    name: "C3".into(),
+                    role: ChannelRole::Unspecified,
+                    samples: Samples::I16((0..64).map(|i| i * 300 - 9000 + k as i16).collect()),
+                    volts_per_code: 0.001,
+                    offset_v: 0.25,
+                }],
+                laser_off: false,
+            })
+            .collect();
+        let p = Path::new("be.trc");
+        let le = encode_trc(p, &frames, "C3", Order::Little).unwrap();
+        let be = encode_trc(p, &frames, "C3", Order::Big).unwrap();
+        assert_ne!(le, be);
+        assert_eq!(&be[34..36], &[0, 0]);
+        let a = read(p, &le).unwrap();
+        let b = read(p, &be).unwrap();
+        assert_eq!(a, b);
+        assert_eq!(a.len(), 3);
+        assert_eq!(a[2].channels[0].samples, frames[2].channels[0].samples);
+        assert_eq!(a[2].channels[0].name, "C3");
+        // i8 codes: byte order does not matter but the header still does.
+        let mut f8 = frames[0].clone();
+        f8.channels[0].samples = Samples::I8(vec![-5, 0, 5, 127]);
+        let b = read(p, &encode_trc(p, &[f8.clone()], "C3", Order::Big).unwrap()).unwrap();
+        assert_eq!(b[0].channels[0].samples, f8.channels[0].samples);
+        assert_eq!(b[0].first_sample_offset_s, f8.first_sample_offset_s);
+    }
 
     #[test]
     fn civil_dates_round_trip() {

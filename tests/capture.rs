@@ -467,6 +467,11 @@ fn hand_made_csv_variants_read() {
     assert!((f.sample_interval_s - 0.5e-6).abs() < 1e-18);
     assert_eq!(f.channel_names(), vec!["CH1"]);
 
+    // A row-number column is not a channel; time in nanoseconds.
+    let f = &read_one(&data("generic_index_ns.csv"))[0];
+    assert_eq!(f.channel_names(), vec!["CH1"]);
+    assert!((f.sample_interval_s - 1e-9).abs() < 1e-21);
+
     // Rigol with index offset.
     let f = &read_one(&data("rigol.csv"))[0];
     assert_eq!(f.channel_names(), vec!["CH1", "CH2"]);

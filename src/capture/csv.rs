@@ -391,7 +391,7 @@ fn channel_columns(
     let chans: Vec<(usize, String, f64)> = cells
         .iter()
         .enumerate()
-        .filter(|(i, c)| !skip.contains(i) && !c.is_empty())
+        .filter(|(i, c)| !skip.contains(i) && !c.is_empty() && !is_index_column(c))
         .map(|(i, c)| {
             let (name, unit) = name_unit(c);
             (i, name, volts_scale(unit.as_deref()))
@@ -406,6 +406,14 @@ fn channel_columns(
         ));
     }
     Ok(chans)
+}
+
+/// Row-number columns some exporters add ("index", "sample", "No."): not channels.
+fn is_index_column(cell: &str) -> bool {
+    matches!(
+        cell.to_ascii_lowercase().as_str(),
+        "index" | "sample" | "samples" | "n" | "no" | "no." | "#" | "point" | "points"
+    )
 }
 
 fn read_generic(ctx: &Ctx, lines: &[(usize, String)], h: usize) -> Result<Frame, CaptureError> {

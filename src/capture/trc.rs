@@ -30,14 +30,19 @@ pub(crate) fn find_wavedesc(head: &[u8]) -> Option<usize> {
     if head.starts_with(MARKER) {
         return Some(0);
     }
-    if head.first() == Some(&b'#') {
-        let n = (*head.get(1)? as char).to_digit(10)? as usize;
-        let digits = head.get(2..2 + n)?;
-        if digits.iter().all(u8::is_ascii_digit) && head.get(2 + n..)?.starts_with(MARKER) {
-            return Some(2 + n);
-        }
+    if head.first() == Some(&b'#')
+        && let Some(n) = head.get(1).and_then(|&b| (b as char).to_digit(10))
+        && let Some(digits) = head.get(2..2 + n as usize)
+        && digits.iter().all(u8::is_ascii_digit)
+        && head[2 + n as usize..].starts_with(MARKER)
+    {
+        return Some(2 + n as usize);
     }
-    None
+    // Other transfer prefixes (a longer SCPI header such as "DAT1:WF1 #9..."):
+    // the marker within the first 64 bytes.
+    head[..head.len().min(64)]
+        .windows(MARKER.len())
+        .position(|w| w == MARKER)
 }
 
 /// The f64 nearest the shortest decimal that reads back as `x`.
@@ -555,6 +560,7 @@ mod tests {
         assert_eq!(find_wavedesc(b"#9000001350WAVEDESC"), Some(11));
         assert_eq!(find_wavedesc(b"WAVEDESC"), Some(0));
         assert_eq!(find_wavedesc(b"#9000001350WAVEDES"), None);
+        assert_eq!(find_wavedesc(b"C2:WF? ALL,#9000001350WAVEDESC"), Some(22));
         assert_eq!(find_wavedesc(b"#x"), None);
         assert_eq!(find_wavedesc(b"#"), None);
     }

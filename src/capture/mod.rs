@@ -1,7 +1,7 @@
 //! Capture files: oscilloscope exports and tofwave recordings in, frames out.
 //!
-//! Readers turn a file into [`Frame`]s, one per trigger (one per segment of a
-//! segmented capture). Integer ADC codes stay integer [`Samples`] with their
+//! Readers turn a file into [`Frame`](crate::frame::Frame)s, one per trigger (one per segment of a
+//! segmented capture). Integer ADC codes stay integer [`Samples`](crate::frame::Samples) with their
 //! `volts_per_code`/`offset_v`, so averaging stays exact; CSV values become
 //! `Samples::F64` in volts. The format is detected from the content (the
 //! extension only breaks ties and picks the parser whose error explains best

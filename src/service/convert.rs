@@ -1,4 +1,4 @@
-//! Wire `tofwave.v1.Frame` <-> domain [`Frame`].
+//! Wire `tofwave.v1.Frame` <-> domain [`Frame`](crate::frame::Frame).
 //!
 //! Encoding never loses information: integer codes travel as packed
 //! little-endian integers of the same width, `f32` samples as binary32 and

@@ -1,5 +1,8 @@
 //! gRPC services and the wire contract. Only this module knows prost/tonic types.
 
+/// Conversion between the wire `Frame` and the domain `Frame`, with validation that names the field.
+pub mod convert;
+
 /// Generated wire-contract types (`proto/tofwave/v1/*.proto`).
 #[allow(missing_docs, clippy::all)]
 pub mod proto {

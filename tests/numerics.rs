@@ -1,0 +1,298 @@
+//! Accuracy of the detector's statistical numerics against external
+//! high-precision tables (Boost.Math, mpmath, SciPy; see
+//! `tests/data/numerics/README.md`), plus Monte-Carlo checks of the
+//! per-report threshold and of the noise fitter.
+//!
+//! Measured maximum errors are printed (`cargo test --release --test
+//! numerics -- --nocapture`).
+
+use tofwave::detect::qfunc::{erfc, ln_q, ln_q_inv, per_cell_pfa, q, q_inv};
+
+/// One table: rows of decimal strings, header and `#` comments skipped.
+fn table(text: &str) -> Vec<Vec<&str>> {
+    text.lines()
+        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
+        .skip(1)
+        .map(|l| l.split(',').map(str::trim).collect())
+        .collect()
+}
+
+fn num(s: &str) -> f64 {
+    s.parse::<f64>().unwrap_or_else(|e| panic!("bad number {s:?}: {e}"))
+}
+
+const EPS: f64 = f64::EPSILON / 2.0; // unit roundoff 2^-53 = 1.11e-16
+
+/// Relative error of `got` against the f64 rounding of a decimal reference.
+fn rel(got: f64, want: f64) -> f64 {
+    if got == want { 0.0 } else { ((got - want) / want).abs() }
+}
+
+/// Largest error seen, with the argument where it occurred.
+#[derive(Default)]
+struct MaxErr {
+    err: f64,
+    at: f64,
+    rows: usize,
+}
+impl MaxErr {
+    fn add(&mut self, err: f64, at: f64) {
+        self.rows += 1;
+        if err > self.err || err.is_nan() {
+            self.err = err;
+            self.at = at;
+        }
+    }
+}
+
+/// Checks q_inv at one (p, x) pair: relative error must be ≤ 1e-14 beyond
+/// the unavoidable part caused by rounding the decimal p to f64
+/// (|dx| = |dp| / φ(x) ≤ EPS · p / φ(x)); returns the relative error.
+fn check_qinv(p_str: &str, want: f64, table_name: &str) -> f64 {
+    let p = num(p_str);
+    let got = q_inv(p);
+    let err = (got - want).abs();
+    // half an ulp of p: relative for normal p, absolute 2^-1075 for subnormal p
+    let phi = tofwave::detect::qfunc::phi(want);
+    let input_rounding = (EPS * p / phi).max(0.5 * (f64::from_bits(1) / phi));
+    let bound = 1e-14 * want.abs() + input_rounding;
+    assert!(err <= bound, "{table_name}: q_inv({p_str}) = {got:e}, want {want:e}, err {err:e} > {bound:e}");
+    if want == 0.0 { err } else { err / want.abs() }
+}
+
+#[test]
+fn q_inv_matches_boost_derived_table() {
+    let mut m = MaxErr::default();
+    for r in table(include_str!("data/numerics/boost-math/derived_qinv_double_range.csv")) {
+        let e = check_qinv(r[0], num(r[1]), "derived_qinv_double_range");
+        m.add(e, num(r[0]));
+    }
+    println!("q_inv vs boost derived_qinv_double_range: {} rows, max rel err {:.2e} at p={:e}", m.rows, m.err, m.at);
+    assert_eq!(m.rows, 96);
+}
+
+#[test]
+fn q_inv_matches_boost_erfc_inv_tables() {
+    // erfc_inv(x) = Q⁻¹(x/2)/√2; x/2 is exact in binary while x/2 ≥ DBL_MIN.
+    for (name, text) in [
+        ("erfc_inv_data", include_str!("data/numerics/boost-math/erfc_inv_data.csv")),
+        ("erfc_inv_big_data", include_str!("data/numerics/boost-math/erfc_inv_big_data.csv")),
+    ] {
+        let mut m = MaxErr::default();
+        for r in table(text) {
+            let x = num(r[0]);
+            if x / 2.0 < f64::MIN_POSITIVE {
+                continue; // long-double-only rows
+            }
+            let want = num(r[1]) * std::f64::consts::SQRT_2;
+            let p = x / 2.0;
+            let got = q_inv(p);
+            let err = (got - want).abs();
+            // the reference times √2 rounds twice (2 EPS), plus the rounding of the decimal x
+            let bound = 1e-14 * want.abs() + EPS * p / tofwave::detect::qfunc::phi(want);
+            assert!(err <= bound, "{name}: q_inv({p:e}) = {got:e}, want {want:e}");
+            m.add(if want == 0.0 { err } else { err / want.abs() }, p);
+        }
+        println!("q_inv vs boost {name}: {} rows in double range, max rel err {:.2e} at p={:e}", m.rows, m.err, m.at);
+        assert!(m.rows >= 49, "{name}: {}", m.rows);
+    }
+}
+
+#[test]
+fn q_inv_matches_mpmath_table_down_to_smallest_subnormal() {
+    let mut m = MaxErr::default();
+    for r in table(include_str!("data/numerics/mpmath/qinv_table_mpmath.csv")) {
+        let e = check_qinv(r[0], num(r[1]), "qinv_table_mpmath");
+        m.add(e, num(r[0]));
+    }
+    println!("q_inv vs mpmath qinv_table: {} rows, max rel err {:.2e} at p={:e}", m.rows, m.err, m.at);
+    assert_eq!(m.rows, 309);
+    let x = q_inv(4.940_656_458_412_465_4e-324);
+    assert!((x - 38.467_405_617_144_3).abs() < 1e-12, "{x}");
+}
+
+#[test]
+fn statrs_tail_accuracy_is_worse_than_ours() {
+    // Why we do not use statrs: its erfc_inv-based quantile in the far tail.
+    let mut ours = MaxErr::default();
+    let mut theirs = MaxErr::default();
+    for r in table(include_str!("data/numerics/mpmath/qinv_table_mpmath.csv")) {
+        let p = num(r[0]);
+        let want = num(r[1]);
+        if p < f64::MIN_POSITIVE || p > 0.1 {
+            continue;
+        }
+        ours.add(rel(q_inv(p), want), p);
+        let s = std::f64::consts::SQRT_2 * statrs::function::erf::erfc_inv(2.0 * p);
+        theirs.add(rel(s, want), p);
+    }
+    println!("tail p in [DBL_MIN, 0.1]: ours max rel {:.2e}; statrs max rel {:.2e} at p={:e}", ours.err, theirs.err, theirs.at);
+    assert!(ours.err <= theirs.err);
+    assert!(ours.err < 1e-15);
+}
+
+#[test]
+fn q_inv_special_values_and_symmetry() {
+    assert_eq!(q_inv(0.0), f64::INFINITY);
+    assert_eq!(q_inv(1.0), f64::NEG_INFINITY);
+    assert!(q_inv(f64::NAN).is_nan());
+    assert_eq!(q_inv(-1.0), f64::INFINITY);
+    assert_eq!(q_inv(2.0), f64::NEG_INFINITY);
+    assert_eq!(q_inv(0.5), 0.0);
+    for p in [1e-10, 1e-3, 0.01, 0.05, 0.07, 0.1, 0.3, 0.49] {
+        let x = q_inv(p);
+        let y = q_inv(1.0 - p);
+        // 1 − p is exact only when p is not tiny; compare with the exact complement
+        let exact_complement = 1.0 - (1.0 - p);
+        let want = -q_inv(exact_complement);
+        assert!((y - want).abs() <= 1e-14 * want.abs(), "p={p}: {y} vs {want}");
+        assert!(x > 0.0 && y < 0.0);
+    }
+    // ln_q_inv agrees with q_inv inside the double range and goes beyond it
+    for p in [0.4f64, 0.2, 0.08, 0.05, 1e-5, 1e-100, 1e-300, 4.94e-324] {
+        let a = ln_q_inv(p.ln());
+        let b = q_inv(p);
+        assert!((a - b).abs() <= 2e-15 * b.abs(), "p={p}: {a} vs {b}");
+    }
+    for ln_p in [-1e3, -1e4, -1e6, -1e12] {
+        let x = ln_q_inv(ln_p);
+        assert!((ln_q(x) - ln_p).abs() <= 1e-14 * ln_p.abs(), "ln_p={ln_p}: x={x} ln_q={}", ln_q(x));
+    }
+    assert_eq!(ln_q_inv(0.0), f64::NEG_INFINITY);
+    assert_eq!(ln_q_inv(f64::NEG_INFINITY), f64::INFINITY);
+    assert!(ln_q_inv(f64::NAN).is_nan());
+}
+
+#[test]
+fn q_and_ln_q_match_mpmath_tail_table() {
+    let mut mq = MaxErr::default();
+    let mut ml = MaxErr::default();
+    for r in table(include_str!("data/numerics/mpmath/q_tail_mpmath.csv")) {
+        let x = num(r[0]); // exact: multiples of 0.5
+        let want_q = num(r[1]);
+        let want_l = num(r[2]);
+        let lq = ln_q(x);
+        let el = rel(lq, want_l);
+        assert!(el <= 1e-15, "ln_q({x}) = {lq:e}, want {want_l:e}");
+        ml.add(el, x);
+        if want_q >= f64::MIN_POSITIVE {
+            let g = q(x);
+            let e = rel(g, want_q);
+            assert!(e <= 1e-14, "q({x}) = {g:e}, want {want_q:e}, rel {e:e}");
+            mq.add(e, x);
+        }
+    }
+    println!("q vs mpmath q_tail (x = 0..37.5): {} rows, max rel err {:.2e} at x={}", mq.rows, mq.err, mq.at);
+    println!("ln_q vs mpmath q_tail (x = 0..40): {} rows, max rel err {:.2e} at x={}", ml.rows, ml.err, ml.at);
+}
+
+#[test]
+fn erfc_matches_boost_tables() {
+    for (name, text) in [
+        ("erf_data", include_str!("data/numerics/boost-math/erf_data.csv")),
+        ("erf_large_data", include_str!("data/numerics/boost-math/erf_large_data.csv")),
+        ("erf_small_data", include_str!("data/numerics/boost-math/erf_small_data.csv")),
+    ] {
+        let mut m = MaxErr::default();
+        for r in table(text) {
+            let z = num(r[0]);
+            let want = num(r[2]);
+            if want < f64::MIN_POSITIVE {
+                continue; // erfc below the normal double range
+            }
+            let got = erfc(z);
+            let e = rel(got, want);
+            assert!(e <= 1e-14, "{name}: erfc({z:e}) = {got:e}, want {want:e}, rel {e:e}");
+            m.add(e, z);
+        }
+        println!("erfc vs boost {name}: {} rows, max rel err {:.2e} at z={}", m.rows, m.err, m.at);
+        assert!(m.rows >= 68, "{name}: {}", m.rows);
+    }
+}
+
+#[test]
+fn q_matches_boost_derived_q_tail() {
+    // x = √2·z is irrational: its rounding to f64 moves Q by x·φ(x)/Q(x)·EPS·x ≈ (x² + 1)·EPS.
+    let mut m = MaxErr::default();
+    for r in table(include_str!("data/numerics/boost-math/derived_q_tail_double_range.csv")) {
+        let x = num(r[1]);
+        let want = num(r[2]);
+        let got = q(x);
+        let e = rel(got, want);
+        let bound = 1e-14 + (x * x + 1.0) * EPS;
+        assert!(e <= bound, "q({x}) = {got:e}, want {want:e}, rel {e:e}");
+        m.add(e / bound * 1e-14, x);
+    }
+    println!("q vs boost derived_q_tail: {} rows, max error (scaled to the 1e-14 budget) {:.2e} at x={}", m.rows, m.err, m.at);
+}
+
+#[test]
+fn ln_q_matches_scipy_log_ndtr() {
+    // log Φ(x) = ln Q(−x). Tolerance: SciPy's own per-row rtol (column 3);
+    // for x ≥ 8.3, −log_ndtr(x) is Q(x) to double precision: check q too.
+    let mut m = MaxErr::default();
+    for r in table(include_str!("data/numerics/scipy/log_ndtr_reference.csv")) {
+        let x = num(r[0]);
+        let want = num(r[1]);
+        let rtol = num(r[2]);
+        let got = ln_q(-x);
+        let e = rel(got, want);
+        assert!(e <= rtol, "log_ndtr({x}) = {got:e}, want {want:e}");
+        m.add(e, x);
+        if x >= 8.3 {
+            let e2 = rel(q(x), -want);
+            assert!(e2 <= rtol, "q({x}) = {:e} vs {:e}", q(x), -want);
+        }
+    }
+    println!("ln Φ vs scipy log_ndtr: {} rows, max rel err {:.2e} at x={}", m.rows, m.err, m.at);
+}
+
+#[test]
+fn q_special_values_and_far_tail() {
+    assert_eq!(q(f64::INFINITY), 0.0);
+    assert_eq!(q(f64::NEG_INFINITY), 1.0);
+    assert!(q(f64::NAN).is_nan());
+    assert_eq!(q(0.0), 0.5);
+    assert_eq!(q(1e3), 0.0);
+    assert!(ln_q(f64::NAN).is_nan());
+    assert_eq!(ln_q(f64::INFINITY), f64::NEG_INFINITY);
+    // ln Q(1e3) = −5e5 − ln(1e3) − ln√(2π) + ln(1 − 1e-6 + 3e-12)
+    let want = -5e5 - 1e3f64.ln() - 0.918_938_533_204_672_8 + (-1e-6f64 + 3e-12).ln_1p();
+    assert!(rel(ln_q(1e3), want) < 1e-15);
+    // continuity across the switch to the asymptotic branch at x = 1e3
+    let below = ln_q(999.999_999_999);
+    let above = ln_q(1000.000_000_001);
+    assert!((below - above).abs() < 1e-5 && below > above);
+    assert_eq!(ln_q(1e200), f64::NEG_INFINITY); // −x²/2 = −5e399 is beyond the double range
+    assert!(ln_q(1e150).is_finite());
+    // negative x: Q(−x) = 1 − Q(x)
+    for x in [0.1, 1.0, 3.0, 10.0] {
+        assert!(rel(q(-x), 1.0 - q(x)) < 1e-15);
+        assert!(rel(ln_q(-x), (-q(x)).ln_1p()) < 1e-15);
+    }
+    // round trip through the whole normal range
+    for k in 1..=307 {
+        let p = 10f64.powi(-k);
+        // Q amplifies an x error by x²: allow the q_inv rounding (x²·EPS) and q's own 1e-14
+        let x = q_inv(p);
+        assert!(rel(q(x), p) < 1e-14 + 2.0 * (x * x + 1.0) * EPS, "k={k}");
+    }
+}
+
+#[test]
+fn per_cell_pfa_is_accurate_at_the_extremes() {
+    // P = 0.5 over 2 cells: 1 − √0.5
+    assert!(rel(per_cell_pfa(0.5, 2.0), 1.0 - 0.5f64.sqrt()) < 1e-15);
+    // tiny P, huge M: P/M (1 + P/2) to double precision
+    assert!(rel(per_cell_pfa(1e-300, 1e9), 1e-309) < 1e-6); // subnormal result: ~47 bits
+    assert!(rel(per_cell_pfa(1e-12, 1e9), 1e-21 * (1.0 + 0.5e-12)) < 1e-15);
+    // round trip: 1 − (1 − p)^M = P
+    for (pt, m) in [(1e-3, 2500.0), (0.1, 1e6), (0.5, 1e9), (1e-9, 7.0)] {
+        let p = per_cell_pfa(pt, m);
+        let back = -(m * (-p).ln_1p()).exp_m1();
+        assert!(rel(back, pt) < 1e-13, "{pt} {m}: {back}");
+    }
+    assert_eq!(per_cell_pfa(1e-3, 1.0), 1e-3);
+    assert_eq!(per_cell_pfa(0.0, 10.0), 0.0);
+    assert_eq!(per_cell_pfa(1.0, 10.0), 1.0);
+}

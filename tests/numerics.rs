@@ -451,3 +451,97 @@ fn jarque_bera_values() {
     assert!(rel(p, (-4.0f64).exp()) < 1e-15);
     assert_eq!(jarque_bera(0, 1.0, 1.0), (0.0, 1.0));
 }
+
+// ------------------------------------------------------ extreme (Monte-Carlo) ----
+
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, StandardNormal};
+use tofwave::detect::extreme::{max_exceed_prob, threshold_for_report};
+
+/// Trials per Monte-Carlo case: full size in release (CI), 1/50 in debug so
+/// a debug `cargo test` stays quick; the acceptance band is derived from the
+/// trial count actually run, so both are valid tests.
+fn trials(release: u64) -> u64 {
+    if cfg!(debug_assertions) { release / 50 } else { release }
+}
+
+/// 26-tap Gaussian kernel (σ = 4 samples, like a matched filter for a
+/// ~9 ns FWHM pulse at 1 GS/s), normalised to unit output variance.
+fn gaussian_kernel() -> Vec<f64> {
+    let mut h: Vec<f64> = (0..26).map(|i| (-((i as f64 - 12.5).powi(2)) / (2.0 * 16.0)).exp()).collect();
+    let norm = h.iter().map(|v| v * v).sum::<f64>().sqrt();
+    h.iter_mut().for_each(|v| *v /= norm);
+    h
+}
+
+/// Maxima of `trials` sequences of `n` cells: white if `kernel` is None,
+/// else white noise correlated with the kernel (exact stationary MA process).
+fn simulate_maxima(n: usize, kernel: Option<&[f64]>, trials: u64, seed: u64) -> Vec<f64> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let taps = kernel.map_or(1, |k| k.len());
+    let mut w = vec![0.0f64; n + taps - 1];
+    let mut maxima = Vec::with_capacity(trials as usize);
+    for _ in 0..trials {
+        w.iter_mut().for_each(|v| *v = StandardNormal.sample(&mut rng));
+        let m = match kernel {
+            None => w.iter().copied().fold(f64::NEG_INFINITY, f64::max),
+            Some(h) => (0..n)
+                .map(|j| w[j..j + taps].iter().zip(h).map(|(a, b)| a * b).sum::<f64>())
+                .fold(f64::NEG_INFINITY, f64::max),
+        };
+        maxima.push(m);
+    }
+    maxima
+}
+
+/// Checks the observed exceedance fraction at each p_report against the
+/// two-sided 99 % binomial acceptance band for the trial count.
+fn check_report_rate(label: &str, maxima: &[f64], n: usize, rho1: f64, p_reports: &[f64]) {
+    let t = maxima.len() as u64;
+    for &p in p_reports {
+        let th = threshold_for_report(p, n, rho1);
+        let hits = maxima.iter().filter(|&&m| m > th.u).count() as u64;
+        let (lo, hi) = binomial_acceptance_counts(t, p, 0.99);
+        let indep_u = q_inv(per_cell_pfa(p, n as f64));
+        let indep_hits = maxima.iter().filter(|&&m| m > indep_u).count();
+        println!(
+            "{label}: n={n} rho1={rho1:.4} p_report={p:e}: u={:.4} (independent-cell u={indep_u:.4}), cells_eff={:.1}; \
+             observed {hits}/{t} = {:.3e} (99 % band [{lo}, {hi}]); independent-cell threshold gives {:.3e}",
+            th.u,
+            th.cells_effective,
+            hits as f64 / t as f64,
+            indep_hits as f64 / t as f64
+        );
+        assert!(lo <= hits && hits <= hi, "{label} p={p}: {hits} outside [{lo}, {hi}]");
+        assert!((max_exceed_prob(th.u, n, rho1) / p - 1.0).abs() < 1e-9);
+    }
+}
+
+#[test]
+fn report_threshold_monte_carlo_white() {
+    let n = 1000;
+    let maxima = simulate_maxima(n, None, trials(100_000), 0x5eed_0001);
+    check_report_rate("white", &maxima, n, 0.0, &[1e-2, 1e-3]);
+}
+
+#[test]
+fn report_threshold_monte_carlo_gaussian_kernel() {
+    let h = gaussian_kernel();
+    let rho1: f64 = h.windows(2).map(|w| w[0] * w[1]).sum();
+    let n = 2000;
+    let maxima = simulate_maxima(n, Some(&h), trials(100_000), 0x5eed_0002);
+    check_report_rate("gaussian-kernel MA", &maxima, n, rho1, &[1e-2, 1e-3]);
+}
+
+#[test]
+#[ignore = "slow: ~10^6-10^7 trials; run with --ignored in release"]
+fn report_threshold_monte_carlo_deep_tail() {
+    let n = 1000;
+    let maxima = simulate_maxima(n, None, 3_000_000, 0x5eed_0003);
+    check_report_rate("white (deep)", &maxima, n, 0.0, &[1e-4, 1e-5]);
+    let h = gaussian_kernel();
+    let rho1: f64 = h.windows(2).map(|w| w[0] * w[1]).sum();
+    let maxima = simulate_maxima(2000, Some(&h), 2_000_000, 0x5eed_0004);
+    check_report_rate("gaussian-kernel MA (deep)", &maxima, 2000, rho1, &[1e-4, 1e-5]);
+}

@@ -18,14 +18,19 @@ fn table(text: &str) -> Vec<Vec<&str>> {
 }
 
 fn num(s: &str) -> f64 {
-    s.parse::<f64>().unwrap_or_else(|e| panic!("bad number {s:?}: {e}"))
+    s.parse::<f64>()
+        .unwrap_or_else(|e| panic!("bad number {s:?}: {e}"))
 }
 
 const EPS: f64 = f64::EPSILON / 2.0; // unit roundoff 2^-53 = 1.11e-16
 
 /// Relative error of `got` against the f64 rounding of a decimal reference.
 fn rel(got: f64, want: f64) -> f64 {
-    if got == want { 0.0 } else { ((got - want) / want).abs() }
+    if got == want {
+        0.0
+    } else {
+        ((got - want) / want).abs()
+    }
 }
 
 /// Largest error seen, with the argument where it occurred.
@@ -56,18 +61,26 @@ fn check_qinv(p_str: &str, want: f64, table_name: &str) -> f64 {
     let phi = tofwave::detect::qfunc::phi(want);
     let input_rounding = (EPS * p / phi).max(0.5 * (f64::from_bits(1) / phi));
     let bound = 1e-14 * want.abs() + input_rounding;
-    assert!(err <= bound, "{table_name}: q_inv({p_str}) = {got:e}, want {want:e}, err {err:e} > {bound:e}");
+    assert!(
+        err <= bound,
+        "{table_name}: q_inv({p_str}) = {got:e}, want {want:e}, err {err:e} > {bound:e}"
+    );
     if want == 0.0 { err } else { err / want.abs() }
 }
 
 #[test]
 fn q_inv_matches_boost_derived_table() {
     let mut m = MaxErr::default();
-    for r in table(include_str!("data/numerics/boost-math/derived_qinv_double_range.csv")) {
+    for r in table(include_str!(
+        "data/numerics/boost-math/derived_qinv_double_range.csv"
+    )) {
         let e = check_qinv(r[0], num(r[1]), "derived_qinv_double_range");
         m.add(e, num(r[0]));
     }
-    println!("q_inv vs boost derived_qinv_double_range: {} rows, max rel err {:.2e} at p={:e}", m.rows, m.err, m.at);
+    println!(
+        "q_inv vs boost derived_qinv_double_range: {} rows, max rel err {:.2e} at p={:e}",
+        m.rows, m.err, m.at
+    );
     assert_eq!(m.rows, 96);
 }
 
@@ -75,8 +88,14 @@ fn q_inv_matches_boost_derived_table() {
 fn q_inv_matches_boost_erfc_inv_tables() {
     // erfc_inv(x) = Q⁻¹(x/2)/√2; x/2 is exact in binary while x/2 ≥ DBL_MIN.
     for (name, text) in [
-        ("erfc_inv_data", include_str!("data/numerics/boost-math/erfc_inv_data.csv")),
-        ("erfc_inv_big_data", include_str!("data/numerics/boost-math/erfc_inv_big_data.csv")),
+        (
+            "erfc_inv_data",
+            include_str!("data/numerics/boost-math/erfc_inv_data.csv"),
+        ),
+        (
+            "erfc_inv_big_data",
+            include_str!("data/numerics/boost-math/erfc_inv_big_data.csv"),
+        ),
     ] {
         let mut m = MaxErr::default();
         for r in table(text) {
@@ -90,10 +109,16 @@ fn q_inv_matches_boost_erfc_inv_tables() {
             let err = (got - want).abs();
             // the reference times √2 rounds twice (2 EPS), plus the rounding of the decimal x
             let bound = 1e-14 * want.abs() + EPS * p / tofwave::detect::qfunc::phi(want);
-            assert!(err <= bound, "{name}: q_inv({p:e}) = {got:e}, want {want:e}");
+            assert!(
+                err <= bound,
+                "{name}: q_inv({p:e}) = {got:e}, want {want:e}"
+            );
             m.add(if want == 0.0 { err } else { err / want.abs() }, p);
         }
-        println!("q_inv vs boost {name}: {} rows in double range, max rel err {:.2e} at p={:e}", m.rows, m.err, m.at);
+        println!(
+            "q_inv vs boost {name}: {} rows in double range, max rel err {:.2e} at p={:e}",
+            m.rows, m.err, m.at
+        );
         assert!(m.rows >= 49, "{name}: {}", m.rows);
     }
 }
@@ -134,7 +159,10 @@ fn statrs_comparison_in_the_tail() {
         let s = std::f64::consts::SQRT_2 * statrs::function::erf::erfc_inv(2.0 * p);
         theirs.add(rel(s, want), p);
     }
-    println!("tail p in [DBL_MIN, 0.1]: ours max rel {:.2e}; statrs max rel {:.2e} at p={:e}", ours.err, theirs.err, theirs.at);
+    println!(
+        "tail p in [DBL_MIN, 0.1]: ours max rel {:.2e}; statrs max rel {:.2e} at p={:e}",
+        ours.err, theirs.err, theirs.at
+    );
     assert!(ours.err < 1e-15);
 }
 
@@ -152,7 +180,10 @@ fn q_inv_special_values_and_symmetry() {
         // 1 − p is exact only when p is not tiny; compare with the exact complement
         let exact_complement = 1.0 - (1.0 - p);
         let want = -q_inv(exact_complement);
-        assert!((y - want).abs() <= 1e-14 * want.abs(), "p={p}: {y} vs {want}");
+        assert!(
+            (y - want).abs() <= 1e-14 * want.abs(),
+            "p={p}: {y} vs {want}"
+        );
         assert!(x > 0.0 && y < 0.0);
     }
     // ln_q_inv agrees with q_inv inside the double range and goes beyond it
@@ -163,7 +194,11 @@ fn q_inv_special_values_and_symmetry() {
     }
     for ln_p in [-1e3, -1e4, -1e6, -1e12] {
         let x = ln_q_inv(ln_p);
-        assert!((ln_q(x) - ln_p).abs() <= 1e-14 * ln_p.abs(), "ln_p={ln_p}: x={x} ln_q={}", ln_q(x));
+        assert!(
+            (ln_q(x) - ln_p).abs() <= 1e-14 * ln_p.abs(),
+            "ln_p={ln_p}: x={x} ln_q={}",
+            ln_q(x)
+        );
     }
     assert_eq!(ln_q_inv(0.0), f64::NEG_INFINITY);
     assert_eq!(ln_q_inv(f64::NEG_INFINITY), f64::INFINITY);
@@ -189,16 +224,31 @@ fn q_and_ln_q_match_mpmath_tail_table() {
             mq.add(e, x);
         }
     }
-    println!("q vs mpmath q_tail (x = 0..37.5): {} rows, max rel err {:.2e} at x={}", mq.rows, mq.err, mq.at);
-    println!("ln_q vs mpmath q_tail (x = 0..40): {} rows, max rel err {:.2e} at x={}", ml.rows, ml.err, ml.at);
+    println!(
+        "q vs mpmath q_tail (x = 0..37.5): {} rows, max rel err {:.2e} at x={}",
+        mq.rows, mq.err, mq.at
+    );
+    println!(
+        "ln_q vs mpmath q_tail (x = 0..40): {} rows, max rel err {:.2e} at x={}",
+        ml.rows, ml.err, ml.at
+    );
 }
 
 #[test]
 fn erfc_matches_boost_tables() {
     for (name, text) in [
-        ("erf_data", include_str!("data/numerics/boost-math/erf_data.csv")),
-        ("erf_large_data", include_str!("data/numerics/boost-math/erf_large_data.csv")),
-        ("erf_small_data", include_str!("data/numerics/boost-math/erf_small_data.csv")),
+        (
+            "erf_data",
+            include_str!("data/numerics/boost-math/erf_data.csv"),
+        ),
+        (
+            "erf_large_data",
+            include_str!("data/numerics/boost-math/erf_large_data.csv"),
+        ),
+        (
+            "erf_small_data",
+            include_str!("data/numerics/boost-math/erf_small_data.csv"),
+        ),
     ] {
         let mut m = MaxErr::default();
         for r in table(text) {
@@ -209,10 +259,16 @@ fn erfc_matches_boost_tables() {
             }
             let got = erfc(z);
             let e = rel(got, want);
-            assert!(e <= 1e-14, "{name}: erfc({z:e}) = {got:e}, want {want:e}, rel {e:e}");
+            assert!(
+                e <= 1e-14,
+                "{name}: erfc({z:e}) = {got:e}, want {want:e}, rel {e:e}"
+            );
             m.add(e, z);
         }
-        println!("erfc vs boost {name}: {} rows, max rel err {:.2e} at z={}", m.rows, m.err, m.at);
+        println!(
+            "erfc vs boost {name}: {} rows, max rel err {:.2e} at z={}",
+            m.rows, m.err, m.at
+        );
         assert!(m.rows >= 68, "{name}: {}", m.rows);
     }
 }
@@ -221,7 +277,9 @@ fn erfc_matches_boost_tables() {
 fn q_matches_boost_derived_q_tail() {
     // x = √2·z is irrational: its rounding to f64 moves Q by x·φ(x)/Q(x)·EPS·x ≈ (x² + 1)·EPS.
     let mut m = MaxErr::default();
-    for r in table(include_str!("data/numerics/boost-math/derived_q_tail_double_range.csv")) {
+    for r in table(include_str!(
+        "data/numerics/boost-math/derived_q_tail_double_range.csv"
+    )) {
         let x = num(r[1]);
         let want = num(r[2]);
         let got = q(x);
@@ -230,7 +288,10 @@ fn q_matches_boost_derived_q_tail() {
         assert!(e <= bound, "q({x}) = {got:e}, want {want:e}, rel {e:e}");
         m.add(e / bound * 1e-14, x);
     }
-    println!("q vs boost derived_q_tail: {} rows, max error (scaled to the 1e-14 budget) {:.2e} at x={}", m.rows, m.err, m.at);
+    println!(
+        "q vs boost derived_q_tail: {} rows, max error (scaled to the 1e-14 budget) {:.2e} at x={}",
+        m.rows, m.err, m.at
+    );
 }
 
 #[test]
@@ -251,7 +312,10 @@ fn ln_q_matches_scipy_log_ndtr() {
             assert!(e2 <= rtol, "q({x}) = {:e} vs {:e}", q(x), -want);
         }
     }
-    println!("ln Φ vs scipy log_ndtr: {} rows, max rel err {:.2e} at x={}", m.rows, m.err, m.at);
+    println!(
+        "ln Φ vs scipy log_ndtr: {} rows, max rel err {:.2e} at x={}",
+        m.rows, m.err, m.at
+    );
 }
 
 #[test]
@@ -307,8 +371,8 @@ fn per_cell_pfa_is_accurate_at_the_extremes() {
 // ---------------------------------------------------------------- stats ----
 
 use tofwave::detect::stats::{
-    binomial_acceptance_counts, binomial_two_sided_interval_99, clopper_pearson, clopper_pearson_alpha, jarque_bera,
-    poisson_interval, poisson_interval_alpha,
+    binomial_acceptance_counts, binomial_two_sided_interval_99, clopper_pearson,
+    clopper_pearson_alpha, jarque_bera, poisson_interval, poisson_interval_alpha,
 };
 
 /// Binomial pmf terms by the recurrence, in f64: an independent reference for small n.
@@ -333,14 +397,20 @@ fn clopper_pearson_closed_forms_k0_and_kn() {
             let want_hi = -((0.5 * alpha as f64).ln() / n as f64).exp_m1();
             assert_eq!(lo, 0.0);
             worst = worst.max(rel(hi, want_hi));
-            assert!(rel(hi, want_hi) < 1e-12, "n={n} α={alpha}: {hi:e} vs {want_hi:e}");
+            assert!(
+                rel(hi, want_hi) < 1e-12,
+                "n={n} α={alpha}: {hi:e} vs {want_hi:e}"
+            );
             let (lo, hi) = clopper_pearson_alpha(n, n, alpha);
             let want_lo = ((0.5 * alpha as f64).ln() / n as f64).exp();
             assert_eq!(hi, 1.0);
             // the bound near 1: compare its complement, which carries the information
             assert!(rel(1.0 - lo, -(0.5 * alpha as f64).ln() / n as f64 * 1.0).abs() < 1.0);
             worst = worst.max(rel(lo, want_lo));
-            assert!(rel(lo, want_lo) < 1e-13, "n={n} α={alpha}: {lo:e} vs {want_lo:e}");
+            assert!(
+                rel(lo, want_lo) < 1e-13,
+                "n={n} α={alpha}: {lo:e} vs {want_lo:e}"
+            );
         }
     }
     println!("Clopper-Pearson k=0 / k=n vs closed form: max rel err {worst:.2e}");
@@ -350,14 +420,24 @@ fn clopper_pearson_closed_forms_k0_and_kn() {
 fn clopper_pearson_solves_its_defining_equations() {
     // Independent check by direct pmf summation (n ≤ 200).
     let mut worst: f64 = 0.0;
-    for (k, n) in [(1u64, 10u64), (3, 20), (7, 20), (50, 200), (199, 200), (1, 200)] {
+    for (k, n) in [
+        (1u64, 10u64),
+        (3, 20),
+        (7, 20),
+        (50, 200),
+        (199, 200),
+        (1, 200),
+    ] {
         for conf in [0.95, 0.99] {
             let a2 = 0.5 * (1.0 - conf);
             let (lo, hi) = clopper_pearson(k, n, conf);
             let tail_lo: f64 = binom_pmf(n, lo)[k as usize..].iter().sum();
             let tail_hi: f64 = binom_pmf(n, hi)[..=k as usize].iter().sum();
             worst = worst.max(rel(tail_lo, a2)).max(rel(tail_hi, a2));
-            assert!(rel(tail_lo, a2) < 1e-11 && rel(tail_hi, a2) < 1e-11, "k={k} n={n}: {tail_lo} {tail_hi}");
+            assert!(
+                rel(tail_lo, a2) < 1e-11 && rel(tail_hi, a2) < 1e-11,
+                "k={k} n={n}: {tail_lo} {tail_hi}"
+            );
         }
     }
     println!("Clopper-Pearson tails vs direct pmf sums: max rel err {worst:.2e}");
@@ -382,7 +462,10 @@ fn clopper_pearson_large_n_and_statrs_comparison() {
     let nf = n as f64;
     let cdf1 = (nf * (-hi).ln_1p()).exp() * (1.0 + nf * hi / (1.0 - hi));
     assert!(rel(cdf1, 0.025) < 1e-9, "{cdf1}");
-    println!("k=1,n=1e9: ({lo:e}, {hi:e}); exact lower {want_lo:e}, upper residual {:.1e}", rel(cdf1, 0.025));
+    println!(
+        "k=1,n=1e9: ({lo:e}, {hi:e}); exact lower {want_lo:e}, upper residual {:.1e}",
+        rel(cdf1, 0.025)
+    );
     // statrs on a smaller problem (n = 1e6; at 1e9 its inverse_cdf does not return in reasonable time)
     let n6 = 1_000_000u64;
     let (lo6, hi6) = clopper_pearson(1, n6, 0.95);
@@ -411,14 +494,22 @@ fn poisson_garwood_interval() {
     assert_eq!(lo, 0.0);
     assert!(rel(hi, -(0.025f64).ln()) < 1e-13);
     let (lo, hi) = poisson_interval(1, 0.95);
-    assert!((lo - 0.025_317_8).abs() < 1e-7 && (hi - 5.571_643_2).abs() < 1e-6, "{lo} {hi}");
+    assert!(
+        (lo - 0.025_317_8).abs() < 1e-7 && (hi - 5.571_643_2).abs() < 1e-6,
+        "{lo} {hi}"
+    );
     let (lo, hi) = poisson_interval(10, 0.95);
-    assert!((lo - 4.795_389_5).abs() < 1e-6 && (hi - 18.390_356).abs() < 1e-5, "{lo} {hi}");
+    assert!(
+        (lo - 4.795_389_5).abs() < 1e-6 && (hi - 18.390_356).abs() < 1e-5,
+        "{lo} {hi}"
+    );
     // defining equations by direct summation of the Poisson pmf
     for k in [1u64, 2, 5, 30, 100] {
         for alpha in [0.05, 0.01, 1e-6] {
             let (lo, hi) = poisson_interval_alpha(k, alpha);
-            let pmf = |mu: f64, j: u64| ((j as f64) * mu.ln() - mu - (1..=j).map(|i| (i as f64).ln()).sum::<f64>()).exp();
+            let pmf = |mu: f64, j: u64| {
+                ((j as f64) * mu.ln() - mu - (1..=j).map(|i| (i as f64).ln()).sum::<f64>()).exp()
+            };
             let ge_k: f64 = (k..k + 2000).map(|j| pmf(lo, j)).sum();
             let le_k: f64 = (0..=k).map(|j| pmf(hi, j)).sum();
             assert!(rel(ge_k, alpha / 2.0) < 1e-8, "k={k} α={alpha}: {ge_k}");
@@ -436,8 +527,14 @@ fn binomial_acceptance_band_has_the_stated_coverage() {
         let below: f64 = pmf[..lo as usize].iter().sum();
         let above: f64 = pmf[hi as usize + 1..].iter().sum();
         // each tail ≤ 0.5 %, and the band is the tightest such (one more count would exceed)
-        assert!(below <= 0.005 + 1e-12 && above <= 0.005 + 1e-12, "n={n} p={p}: {below} {above}");
-        assert!(below + pmf[lo as usize] > 0.005 && above + pmf[hi as usize] > 0.005, "n={n} p={p}");
+        assert!(
+            below <= 0.005 + 1e-12 && above <= 0.005 + 1e-12,
+            "n={n} p={p}: {below} {above}"
+        );
+        assert!(
+            below + pmf[lo as usize] > 0.005 && above + pmf[hi as usize] > 0.005,
+            "n={n} p={p}"
+        );
         let (flo, fhi) = binomial_two_sided_interval_99(n, p);
         assert_eq!((flo, fhi), (lo as f64 / n as f64, hi as f64 / n as f64));
         println!("99 % band for n={n}, p={p}: counts [{lo}, {hi}]");
@@ -463,13 +560,19 @@ use tofwave::detect::extreme::{max_exceed_prob, threshold_for_report};
 /// a debug `cargo test` stays quick; the acceptance band is derived from the
 /// trial count actually run, so both are valid tests.
 fn trials(release: u64) -> u64 {
-    if cfg!(debug_assertions) { release / 50 } else { release }
+    if cfg!(debug_assertions) {
+        release / 50
+    } else {
+        release
+    }
 }
 
 /// 26-tap Gaussian kernel (σ = 4 samples, like a matched filter for a
 /// ~9 ns FWHM pulse at 1 GS/s), normalised to unit output variance.
 fn gaussian_kernel() -> Vec<f64> {
-    let mut h: Vec<f64> = (0..26).map(|i| (-((i as f64 - 12.5).powi(2)) / (2.0 * 16.0)).exp()).collect();
+    let mut h: Vec<f64> = (0..26)
+        .map(|i| (-((i as f64 - 12.5).powi(2)) / (2.0 * 16.0)).exp())
+        .collect();
     let norm = h.iter().map(|v| v * v).sum::<f64>().sqrt();
     h.iter_mut().for_each(|v| *v /= norm);
     h
@@ -483,11 +586,18 @@ fn simulate_maxima(n: usize, kernel: Option<&[f64]>, trials: u64, seed: u64) -> 
     let mut w = vec![0.0f64; n + taps - 1];
     let mut maxima = Vec::with_capacity(trials as usize);
     for _ in 0..trials {
-        w.iter_mut().for_each(|v| *v = StandardNormal.sample(&mut rng));
+        w.iter_mut()
+            .for_each(|v| *v = StandardNormal.sample(&mut rng));
         let m = match kernel {
             None => w.iter().copied().fold(f64::NEG_INFINITY, f64::max),
             Some(h) => (0..n)
-                .map(|j| w[j..j + taps].iter().zip(h).map(|(a, b)| a * b).sum::<f64>())
+                .map(|j| {
+                    w[j..j + taps]
+                        .iter()
+                        .zip(h)
+                        .map(|(a, b)| a * b)
+                        .sum::<f64>()
+                })
                 .fold(f64::NEG_INFINITY, f64::max),
         };
         maxima.push(m);
@@ -513,7 +623,10 @@ fn check_report_rate(label: &str, maxima: &[f64], n: usize, rho1: f64, p_reports
             hits as f64 / t as f64,
             indep_hits as f64 / t as f64
         );
-        assert!(lo <= hits && hits <= hi, "{label} p={p}: {hits} outside [{lo}, {hi}]");
+        assert!(
+            lo <= hits && hits <= hi,
+            "{label} p={p}: {hits} outside [{lo}, {hi}]"
+        );
         assert!((max_exceed_prob(th.u, n, rho1) / p - 1.0).abs() < 1e-9);
     }
 }
@@ -543,5 +656,338 @@ fn report_threshold_monte_carlo_deep_tail() {
     let h = gaussian_kernel();
     let rho1: f64 = h.windows(2).map(|w| w[0] * w[1]).sum();
     let maxima = simulate_maxima(2000, Some(&h), 2_000_000, 0x5eed_0004);
-    check_report_rate("gaussian-kernel MA (deep)", &maxima, 2000, rho1, &[1e-4, 1e-5]);
+    check_report_rate(
+        "gaussian-kernel MA (deep)",
+        &maxima,
+        2000,
+        rho1,
+        &[1e-4, 1e-5],
+    );
+}
+
+// ---------------------------------------------------------------- noise ----
+
+use tofwave::detect::noise::{Moments, NoiseFitter, NoiseTracker, autocorrelation, welch_psd};
+
+fn normals(n: usize, seed: u64) -> Vec<f64> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    (0..n).map(|_| StandardNormal.sample(&mut rng)).collect()
+}
+
+/// Two-pass reference moments (mean, unbiased var, g1, g2) of values given
+/// as offsets from an exact origin.
+fn two_pass(r: &[f64]) -> (f64, f64, f64, f64) {
+    let n = r.len() as f64;
+    let mean = r.iter().sum::<f64>() / n;
+    let (mut m2, mut m3, mut m4) = (0.0, 0.0, 0.0);
+    for &v in r {
+        let d = v - mean;
+        m2 += d * d;
+        m3 += d * d * d;
+        m4 += d * d * d * d;
+    }
+    (
+        mean,
+        m2 / (n - 1.0),
+        n.sqrt() * m3 / m2.powf(1.5),
+        n * m4 / (m2 * m2) - 3.0,
+    )
+}
+
+#[test]
+fn moments_have_no_cancellation_at_large_offset() {
+    // mean 1 kV, σ 1 µV: x − 1000 is exact (Sterbenz), so the two-pass
+    // reference on the offsets is exact to ~1e-15.
+    let z = normals(100_000, 11);
+    let x: Vec<f64> = z.iter().map(|v| 1e3 + 1e-6 * v).collect();
+    let r: Vec<f64> = x.iter().map(|v| v - 1e3).collect();
+    let (mean_r, var_r, g1, g2) = two_pass(&r);
+    let mut m = Moments::default();
+    x.iter().for_each(|&v| m.push(v));
+    let sigma_err = rel(m.variance().sqrt(), var_r.sqrt());
+    println!(
+        "1 kV ± 1 µV: σ rel err {sigma_err:.2e}, skew abs err {:.1e}",
+        (m.skewness() - g1).abs()
+    );
+    assert!(sigma_err < 1e-9);
+    assert!((m.mean() - (1e3 + mean_r)).abs() < 1e-12);
+    assert!((m.skewness() - g1).abs() < 1e-6 && (m.excess_kurtosis() - g2).abs() < 1e-6);
+}
+
+#[test]
+fn moments_merge_equals_single_pass() {
+    let x: Vec<f64> = normals(10_000, 12)
+        .iter()
+        .map(|v| 3.0 + 0.5 * v * v)
+        .collect(); // skewed data
+    let mut whole = Moments::default();
+    x.iter().for_each(|&v| whole.push(v));
+    let mut merged = Moments::default();
+    for chunk in x.chunks(777) {
+        let mut part = Moments::default();
+        chunk.iter().for_each(|&v| part.push(v));
+        merged.merge(&part);
+    }
+    merged.merge(&Moments::default());
+    assert_eq!(merged.count(), whole.count());
+    assert!(rel(merged.mean(), whole.mean()) < 1e-14);
+    assert!(rel(merged.variance(), whole.variance()) < 1e-12);
+    assert!(rel(merged.skewness(), whole.skewness()) < 1e-11);
+    assert!(rel(merged.excess_kurtosis(), whole.excess_kurtosis()) < 1e-11);
+}
+
+#[test]
+fn noise_tracker_forgets_and_follows_drift() {
+    let frames: Vec<Vec<f64>> = (0..60).map(|i| normals(1000, 100 + i)).collect();
+    // λ = 1: identical to merging everything
+    let mut t1 = NoiseTracker::with_forgetting(1.0);
+    let mut all = Moments::default();
+    for f in &frames {
+        let mut m = Moments::default();
+        f.iter().for_each(|&v| m.push(v));
+        t1.update(&m);
+        all.merge(&m);
+    }
+    assert!(rel(t1.variance(), all.variance()) < 1e-12);
+    assert!((t1.mean() - all.mean()).abs() < 1e-14);
+    // λ = 0.9: σ steps from 1 to 2 after frame 30; 30 frames later the weight
+    // of the old regime is 0.9^30 ≈ 4 %, so the variance is ≈ 4·0.96 + 0.04 = 3.88.
+    let mut t = NoiseTracker::with_forgetting(0.9);
+    for (i, f) in frames.iter().enumerate() {
+        let scale = if i < 30 { 1.0 } else { 2.0 };
+        let mut m = Moments::default();
+        f.iter().for_each(|&v| m.push(scale * v));
+        t.update(&m);
+    }
+    let old_w = 0.9f64.powi(30);
+    let want = 4.0 * (1.0 - old_w) + old_w;
+    // statistical tolerance: n_eff ≈ 19000 samples, sd of a variance estimate ≈ want·√(2/n_eff) ≈ 0.04; allow 4 sd
+    assert!(
+        (t.variance() - want).abs() < 4.0 * want * (2.0 / t.effective_samples()).sqrt(),
+        "{} vs {want}",
+        t.variance()
+    );
+    let n_eff = t.effective_samples();
+    assert!((n_eff / (1000.0 * 1.9 / 0.1) - 1.0).abs() < 0.01, "{n_eff}"); // m(1+λ)/(1−λ)
+    // λ = 0 keeps only the latest frame
+    let mut t0 = NoiseTracker::with_forgetting(0.0);
+    let mut last = Moments::default();
+    for f in &frames[..3] {
+        last = Moments::default();
+        f.iter().for_each(|&v| last.push(v));
+        t0.update(&last);
+    }
+    assert!(rel(t0.variance(), last.variance()) < 1e-12);
+}
+
+#[test]
+fn noise_fit_degenerate_inputs_are_defined() {
+    let mut f = NoiseFitter::default();
+    let s = f.fit(&[], 0.01);
+    assert_eq!(
+        (s.samples, s.sigma_v, s.gaussian, s.contaminated),
+        (0, 0.0, false, false)
+    );
+    let s = f.fit(&[&[2.5]], 0.01);
+    assert_eq!(
+        (s.samples, s.mean_v, s.sigma_v, s.robust_sigma_v),
+        (1, 2.5, 0.0, 0.0)
+    );
+    assert!(!s.gaussian && s.normality_p_value.is_finite());
+    let flat = [0.7; 500];
+    let s = f.fit(&[&flat], 0.01);
+    assert_eq!(
+        (s.mean_v, s.sigma_v, s.skewness, s.excess_kurtosis),
+        (0.7, 0.0, 0.0, 0.0)
+    );
+    assert!(!s.gaussian && !s.contaminated && s.normality_p_value == 0.0);
+    // NaN/Inf are skipped and counted
+    let s = f.fit(
+        &[
+            &[1.0, f64::NAN, 2.0],
+            &[f64::INFINITY, 3.0, f64::NEG_INFINITY],
+        ],
+        0.01,
+    );
+    assert_eq!((s.samples, f.skipped_nonfinite()), (3, 3));
+    assert!(rel(s.mean_v, 2.0) < 1e-15 && rel(s.sigma_v, 1.0) < 1e-15);
+    for v in [
+        s.mean_v,
+        s.sigma_v,
+        s.skewness,
+        s.excess_kurtosis,
+        s.normality_p_value,
+        s.robust_sigma_v,
+    ] {
+        assert!(v.is_finite());
+    }
+}
+
+#[test]
+fn noise_fit_contamination_false_alarm_rate_matches_alpha() {
+    // Under H0 (pure Gaussian) the criterion flags with probability ≈ α; the
+    // observed count must lie in the 99 % binomial band for the number of fits.
+    let alpha = 0.05;
+    for (n, fits) in [
+        (1000usize, trials(4000)),
+        (100, trials(4000)),
+        (30, trials(4000)),
+    ] {
+        let mut rng = ChaCha8Rng::seed_from_u64(7 + n as u64);
+        let mut fitter = NoiseFitter::default();
+        let mut buf = vec![0.0; n];
+        let mut flagged = 0u64;
+        for _ in 0..fits {
+            buf.iter_mut().for_each(|v| {
+                let z: f64 = StandardNormal.sample(&mut rng);
+                *v = 0.013 * z - 5e-4
+            });
+            if fitter.fit(&[&buf], alpha).contaminated {
+                flagged += 1;
+            }
+        }
+        let (lo, hi) = binomial_acceptance_counts(fits, alpha, 0.99);
+        println!(
+            "contamination flag under H0: n={n}: {flagged}/{fits} = {:.4} (α = {alpha}, 99 % band [{lo}, {hi}])",
+            flagged as f64 / fits as f64
+        );
+        assert!(
+            lo <= flagged && flagged <= hi,
+            "n={n}: {flagged} outside [{lo}, {hi}]"
+        );
+    }
+}
+
+#[test]
+fn noise_fit_detects_outliers_and_skew() {
+    let mut z = normals(2000, 21);
+    // 2 % of the gate is a leaked pulse at +8σ: s grows by ~√(1 + 0.02·64) ≈ 1.5, the MAD barely moves
+    for v in z.iter_mut().step_by(50) {
+        *v += 8.0;
+    }
+    let s = NoiseFitter::default().fit(&[&z[..1000], &z[1000..]], 0.01);
+    assert!(s.contaminated && !s.gaussian, "{s:?}");
+    let clean = normals(2000, 22);
+    let s = NoiseFitter::default().fit(&[&clean], 0.01);
+    assert!(
+        !s.contaminated && rel(s.sigma_v, 1.0) < 0.1 && rel(s.robust_sigma_v, 1.0) < 0.1,
+        "{s:?}"
+    );
+}
+
+#[test]
+fn noise_fit_ten_million_samples() {
+    let n = if cfg!(debug_assertions) {
+        200_000
+    } else {
+        10_000_000
+    };
+    let mut rng = ChaCha8Rng::seed_from_u64(31);
+    let x: Vec<f64> = (0..n)
+        .map(|_| {
+            let z: f64 = StandardNormal.sample(&mut rng);
+            1e-3 + 0.01 * z
+        })
+        .collect();
+    let mut f = NoiseFitter::default();
+    let t = std::time::Instant::now();
+    let s = f.fit(&[&x], 0.01);
+    println!(
+        "fit of {n} samples: {:?}; σ = {:.6e}, robust σ = {:.6e}",
+        t.elapsed(),
+        s.sigma_v,
+        s.robust_sigma_v
+    );
+    // sd of s is σ/√(2n): 2.2e-6 relative at 1e7; allow 5 sd
+    assert!(rel(s.sigma_v, 0.01) < 5.0 / (2.0 * n as f64).sqrt());
+    assert!(rel(s.robust_sigma_v, 0.01) < 5.0 * 1.17 / (n as f64).sqrt());
+    assert_eq!(s.samples, n as u64);
+}
+
+#[test]
+fn welch_psd_matches_naive_dft_and_parseval() {
+    // naive reference: two half-overlapping 8-sample Hann segments
+    let x: Vec<f64> = normals(12, 41);
+    let dt = 1e-9;
+    let got = welch_psd(&x, 8, dt);
+    let mut want = vec![0.0; 5];
+    let w: Vec<f64> = (0..8)
+        .map(|i| 0.5 * (1.0 - (2.0 * std::f64::consts::PI * i as f64 / 8.0).cos()))
+        .collect();
+    let w2: f64 = w.iter().map(|v| v * v).sum();
+    for start in [0, 4] {
+        let seg = &x[start..start + 8];
+        let mean = seg.iter().sum::<f64>() / 8.0;
+        for (k, wk) in want.iter_mut().enumerate() {
+            let (mut re, mut im) = (0.0, 0.0);
+            for (i, (&v, &wi)) in seg.iter().zip(&w).enumerate() {
+                let ph = -2.0 * std::f64::consts::PI * (k * i) as f64 / 8.0;
+                re += (v - mean) * wi * ph.cos();
+                im += (v - mean) * wi * ph.sin();
+            }
+            let one_sided = if k == 0 || k == 4 { 1.0 } else { 2.0 };
+            *wk += one_sided * (re * re + im * im) * dt / w2 / 2.0;
+        }
+    }
+    for (g, w) in got.iter().zip(&want) {
+        assert!(
+            (g - w).abs() <= 1e-12 * want.iter().cloned().fold(0.0, f64::max),
+            "{got:?} vs {want:?}"
+        );
+    }
+    // white noise of variance σ²: one-sided level 2σ²·dt; Σ PSD·Δf ≈ σ²
+    let sigma = 0.02;
+    let x: Vec<f64> = normals(1 << 16, 42).iter().map(|v| sigma * v).collect();
+    let psd = welch_psd(&x, 256, dt);
+    let df = 1.0 / (256.0 * dt);
+    let total: f64 = psd.iter().sum::<f64>() * df;
+    let level = psd[10..118].iter().sum::<f64>() / 108.0;
+    println!(
+        "Welch white: level/(2σ²dt) = {:.4}, ΣPSD·Δf/σ² = {:.4}",
+        level / (2.0 * sigma * sigma * dt),
+        total / (sigma * sigma)
+    );
+    // ~511 segments × 108 bins averaged: relative sd ≈ 1/√(511·108/ (overlap ≈ 1.9)) < 0.6 %; allow 3 %
+    assert!(rel(level, 2.0 * sigma * sigma * dt) < 0.03);
+    assert!(rel(total, sigma * sigma) < 0.03);
+    // a tone at bin 32 dominates its bin
+    let tone: Vec<f64> = (0..4096)
+        .map(|i| (2.0 * std::f64::consts::PI * 32.0 * i as f64 / 256.0).sin())
+        .collect();
+    let p = welch_psd(&tone, 256, dt);
+    let peak = p
+        .iter()
+        .enumerate()
+        .max_by(|a, b| a.1.total_cmp(b.1))
+        .map(|(i, _)| i);
+    assert_eq!(peak, Some(32));
+    assert!(welch_psd(&tone, 1, dt).is_empty() && welch_psd(&tone[..10], 16, dt).is_empty());
+}
+
+#[test]
+fn autocorrelation_of_moving_average_and_edges() {
+    let h = gaussian_kernel();
+    let rho1: f64 = h.windows(2).map(|w| w[0] * w[1]).sum();
+    let w = normals(200_025, 51);
+    let y: Vec<f64> = (0..200_000)
+        .map(|j| w[j..j + 26].iter().zip(&h).map(|(a, b)| a * b).sum())
+        .collect();
+    let r = autocorrelation(&y, 3);
+    assert_eq!(r.len(), 4);
+    assert_eq!(r[0], 1.0);
+    // sd of ρ̂(1) for a smooth process is far below 1/√n; allow 5/√n
+    assert!(
+        (r[1] - rho1).abs() < 5.0 / (200_000f64).sqrt(),
+        "{} vs {rho1}",
+        r[1]
+    );
+    // naive reference on a short sequence
+    let x = [1.0, 3.0, 2.0, 5.0, 4.0];
+    let m = 3.0;
+    let c0: f64 = x.iter().map(|v| (v - m) * (v - m)).sum();
+    let c1: f64 = x.windows(2).map(|p| (p[0] - m) * (p[1] - m)).sum();
+    assert!((autocorrelation(&x, 10)[1] - c1 / c0).abs() < 1e-15);
+    assert_eq!(autocorrelation(&x, 10).len(), 5);
+    assert_eq!(autocorrelation(&[2.0; 4], 2), vec![1.0, 0.0, 0.0]);
+    assert!(autocorrelation(&[], 3).is_empty());
 }

@@ -128,7 +128,9 @@ fn erfc_pos(z: f64) -> ErfcPos {
         (
             RA0 + s * (RA1 + s * (RA2 + s * (RA3 + s * (RA4 + s * (RA5 + s * (RA6 + s * RA7)))))),
             1.0 + s
-                * (SA1 + s * (SA2 + s * (SA3 + s * (SA4 + s * (SA5 + s * (SA6 + s * (SA7 + s * SA8))))))),
+                * (SA1
+                    + s * (SA2
+                        + s * (SA3 + s * (SA4 + s * (SA5 + s * (SA6 + s * (SA7 + s * SA8))))))),
         )
     } else {
         // Fitted on [1/0.35, 28]; g(s) is smooth at s -> 0 (RB0 = ln(1/√π) + 0.5625
@@ -141,7 +143,11 @@ fn erfc_pos(z: f64) -> ErfcPos {
     // zh = z with the low 32 bits cleared: zh² is exact, so -z² is split exactly.
     let zh = f64::from_bits(z.to_bits() & 0xffff_ffff_0000_0000);
     let g = r / big_s;
-    ErfcPos::Tail { big: -zh * zh - 0.5625, small: (zh - z) * (zh + z) + g, g }
+    ErfcPos::Tail {
+        big: -zh * zh - 0.5625,
+        small: (zh - z) * (zh + z) + g,
+        g,
+    }
 }
 
 impl ErfcPos {

@@ -29,7 +29,10 @@ fn stirling_delta(z: f64) -> f64 {
         z += 1.0;
     }
     let t = 1.0 / (z * z);
-    acc + (1.0 / 12.0 - t * (1.0 / 360.0 - t * (1.0 / 1260.0 - t * (1.0 / 1680.0 - t * (1.0 / 1188.0 - t * 691.0 / 360_360.0))))) / z
+    acc + (1.0 / 12.0
+        - t * (1.0 / 360.0
+            - t * (1.0 / 1260.0 - t * (1.0 / 1680.0 - t * (1.0 / 1188.0 - t * 691.0 / 360_360.0)))))
+        / z
 }
 
 /// Loader's deviance term bd0(x, m) = x ln(x/m) + m − x ≥ 0, without
@@ -59,7 +62,10 @@ fn bd0(x: f64, m: f64) -> f64 {
 /// ln[x^a y^b / B(a, b)] with y = 1 − x (passed separately for accuracy).
 fn ln_beta_prefactor(a: f64, b: f64, x: f64, y: f64) -> f64 {
     let s = a + b;
-    -bd0(a, s * x) - bd0(b, s * y) + 0.5 * (a * b / s).ln() - LN_SQRT_2PI - stirling_delta(a) - stirling_delta(b)
+    -bd0(a, s * x) - bd0(b, s * y) + 0.5 * (a * b / s).ln()
+        - LN_SQRT_2PI
+        - stirling_delta(a)
+        - stirling_delta(b)
         + stirling_delta(s)
 }
 
@@ -211,7 +217,10 @@ fn bisect(mut lo: f64, mut hi: f64, f: impl Fn(f64) -> f64) -> f64 {
     let flo = f(lo);
     for _ in 0..200 {
         let mid = 0.5 * (lo + hi);
-        if mid <= lo || mid >= hi || (hi - lo) <= 4.0 * f64::EPSILON * mid.abs().max(f64::MIN_POSITIVE) {
+        if mid <= lo
+            || mid >= hi
+            || (hi - lo) <= 4.0 * f64::EPSILON * mid.abs().max(f64::MIN_POSITIVE)
+        {
             break;
         }
         let fm = f(mid);
@@ -241,7 +250,11 @@ fn logistic(t: f64) -> (f64, f64) {
 /// ln of the binomial pmf at 0 < k < n (Loader 2000: Stirling remainders and
 /// deviances, no cancellation for n up to 1e15).
 fn ln_binom_pmf(k: f64, n: f64, p: f64, q: f64) -> f64 {
-    let lc = stirling_delta(n) - stirling_delta(k) - stirling_delta(n - k) - bd0(k, n * p) - bd0(n - k, n * q);
+    let lc = stirling_delta(n)
+        - stirling_delta(k)
+        - stirling_delta(n - k)
+        - bd0(k, n * p)
+        - bd0(n - k, n * q);
     lc - 0.5 * ((2.0 * PI).ln() + k.ln() + (-k / n).ln_1p())
 }
 
@@ -251,7 +264,13 @@ fn ln_binom_pmf(k: f64, n: f64, p: f64, q: f64) -> f64 {
 /// (x → 1 with a ≫ b). Returns ln Σ.
 fn ln_binom_tail_sum(k: f64, n: f64, p: f64, q: f64, down: bool) -> f64 {
     // q^n and p^n: through whichever of p, q is the small one, where it is exact.
-    let ln_pow = |small: f64, big: f64| if small < 0.5 { n * (-small).ln_1p() } else { n * big.ln() };
+    let ln_pow = |small: f64, big: f64| {
+        if small < 0.5 {
+            n * (-small).ln_1p()
+        } else {
+            n * big.ln()
+        }
+    };
     let ln_t0 = if k == 0.0 {
         ln_pow(p, q)
     } else if k == n {
@@ -405,7 +424,10 @@ pub fn poisson_interval_alpha(count: u64, alpha: f64) -> (f64, f64) {
         bisect(-745.0, top, |t| ln_gamma_inc(k, t.exp()).0 - ln_target).exp()
     };
     // Q(k + 1, x) increases with x as well.
-    let hi = bisect(-745.0, top, |t| ln_target - ln_gamma_inc(k + 1.0, t.exp()).1).exp();
+    let hi = bisect(-745.0, top, |t| {
+        ln_target - ln_gamma_inc(k + 1.0, t.exp()).1
+    })
+    .exp();
     (lo, hi)
 }
 
@@ -497,8 +519,10 @@ mod tests {
         // P(1, x) = 1 − e^−x; Q(2, x) = (1 + x) e^−x
         for x in [1e-5, 0.3, 2.0, 30.0, 700.0] {
             assert!(rel(gamma_p(1.0, x), -(-x as f64).exp_m1()) < 1e-14, "{x}");
-            assert!(rel(gamma_q(2.0, x), (1.0 + x) * (-x as f64).exp()) < 1e-13, "{x}");
+            assert!(
+                rel(gamma_q(2.0, x), (1.0 + x) * (-x as f64).exp()) < 1e-13,
+                "{x}"
+            );
         }
     }
 }
-

@@ -140,7 +140,7 @@ fn q_inv_matches_mpmath_table_down_to_smallest_subnormal() {
         m.rows, m.err, m.at
     );
     assert_eq!(m.rows + sub, 309);
-    let x = q_inv(4.940_656_458_412_465_4e-324);
+    let x = q_inv(f64::from_bits(1));
     assert!((x - 38.467_405_617_144_3).abs() < 1e-12, "{x}");
 }
 
@@ -152,7 +152,7 @@ fn statrs_comparison_in_the_tail() {
     for r in table(include_str!("data/numerics/mpmath/qinv_table_mpmath.csv")) {
         let p = num(r[0]);
         let want = num(r[1]);
-        if p < f64::MIN_POSITIVE || p > 0.1 {
+        if !(f64::MIN_POSITIVE..=0.1).contains(&p) {
             continue;
         }
         ours.add(rel(q_inv(p), want), p);
@@ -332,7 +332,7 @@ fn q_special_values_and_far_tail() {
     assert!(rel(ln_q(1e3), want) < 1e-15);
     // continuity across the switch to the asymptotic branch at x = 1e3
     let below = ln_q(999.999_999_999);
-    let above = ln_q(1000.000_000_001);
+    let above = ln_q(1_000.000_000_001);
     assert!((below - above).abs() < 1e-5 && below > above);
     assert_eq!(ln_q(1e200), f64::NEG_INFINITY); // −x²/2 = −5e399 is beyond the double range
     assert!(ln_q(1e150).is_finite());
@@ -394,7 +394,7 @@ fn clopper_pearson_closed_forms_k0_and_kn() {
     for n in [1u64, 2, 10, 1000, 1_000_000, 1_000_000_000] {
         for alpha in [0.05, 0.01, 1e-6, 1e-12, 1e-100] {
             let (lo, hi) = clopper_pearson_alpha(0, n, alpha);
-            let want_hi = -((0.5 * alpha as f64).ln() / n as f64).exp_m1();
+            let want_hi = -((0.5 * alpha).ln() / n as f64).exp_m1();
             assert_eq!(lo, 0.0);
             worst = worst.max(rel(hi, want_hi));
             assert!(
@@ -402,10 +402,8 @@ fn clopper_pearson_closed_forms_k0_and_kn() {
                 "n={n} α={alpha}: {hi:e} vs {want_hi:e}"
             );
             let (lo, hi) = clopper_pearson_alpha(n, n, alpha);
-            let want_lo = ((0.5 * alpha as f64).ln() / n as f64).exp();
+            let want_lo = ((0.5 * alpha).ln() / n as f64).exp();
             assert_eq!(hi, 1.0);
-            // the bound near 1: compare its complement, which carries the information
-            assert!(rel(1.0 - lo, -(0.5 * alpha as f64).ln() / n as f64 * 1.0).abs() < 1.0);
             worst = worst.max(rel(lo, want_lo));
             assert!(
                 rel(lo, want_lo) < 1e-13,

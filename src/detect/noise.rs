@@ -441,7 +441,7 @@ pub fn welch_psd(x: &[f64], segment: usize, dt_s: f64) -> Vec<f64> {
     let scale = dt_s / (w2 * segments.max(1) as f64);
     let last = psd.len() - 1;
     for (k, p) in psd.iter_mut().enumerate() {
-        let one_sided = if k == 0 || (n % 2 == 0 && k == last) {
+        let one_sided = if k == 0 || (n.is_multiple_of(2) && k == last) {
             1.0
         } else {
             2.0

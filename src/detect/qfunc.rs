@@ -28,6 +28,10 @@
 //! is preserved.
 //! ```
 
+// Published coefficients are kept digit for digit, so they can be checked
+// against their sources.
+#![allow(clippy::excessive_precision)]
+
 use std::f64::consts::{FRAC_1_SQRT_2, LN_2, PI};
 
 /// Low part of 1/√2: `1/√2 = FRAC_1_SQRT_2 + INV_SQRT2_LO` to ~1e-33.

@@ -431,11 +431,12 @@ pub fn poisson_interval_alpha(count: u64, alpha: f64) -> (f64, f64) {
     (lo, hi)
 }
 
-/// Central acceptance band for a binomial count: the smallest `lo` with
-/// P(X < lo) ≤ (1 − confidence)/2 maximal, and the smallest `hi` with
-/// P(X > hi) ≤ (1 − confidence)/2, for X ~ Binomial(trials, p). A count c
-/// passes iff `lo ≤ c ≤ hi`; under the null hypothesis it fails with
-/// probability ≤ 1 − confidence (less, since the distribution is discrete).
+/// Central acceptance band [lo, hi] for a binomial count at two-sided
+/// `confidence`: with tail = (1 − confidence)/2, `lo` is the largest count
+/// with P(X < lo) ≤ tail and `hi` the smallest with P(X > hi) ≤ tail, for
+/// X ~ Binomial(trials, p). A count c passes iff `lo ≤ c ≤ hi`; under the
+/// null hypothesis it fails with probability ≤ 1 − confidence (less, since
+/// the distribution is discrete).
 pub fn binomial_acceptance_counts(trials: u64, p: f64, confidence: f64) -> (u64, u64) {
     let tail = 0.5 * (1.0 - confidence.clamp(0.0, 1.0));
     if trials == 0 || p.is_nan() {
@@ -502,8 +503,8 @@ mod tests {
     #[test]
     fn beta_inc_closed_forms() {
         // I_x(1, b) = 1 − (1 − x)^b; I_x(a, 1) = x^a
-        for &(b, x) in &[(1.0, 0.3), (7.0, 0.01), (1e9, 1e-12), (1e6, 1e-3)] {
-            let want = -(b * (-x as f64).ln_1p()).exp_m1();
+        for &(b, x) in &[(1.0f64, 0.3f64), (7.0, 0.01), (1e9, 1e-12), (1e6, 1e-3)] {
+            let want = -(b * (-x).ln_1p()).exp_m1();
             assert!(rel(beta_inc_reg(1.0, b, x), want) < 1e-13, "b={b} x={x}");
         }
         for &(a, x) in &[(3.0, 0.5), (1e9, 1.0 - 1e-10), (50.0, 0.2)] {
@@ -518,11 +519,8 @@ mod tests {
     fn gamma_inc_closed_forms() {
         // P(1, x) = 1 − e^−x; Q(2, x) = (1 + x) e^−x
         for x in [1e-5, 0.3, 2.0, 30.0, 700.0] {
-            assert!(rel(gamma_p(1.0, x), -(-x as f64).exp_m1()) < 1e-14, "{x}");
-            assert!(
-                rel(gamma_q(2.0, x), (1.0 + x) * (-x as f64).exp()) < 1e-13,
-                "{x}"
-            );
+            assert!(rel(gamma_p(1.0, x), -(-x).exp_m1()) < 1e-14, "{x}");
+            assert!(rel(gamma_q(2.0, x), (1.0 + x) * (-x).exp()) < 1e-13, "{x}");
         }
     }
 }

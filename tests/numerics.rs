@@ -578,12 +578,12 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 use tofwave::detect::extreme::{max_exceed_prob, threshold_for_report};
 
-/// Trials per Monte-Carlo case: full size in release (CI), 1/50 in debug so
+/// Trials per Monte-Carlo case: full size in release (CI), 1/10 in debug so
 /// a debug `cargo test` stays quick; the acceptance band is derived from the
 /// trial count actually run, so both are valid tests.
 fn trials(release: u64) -> u64 {
     if cfg!(debug_assertions) {
-        release / 50
+        release / 10
     } else {
         release
     }

@@ -244,10 +244,10 @@ impl NoiseTracker {
 }
 
 /// Asymptotic standard deviation of (s − σ̂_MAD)/σ times √n for Gaussian
-/// data: Var = Var(s) + Var(σ̂_MAD) − 2 Cov = 1/2 + 1.36046 − 2·(1/2), from
+/// data: Var = Var(s) + Var(σ̂_MAD) − 2 Cov = 1/2 + 1.360459 − 2·(1/2), from
 /// the influence functions (x² − 1)/2 and sign(|x| − c)/(4 c φ(c)),
 /// c = Φ⁻¹(3/4) (their covariance is 2cφ(c)/(4cφ(c)) = 1/2).
-pub const SIGMA_MAD_DIFF_SD: f64 = 0.927_591_5;
+pub const SIGMA_MAD_DIFF_SD: f64 = 0.927_609_456_782_300_7;
 
 /// Finite-sample inflation of the variance of s − σ̂_MAD: the asymptotic
 /// 0.8604/n is low at small n (the sample median's and the MAD's variance

@@ -138,7 +138,12 @@ const PARTIAL_BUDGET: u64 = 1 << 24;
 impl CodeAccumulator {
     /// An accumulator for frames of `len` samples.
     pub fn new(len: usize) -> CodeAccumulator {
-        CodeAccumulator { total: vec![0; len], partial: vec![0; len], partial_budget: PARTIAL_BUDGET, frames: 0 }
+        CodeAccumulator {
+            total: vec![0; len],
+            partial: vec![0; len],
+            partial_budget: PARTIAL_BUDGET,
+            frames: 0,
+        }
     }
 
     /// Samples per frame.
@@ -238,7 +243,11 @@ fn add_i32_avx2_i16(acc: &mut [i32], x: &[i16]) {
 pub fn mean_from_sums(acc: &[i64], n: u64, volts_per_code: f64, offset_v: f64, out: &mut [f64]) {
     debug_assert!(n > 0, "mean of zero frames");
     for (o, &s) in out.iter_mut().zip(acc) {
-        *o = if n == 0 { f64::NAN } else { offset_v + volts_per_code * div_round(s, n) };
+        *o = if n == 0 {
+            f64::NAN
+        } else {
+            offset_v + volts_per_code * div_round(s, n)
+        };
     }
 }
 
@@ -291,7 +300,11 @@ pub fn trimmed_mean(values: &mut [f64], trim_fraction: f64) -> Option<f64> {
     if n == 0 {
         return None;
     }
-    let t = if trim_fraction.is_nan() { 0.0 } else { trim_fraction.clamp(0.0, 0.5) };
+    let t = if trim_fraction.is_nan() {
+        0.0
+    } else {
+        trim_fraction.clamp(0.0, 0.5)
+    };
     let g = ((t * n as f64).floor() as usize).min((n - 1) / 2);
     let kept = if g > 0 {
         // Put the g smallest before index g, then the g largest after n − g.
@@ -311,12 +324,22 @@ pub fn trimmed_mean(values: &mut [f64], trim_fraction: f64) -> Option<f64> {
 /// `out` have. `scratch` is reused across calls (allocates only until it has
 /// `frames.len()` capacity). With no frames there is no average: `out` is
 /// filled with NaN.
-pub fn robust_average(frames: &[&[f64]], trim_fraction: f64, out: &mut [f64], scratch: &mut Vec<f64>) {
+pub fn robust_average(
+    frames: &[&[f64]],
+    trim_fraction: f64,
+    out: &mut [f64],
+    scratch: &mut Vec<f64>,
+) {
     if frames.is_empty() {
         out.fill(f64::NAN);
         return;
     }
-    let len = frames.iter().map(|f| f.len()).min().unwrap_or(0).min(out.len());
+    let len = frames
+        .iter()
+        .map(|f| f.len())
+        .min()
+        .unwrap_or(0)
+        .min(out.len());
     for (i, o) in out[..len].iter_mut().enumerate() {
         scratch.clear();
         scratch.extend(frames.iter().map(|f| f[i]));
@@ -339,9 +362,15 @@ mod tests {
         // (2^53 + 1)·2 / 2 = 2^53 + 1 is a tie between 2^53 and 2^53 + 2: even wins.
         assert_eq!(div_round(((1i64 << 53) + 1) * 2, 2), (1u64 << 53) as f64);
         // (2^53 + 3) ties to 2^53 + 4.
-        assert_eq!(div_round(((1i64 << 53) + 3) * 2, 2), ((1u64 << 53) + 4) as f64);
+        assert_eq!(
+            div_round(((1i64 << 53) + 3) * 2, 2),
+            ((1u64 << 53) + 4) as f64
+        );
         // Just above the tie: rounds up.
-        assert_eq!(div_round(((1i64 << 53) + 1) * 3 + 1, 3), ((1u64 << 53) + 2) as f64);
+        assert_eq!(
+            div_round(((1i64 << 53) + 1) * 3 + 1, 3),
+            ((1u64 << 53) + 2) as f64
+        );
     }
 
     #[test]

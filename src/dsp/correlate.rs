@@ -98,7 +98,8 @@ fn direct_path() -> DirectPath {
         if std::arch::is_x86_feature_detected!("avx512f") {
             return DirectPath::Avx512;
         }
-        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+        {
             return DirectPath::Avx2;
         }
     }
@@ -108,7 +109,11 @@ fn direct_path() -> DirectPath {
 /// Cost of one overlap-save block of length `n`.
 fn fft_block_cost_ns(n: usize) -> f64 {
     let nf = n as f64;
-    let factor = if n.is_power_of_two() { 1.0 } else { FFT_NON_POW2_FACTOR };
+    let factor = if n.is_power_of_two() {
+        1.0
+    } else {
+        FFT_NON_POW2_FACTOR
+    };
     FFT_NS_PER_NLOGN * factor * nf * nf.log2() + FFT_NS_PER_SAMPLE * nf
 }
 
@@ -138,7 +143,9 @@ fn fft_block_len(taps: usize, input_len: usize) -> (usize, f64) {
     // A block shorter than 2·taps yields fewer outputs than it has taps; one
     // that covers the whole input in one go is the longest worth having.
     let lo = (2 * taps).max(8);
-    let whole = smooth_lengths(input_len.max(lo), 2 * input_len.max(lo)).first().copied();
+    let whole = smooth_lengths(input_len.max(lo), 2 * input_len.max(lo))
+        .first()
+        .copied();
     let hi = whole.unwrap_or(MAX_FFT_LEN).min(MAX_FFT_LEN).max(lo);
     let mut best = (0usize, f64::INFINITY);
     for n in smooth_lengths(lo, hi) {
@@ -152,7 +159,10 @@ fn fft_block_len(taps: usize, input_len: usize) -> (usize, f64) {
     if best.0 == 0 {
         // Only when lo > MAX_FFT_LEN: a template longer than half the largest block.
         let n = lo.next_power_of_two();
-        best = (n, outputs.div_ceil(n - taps + 1) as f64 * fft_block_cost_ns(n));
+        best = (
+            n,
+            outputs.div_ceil(n - taps + 1) as f64 * fft_block_cost_ns(n),
+        );
     }
     best
 }
@@ -183,12 +193,21 @@ impl FftPlan {
         let mut time = vec![0.0; n];
         time[..taps.len()].copy_from_slice(taps);
         let mut freq = r2c.make_output_vec();
-        let mut scratch = vec![Complex::new(0.0, 0.0); r2c.get_scratch_len().max(c2r.get_scratch_len())];
+        let mut scratch =
+            vec![Complex::new(0.0, 0.0); r2c.get_scratch_len().max(c2r.get_scratch_len())];
         let ok = r2c.process_with_scratch(&mut time, &mut freq, &mut scratch);
         debug_assert!(ok.is_ok(), "buffer lengths come from the plan");
         let scale = 1.0 / n as f64;
         let template_spectrum = freq.iter().map(|c| c.conj() * scale).collect();
-        FftPlan { n, r2c, c2r, template_spectrum, time, freq, scratch }
+        FftPlan {
+            n,
+            r2c,
+            c2r,
+            template_spectrum,
+            time,
+            freq,
+            scratch,
+        }
     }
 
     /// Overlap-save: block `b` covers `x[b·p .. b·p + n]` (zero-padded past
@@ -204,7 +223,9 @@ impl FftPlan {
             let filled = end - start;
             self.time[..filled].copy_from_slice(&x[start..end]);
             self.time[filled..].fill(0.0);
-            let ok = self.r2c.process_with_scratch(&mut self.time, &mut self.freq, &mut self.scratch);
+            let ok =
+                self.r2c
+                    .process_with_scratch(&mut self.time, &mut self.freq, &mut self.scratch);
             debug_assert!(ok.is_ok(), "buffer lengths come from the plan");
             for (f, h) in self.freq.iter_mut().zip(&self.template_spectrum) {
                 *f *= *h;
@@ -213,7 +234,9 @@ impl FftPlan {
             // the inverse insists on exact zeros.
             self.freq[0].im = 0.0;
             self.freq[last_bin].im = 0.0;
-            let ok = self.c2r.process_with_scratch(&mut self.freq, &mut self.time, &mut self.scratch);
+            let ok =
+                self.c2r
+                    .process_with_scratch(&mut self.freq, &mut self.time, &mut self.scratch);
             debug_assert!(ok.is_ok(), "buffer lengths come from the plan");
             let take = p.min(outputs - start);
             out.extend_from_slice(&self.time[..take]);
@@ -266,7 +289,11 @@ impl Correlator {
 
     /// Plans for `template` with the given method (tests and benches; the FFT
     /// block length is still chosen by the cost model for `max_input_len`).
-    pub fn with_method(template: &[f64], max_input_len: usize, method: CorrelationMethod) -> Correlator {
+    pub fn with_method(
+        template: &[f64],
+        max_input_len: usize,
+        method: CorrelationMethod,
+    ) -> Correlator {
         let l = template.len();
         let fft = match method {
             CorrelationMethod::Fft if l > 0 => {
@@ -275,7 +302,11 @@ impl Correlator {
             }
             _ => None,
         };
-        Correlator { taps: template.to_vec(), method, fft }
+        Correlator {
+            taps: template.to_vec(),
+            method,
+            fft,
+        }
     }
 
     /// The template.
@@ -354,7 +385,11 @@ fn direct_body<const B: usize, const FMA: bool>(taps: &[f64], x: &[f64], out: &m
         for (j, &h) in taps.iter().enumerate() {
             let w: &[f64; B] = xs[j..j + B].try_into().expect("slice has length B");
             for b in 0..B {
-                acc[b] = if FMA { h.mul_add(w[b], acc[b]) } else { acc[b] + h * w[b] };
+                acc[b] = if FMA {
+                    h.mul_add(w[b], acc[b])
+                } else {
+                    acc[b] + h * w[b]
+                };
             }
         }
         out[k..k + B].copy_from_slice(&acc);
@@ -373,7 +408,11 @@ fn dot<const FMA: bool>(a: &[f64], b: &[f64]) -> f64 {
     let (ar, br) = (ac.remainder(), bc.remainder());
     for (ca, cb) in ac.zip(bc) {
         for i in 0..4 {
-            acc[i] = if FMA { ca[i].mul_add(cb[i], acc[i]) } else { acc[i] + ca[i] * cb[i] };
+            acc[i] = if FMA {
+                ca[i].mul_add(cb[i], acc[i])
+            } else {
+                acc[i] + ca[i] * cb[i]
+            };
         }
     }
     let mut s = (acc[0] + acc[1]) + (acc[2] + acc[3]);
@@ -395,9 +434,18 @@ mod tests {
 
     #[test]
     fn cost_model_prefers_direct_for_short_and_fft_for_long_templates() {
-        assert_eq!(Correlator::new(&[1.0; 7], 2500).method(), CorrelationMethod::Direct);
-        assert_eq!(Correlator::new(&[1.0; 300], 2500).method(), CorrelationMethod::Fft);
-        assert_eq!(Correlator::new(&[1.0; 300], 100).method(), CorrelationMethod::Direct);
+        assert_eq!(
+            Correlator::new(&[1.0; 7], 2500).method(),
+            CorrelationMethod::Direct
+        );
+        assert_eq!(
+            Correlator::new(&[1.0; 300], 2500).method(),
+            CorrelationMethod::Fft
+        );
+        assert_eq!(
+            Correlator::new(&[1.0; 300], 100).method(),
+            CorrelationMethod::Direct
+        );
     }
 
     #[test]

@@ -43,7 +43,11 @@ impl MlFit {
     /// pulse (zero amplitude or slope energy).
     pub fn delay_crb_samples(&self, sigma: f64) -> f64 {
         let info = self.amplitude * self.amplitude * self.slope_energy;
-        if info > 0.0 { sigma / info.sqrt() } else { f64::INFINITY }
+        if info > 0.0 {
+            sigma / info.sqrt()
+        } else {
+            f64::INFINITY
+        }
     }
 }
 
@@ -62,7 +66,12 @@ pub struct FitOptions {
 
 impl Default for FitOptions {
     fn default() -> Self {
-        FitOptions { search_half_width: 2.0, search_step: 0.25, delay_tol: 1e-10, max_step: 2.0 }
+        FitOptions {
+            search_half_width: 2.0,
+            search_step: 0.25,
+            delay_tol: 1e-10,
+            max_step: 2.0,
+        }
     }
 }
 
@@ -76,7 +85,15 @@ pub fn fit_delay(
     window: std::ops::Range<usize>,
     max_iter: u32,
 ) -> MlFit {
-    fit_delay_with(x, baseline, shape, delay0, window, max_iter, &FitOptions::default())
+    fit_delay_with(
+        x,
+        baseline,
+        shape,
+        delay0,
+        window,
+        max_iter,
+        &FitOptions::default(),
+    )
 }
 
 /// Sums over the window at one delay.
@@ -115,7 +132,6 @@ pub fn fit_delay_with(
     // y = x − baseline, computed on the fly so the fit allocates nothing.
     let yw = Centered { x: xw, baseline };
 
-    let y_sum_sq: f64 = yw.iter().map(|v| v * v).sum();
     let mut delay = delay0;
     let mut cost = yw.reduced_cost(first, shape, delay);
 
@@ -177,8 +193,15 @@ pub fn fit_delay_with(
 
     let s = yw.sums(first, shape, delay);
     let amplitude = if s.ss > 0.0 { s.sy / s.ss } else { 0.0 };
-    // Σ (y − a s)² = Σy² − 2aΣsy + a²Σs², clamped at 0 against rounding.
-    let rss = (y_sum_sq - 2.0 * amplitude * s.sy + amplitude * amplitude * s.ss).max(0.0);
+    // Summed directly: Σy² − 2aΣsy + a²Σs² would cancel catastrophically for a good fit.
+    let rss: f64 = yw
+        .iter()
+        .enumerate()
+        .map(|(i, yk)| {
+            let r = yk - amplitude * shape.value_and_slope((first + i) as f64 - delay).0;
+            r * r
+        })
+        .sum();
     let has_signal = amplitude != 0.0 && s.gg > 0.0;
     MlFit {
         amplitude,

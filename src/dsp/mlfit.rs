@@ -8,8 +8,8 @@
 //! `y = x − baseline`, leaving a one-dimensional problem in the delay,
 //! minimise `C(d) = Σ y² − (Σ s·y)² / Σ s²`.
 //!
-//! Robustness: a coarse scan of `C` around the start (±2 samples in quarter-sample
-//! steps by default) puts the iteration inside the basin of the right minimum
+//! Robustness: a coarse scan of `C` around the start (±2 samples by default, in
+//! steps of a fifth of the pulse's width but at least a quarter sample) puts the iteration inside the basin of the right minimum
 //! even for a narrow pulse started 1.5 samples off; Gauss-Newton steps (with the
 //! amplitude–delay coupling projected out) are then backtracked until the cost
 //! drops, so each iteration is a descent step and the fit never walks uphill.
@@ -56,7 +56,9 @@ impl MlFit {
 pub struct FitOptions {
     /// Half-width of the coarse scan around the start, samples (0: no scan).
     pub search_half_width: f64,
-    /// Step of the coarse scan, samples; should be below the pulse's rise sigma.
+    /// Finest step of the coarse scan, samples. The scan steps by a fifth of
+    /// the pulse's width scale when that is coarser, and is skipped when even
+    /// that step exceeds `search_half_width` (wide pulses need no scan).
     pub search_step: f64,
     /// Convergence: |delay step| below this, samples.
     pub delay_tol: f64,
@@ -133,14 +135,21 @@ pub fn fit_delay_with(
     let yw = Centered { x: xw, baseline };
 
     let mut delay = delay0;
-    let mut cost = yw.reduced_cost(first, shape, delay);
+    let s0 = yw.sums(first, shape, delay0);
+    let mut cost = if s0.ss > 0.0 { -(s0.sy * s0.sy) / s0.ss } else { 0.0 };
 
     // Coarse scan: keeps the iteration out of a wrong basin when the start is
-    // poor relative to the pulse width.
-    if opts.search_half_width > 0.0 && opts.search_step > 0.0 {
-        let steps = (opts.search_half_width / opts.search_step).floor() as i64;
-        for i in -steps..=steps {
-            let d = delay0 + i as f64 * opts.search_step;
+    // poor relative to the pulse width. The basin of the projected cost is about
+    // the pulse's width scale sqrt(Σs²/Σg²) (1.4σ for a Gaussian), so the scan
+    // steps by a fifth of it (but no finer than `search_step`) and is skipped
+    // when that step exceeds the search range: for a pulse much wider than the
+    // start's error the descent iteration alone is safe.
+    let width = if s0.gg > 0.0 { (s0.ss / s0.gg).sqrt() } else { 0.0 };
+    let scan_step = opts.search_step.max(0.2 * width);
+    if opts.search_half_width > 0.0 && opts.search_step > 0.0 && scan_step < opts.search_half_width {
+        let steps = (opts.search_half_width / scan_step).floor() as i64;
+        for i in (-steps..=steps).filter(|&i| i != 0) {
+            let d = delay0 + i as f64 * scan_step;
             let c = yw.reduced_cost(first, shape, d);
             if c < cost {
                 cost = c;

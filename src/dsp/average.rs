@@ -200,6 +200,13 @@ impl CodeAccumulator {
     /// Adds one frame of i8 codes (see [`add_i16`](Self::add_i16)).
     pub fn add_i8(&mut self, x: &[i8]) {
         self.reserve(PARTIAL_BUDGET / I8_FRAMES_PER_I32_FLUSH as u64);
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU supports AVX2 (checked just above).
+            unsafe { add_i32_avx2_i8(&mut self.partial, x) };
+            self.frames += 1;
+            return;
+        }
         add_widen(&mut self.partial, x);
         self.frames += 1;
     }
@@ -224,6 +231,12 @@ impl CodeAccumulator {
         let n = self.frames;
         mean_from_sums(self.sums(), n, volts_per_code, offset_v, out);
     }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn add_i32_avx2_i8(acc: &mut [i32], x: &[i8]) {
+    add_widen(acc, x);
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -371,6 +384,21 @@ mod tests {
             div_round(((1i64 << 53) + 1) * 3 + 1, 3),
             ((1u64 << 53) + 2) as f64
         );
+    }
+
+    /// The portable widening loop (the AVX2 copies run the same code).
+    #[test]
+    fn portable_widening_matches_plain_loop() {
+        let x: Vec<i16> = (0..37).map(|i| (i * 1777 - 30_000) as i16).collect();
+        let mut a = vec![1i64; 40];
+        add_widen(&mut a, &x);
+        let mut b = vec![0i32; 37];
+        add_widen(&mut b, &x);
+        for i in 0..37 {
+            assert_eq!(a[i], 1 + x[i] as i64);
+            assert_eq!(b[i], x[i] as i32);
+        }
+        assert_eq!(&a[37..], &[1, 1, 1]);
     }
 
     #[test]

@@ -448,6 +448,47 @@ mod tests {
         );
     }
 
+    /// Every copy of the direct loop (not only the one this CPU dispatches to)
+    /// against the naive sum, over lengths hitting the blocked body and tail.
+    #[test]
+    fn every_direct_path_matches_a_naive_sum() {
+        let x: Vec<f64> = (0..300)
+            .map(|i| ((i * 37 % 101) as f64 * 0.37).sin())
+            .collect();
+        for l in [1usize, 3, 8, 33, 70] {
+            let taps: Vec<f64> = (0..l).map(|j| (j as f64 * 0.7).cos()).collect();
+            for n in [l, l + 5, l + 31, l + 64, 300] {
+                let m = n - l + 1;
+                let naive: Vec<f64> = (0..m)
+                    .map(|k| taps.iter().enumerate().map(|(j, t)| t * x[k + j]).sum())
+                    .collect();
+                let check = |out: &[f64], path: &str| {
+                    for (a, b) in out.iter().zip(&naive) {
+                        assert!((a - b).abs() < 1e-12, "{path} L={l} n={n}: {a} vs {b}");
+                    }
+                };
+                let mut out = vec![0.0; m];
+                direct_body::<16, false>(&taps, &x[..n], &mut out);
+                check(&out, "portable");
+                #[cfg(target_arch = "x86_64")]
+                {
+                    if std::arch::is_x86_feature_detected!("avx2")
+                        && std::arch::is_x86_feature_detected!("fma")
+                    {
+                        // SAFETY: AVX2 and FMA checked just above.
+                        unsafe { direct_avx2(&taps, &x[..n], &mut out) };
+                        check(&out, "avx2");
+                    }
+                    if std::arch::is_x86_feature_detected!("avx512f") {
+                        // SAFETY: AVX-512F (and so AVX2, FMA) checked just above.
+                        unsafe { direct_avx512(&taps, &x[..n], &mut out) };
+                        check(&out, "avx512");
+                    }
+                }
+            }
+        }
+    }
+
     #[test]
     fn both_methods_match_a_naive_sum() {
         let taps = [0.5, -1.0, 2.0, 0.25];

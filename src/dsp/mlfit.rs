@@ -136,7 +136,11 @@ pub fn fit_delay_with(
 
     let mut delay = delay0;
     let s0 = yw.sums(first, shape, delay0);
-    let mut cost = if s0.ss > 0.0 { -(s0.sy * s0.sy) / s0.ss } else { 0.0 };
+    let mut cost = if s0.ss > 0.0 {
+        -(s0.sy * s0.sy) / s0.ss
+    } else {
+        0.0
+    };
 
     // Coarse scan: keeps the iteration out of a wrong basin when the start is
     // poor relative to the pulse width. The basin of the projected cost is about
@@ -144,9 +148,14 @@ pub fn fit_delay_with(
     // steps by a fifth of it (but no finer than `search_step`) and is skipped
     // when that step exceeds the search range: for a pulse much wider than the
     // start's error the descent iteration alone is safe.
-    let width = if s0.gg > 0.0 { (s0.ss / s0.gg).sqrt() } else { 0.0 };
+    let width = if s0.gg > 0.0 {
+        (s0.ss / s0.gg).sqrt()
+    } else {
+        0.0
+    };
     let scan_step = opts.search_step.max(0.2 * width);
-    if opts.search_half_width > 0.0 && opts.search_step > 0.0 && scan_step < opts.search_half_width {
+    if opts.search_half_width > 0.0 && opts.search_step > 0.0 && scan_step < opts.search_half_width
+    {
         let steps = (opts.search_half_width / scan_step).floor() as i64;
         for i in (-steps..=steps).filter(|&i| i != 0) {
             let d = delay0 + i as f64 * scan_step;

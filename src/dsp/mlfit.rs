@@ -169,9 +169,13 @@ pub fn fit_delay_with(
 
     let mut converged = false;
     let mut iterations = 0;
+    // The sums at the start are reused when the scan kept it.
+    let mut cached = (delay == delay0).then_some(s0);
     for it in 0..max_iter {
         iterations = it + 1;
-        let s = yw.sums(first, shape, delay);
+        let s = cached
+            .take()
+            .unwrap_or_else(|| yw.sums(first, shape, delay));
         if s.ss <= 0.0 {
             break;
         }

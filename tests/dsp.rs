@@ -794,3 +794,49 @@ fn fracdelay_invariants() {
     );
     shift(&[], 0.5, &mut out);
 }
+
+// ---------------------------------------------------------------------------
+// property tests
+
+proptest::proptest! {
+    /// Any sum and any count: the mean of codes is s/n correctly rounded.
+    #[test]
+    fn prop_div_round_is_correctly_rounded(s in proptest::num::i64::ANY, n in 1u64..) {
+        if s != 0 {
+            assert_correctly_rounded(div_round(s, n), s, n);
+        } else {
+            proptest::prop_assert_eq!(div_round(s, n), 0.0);
+        }
+    }
+
+    /// Selection-based trimmed mean equals the sort-based one for any stack.
+    #[test]
+    fn prop_trimmed_mean_matches_sorting(
+        v in proptest::collection::vec(-1e6f64..1e6, 1..60),
+        t in 0.0f64..0.6,
+    ) {
+        let want = trimmed_by_sort(&v, t);
+        let got = trimmed_mean(&mut v.clone(), t).expect("non-empty");
+        proptest::prop_assert!((got - want).abs() <= 1e-9 * (1.0 + want.abs()), "{} vs {}", got, want);
+    }
+
+    /// Correlation is exact for any template and input (both methods agree
+    /// with the naive sum to 1e-12 of the output scale).
+    #[test]
+    fn prop_correlation_matches_naive(
+        taps in proptest::collection::vec(-1.0f64..1.0, 1..40),
+        x in proptest::collection::vec(-1.0f64..1.0, 0..300),
+    ) {
+        let want = naive_correlation(&taps, &x);
+        let scale = want.iter().fold(1e-300f64, |m, v| m.max(v.abs()));
+        for method in [CorrelationMethod::Direct, CorrelationMethod::Fft] {
+            let mut c = Correlator::with_method(&taps, 128, method);
+            let mut out = Vec::new();
+            c.correlate(&x, &mut out);
+            proptest::prop_assert_eq!(out.len(), want.len());
+            for (a, b) in out.iter().zip(&want) {
+                proptest::prop_assert!((a - b).abs() <= 1e-12 * scale.max(1e-3), "{:?}: {} vs {}", method, a, b);
+            }
+        }
+    }
+}

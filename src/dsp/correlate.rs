@@ -10,9 +10,12 @@
 //! * **FFT overlap-save** with `realfft`: the template spectrum is computed once;
 //!   each block of `n` input samples yields `n - taps.len() + 1` outputs.
 //!
-//! [`Correlator::new`] picks the cheaper one from a cost model (see
-//! [`estimated_cost_ns`]) whose constants were measured on the development
-//! machine; [`Correlator::with_method`] forces one.
+//! [`Correlator::new`](crate::dsp::correlate::Correlator::new) picks the
+//! cheaper one from a cost model (see
+//! [`estimated_cost_ns`](crate::dsp::correlate::estimated_cost_ns)) whose
+//! constants were measured on the development machine;
+//! [`Correlator::with_method`](crate::dsp::correlate::Correlator::with_method)
+//! forces one.
 
 use std::sync::Arc;
 

@@ -36,7 +36,10 @@ pub enum CorrelationMethod {
 // 2500-sample input, while other builds ran — so ±15 %):
 // * direct: 0.047 ns per multiply-accumulate with the AVX-512 loop, 0.056 with
 //   AVX2+FMA, 0.10 with the portable (SSE2) loop, plus ~0.1 ns per output;
-//   e.g. 64 taps: 7.0 µs, 300 taps: 32.8 µs (AVX-512);
+//   e.g. 64 taps: 7.5 µs, 160 taps: 17.7 µs (AVX-512). Past ~180 taps the
+//   AVX-512 loop slows to 0.08–0.09 ns per MAC (200 taps: 42 µs, 300 taps:
+//   51 µs; cause not investigated), which only strengthens the FFT choice
+//   there, so the model keeps the short-template figure;
 // * one overlap-save block of length n (forward + inverse realfft, spectrum
 //   product, copies): ~0.29·n·log2(n) + 0.3·n ns, e.g. n = 256: 0.61 µs,
 //   n = 1024: 3.0 µs, n = 4096: 14 µs; 3·2^k and 5·2^k cost 0–11 % more per
@@ -45,7 +48,7 @@ pub enum CorrelationMethod {
 // Measured cross-over on 2500-sample inputs (AVX-512), direct vs FFT with the
 // block length the model picks: 48 taps 6.0 vs 7.7 µs (n = 256); 64 taps 7.6 vs
 // 8.4 µs (n = 256); 80 taps 9.7 vs 8.1 µs (n = 512); 128 taps 15.1 vs 9.2 µs
-// (n = 1024); 300 taps 33–66 vs 8.7 µs (n = 2560). The model switches between
+// (n = 1024); 300 taps 51 vs 8.7 µs (n = 2560). The model switches between
 // 64 and 80 taps for that input length, as measured. (On a CPU with only the
 // portable loop it switches near 35 taps.)
 const DIRECT_NS_PER_MAC_AVX512: f64 = 0.047;
@@ -366,23 +369,42 @@ pub(crate) fn correlate_valid(taps: &[f64], x: &[f64], out: &mut [f64]) {
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx2,fma")]
 fn direct_avx512(taps: &[f64], x: &[f64], out: &mut [f64]) {
-    direct_body::<32, true>(taps, x, out);
+    // 64 lanes = 8 zmm accumulators: enough independent FMA chains to cover
+    // the FMA latency (32 lanes: equal at 64 taps, up to 1.3× slower at 300).
+    direct_body::<64, true>(taps, x, out);
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 fn direct_avx2(taps: &[f64], x: &[f64], out: &mut [f64]) {
+    // 32 lanes = 8 ymm accumulators (16 lanes measured 10 % slower).
     direct_body::<32, true>(taps, x, out);
 }
 
-/// Blocks of `B` outputs accumulate in `B` independent lanes (registers);
-/// `FMA` uses fused multiply-add, which is only fast where the target has it.
+/// Blocks of `B` outputs accumulate in `B` independent lanes (registers),
+/// then blocks of 8 take most of the remainder and a dot product the last
+/// few; `FMA` uses fused multiply-add, which is only fast where the target
+/// has it.
 #[inline(always)]
 fn direct_body<const B: usize, const FMA: bool>(taps: &[f64], x: &[f64], out: &mut [f64]) {
     let l = taps.len();
-    let m = out.len();
-    let mut k = 0;
-    while k + B <= m {
+    let k = blocks::<B, FMA>(taps, x, out, 0);
+    let k = blocks::<8, FMA>(taps, x, out, k);
+    for (kk, o) in out.iter_mut().enumerate().skip(k) {
+        *o = dot::<FMA>(taps, &x[kk..kk + l]);
+    }
+}
+
+/// Computes whole blocks of `B` outputs from `out[k]` on; returns where it stopped.
+#[inline(always)]
+fn blocks<const B: usize, const FMA: bool>(
+    taps: &[f64],
+    x: &[f64],
+    out: &mut [f64],
+    mut k: usize,
+) -> usize {
+    let l = taps.len();
+    while k + B <= out.len() {
         let mut acc = [0.0f64; B];
         let xs = &x[k..k + l - 1 + B];
         for (j, &h) in taps.iter().enumerate() {
@@ -398,9 +420,7 @@ fn direct_body<const B: usize, const FMA: bool>(taps: &[f64], x: &[f64], out: &m
         out[k..k + B].copy_from_slice(&acc);
         k += B;
     }
-    for (kk, o) in out.iter_mut().enumerate().skip(k) {
-        *o = dot::<FMA>(taps, &x[kk..kk + l]);
-    }
+    k
 }
 
 /// Dot product with four independent accumulators.

@@ -50,7 +50,7 @@ pub enum CorrelationMethod {
 // 8.4 µs (n = 256); 80 taps 9.7 vs 8.1 µs (n = 512); 128 taps 15.1 vs 9.2 µs
 // (n = 1024); 300 taps 51 vs 8.7 µs (n = 2560). The model switches between
 // 64 and 80 taps for that input length, as measured. (On a CPU with only the
-// portable loop it switches near 35 taps.)
+// portable loop it switches near 30 taps.)
 const DIRECT_NS_PER_MAC_AVX512: f64 = 0.047;
 const DIRECT_NS_PER_MAC_AVX2: f64 = 0.056;
 const DIRECT_NS_PER_MAC_PORTABLE: f64 = 0.10;

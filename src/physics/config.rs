@@ -306,6 +306,15 @@ pub struct InterferenceConfig {
     /// Mode frequencies, Hz (each below 10 MHz in the source).
     #[serde(default = "default_modes")]
     pub frequencies_hz: Vec<f64>,
+    /// Each burst starts up to this long after its nominal mains instant
+    /// (uniform), s: the mains phase wanders against the laser clock, so the
+    /// bursts hit random frames instead of a pattern locked to the PRF.
+    #[serde(default = "default_wander")]
+    pub wander_s: f64,
+}
+
+fn default_wander() -> f64 {
+    2e-3
 }
 
 fn default_mains() -> f64 {
@@ -409,10 +418,18 @@ impl SimulationConfig {
     pub fn validate(&self) -> Result<(), PhysicsError> {
         let d = &self.digitiser;
         if !in_open_closed(d.sample_interval_s, 0.0, 1e-3) {
-            return Err(bad("simulation.digitiser.sample_interval_s", d.sample_interval_s, "(0, 1e-3] s"));
+            return Err(bad(
+                "simulation.digitiser.sample_interval_s",
+                d.sample_interval_s,
+                "(0, 1e-3] s",
+            ));
         }
         if d.samples_per_frame < 2 || d.samples_per_frame > 10_000_000 {
-            return Err(bad("simulation.digitiser.samples_per_frame", d.samples_per_frame, "[2, 10000000]"));
+            return Err(bad(
+                "simulation.digitiser.samples_per_frame",
+                d.samples_per_frame,
+                "[2, 10000000]",
+            ));
         }
         if d.pre_trigger_samples >= d.samples_per_frame {
             return Err(bad(
@@ -447,13 +464,22 @@ impl SimulationConfig {
             ));
         }
         if !in_closed(d.trigger_jitter_s, 0.0, 1e-6) {
-            return Err(bad("simulation.digitiser.trigger_jitter_s", d.trigger_jitter_s, "[0, 1e-6] s"));
+            return Err(bad(
+                "simulation.digitiser.trigger_jitter_s",
+                d.trigger_jitter_s,
+                "[0, 1e-6] s",
+            ));
         }
         if !(1..=256).contains(&d.oversample) {
-            return Err(bad("simulation.digitiser.oversample", d.oversample, "[1, 256]"));
+            return Err(bad(
+                "simulation.digitiser.oversample",
+                d.oversample,
+                "[1, 256]",
+            ));
         }
         if d.start_channel.trim().is_empty()
-            || crate::frame::channel_key(&d.start_channel) == crate::frame::channel_key(&d.stop_channel)
+            || crate::frame::channel_key(&d.start_channel)
+                == crate::frame::channel_key(&d.stop_channel)
         {
             return Err(bad(
                 "simulation.digitiser.start_channel",
@@ -462,24 +488,44 @@ impl SimulationConfig {
             ));
         }
         if d.stop_channel.trim().is_empty() {
-            return Err(bad("simulation.digitiser.stop_channel", "\"\"", "a non-empty channel name"));
+            return Err(bad(
+                "simulation.digitiser.stop_channel",
+                "\"\"",
+                "a non-empty channel name",
+            ));
         }
 
         if let Some(l) = &self.laser {
             if !in_open_closed(l.peak_power_w, 0.0, 1e9) {
-                return Err(bad("simulation.laser.peak_power_w", l.peak_power_w, "(0, 1e9] W"));
+                return Err(bad(
+                    "simulation.laser.peak_power_w",
+                    l.peak_power_w,
+                    "(0, 1e9] W",
+                ));
             }
             if !in_open_closed(l.pulse_width_s, 0.0, 1e-5) {
-                return Err(bad("simulation.laser.pulse_width_s", l.pulse_width_s, "(0, 1e-5] s"));
+                return Err(bad(
+                    "simulation.laser.pulse_width_s",
+                    l.pulse_width_s,
+                    "(0, 1e-5] s",
+                ));
             }
             if !in_open_closed(l.prf_hz, 0.0, 1e9) {
                 return Err(bad("simulation.laser.prf_hz", l.prf_hz, "(0, 1e9] Hz"));
             }
             if !in_open_closed(l.wavelength_m, 1e-7, 2e-5) {
-                return Err(bad("simulation.laser.wavelength_m", l.wavelength_m, "(1e-7, 2e-5] m"));
+                return Err(bad(
+                    "simulation.laser.wavelength_m",
+                    l.wavelength_m,
+                    "(1e-7, 2e-5] m",
+                ));
             }
             if !in_closed(l.emission_time_s, -1e-3, 1e-3) {
-                return Err(bad("simulation.laser.emission_time_s", l.emission_time_s, "[-1e-3, 1e-3] s"));
+                return Err(bad(
+                    "simulation.laser.emission_time_s",
+                    l.emission_time_s,
+                    "[-1e-3, 1e-3] s",
+                ));
             }
             if !in_closed(l.beam_divergence_half_angle_rad, 0.0, 0.5) {
                 return Err(bad(
@@ -489,7 +535,11 @@ impl SimulationConfig {
                 ));
             }
             if !in_open_closed(l.beam_radius_m, 0.0, 1.0) {
-                return Err(bad("simulation.laser.beam_radius_m", l.beam_radius_m, "(0, 1] m"));
+                return Err(bad(
+                    "simulation.laser.beam_radius_m",
+                    l.beam_radius_m,
+                    "(0, 1] m",
+                ));
             }
         }
         for (i, t) in self.targets.iter().enumerate() {
@@ -501,11 +551,19 @@ impl SimulationConfig {
                 return Err(bad(f("reflectivity"), t.reflectivity, "[0, 1]"));
             }
             if !in_closed(t.incidence_deg, 0.0, 89.9) {
-                return Err(bad(f("incidence_deg"), t.incidence_deg, "[0, 89.9] degrees"));
+                return Err(bad(
+                    f("incidence_deg"),
+                    t.incidence_deg,
+                    "[0, 89.9] degrees",
+                ));
             }
             match (t.kind, t.area_m2) {
                 (TargetKind::Small, None) => {
-                    return Err(bad(f("area_m2"), "missing", "(0, 1e6] m² (required for kind = \"small\")"));
+                    return Err(bad(
+                        f("area_m2"),
+                        "missing",
+                        "(0, 1e6] m² (required for kind = \"small\")",
+                    ));
                 }
                 (TargetKind::Small, Some(a)) if !in_open_closed(a, 0.0, 1e6) => {
                     return Err(bad(f("area_m2"), a, "(0, 1e6] m²"));
@@ -519,23 +577,47 @@ impl SimulationConfig {
         if let Some(a) = &self.atmosphere
             && !in_closed(a.extinction_per_km, 0.0, 1e3)
         {
-            return Err(bad("simulation.atmosphere.extinction_per_km", a.extinction_per_km, "[0, 1000] /km"));
+            return Err(bad(
+                "simulation.atmosphere.extinction_per_km",
+                a.extinction_per_km,
+                "[0, 1000] /km",
+            ));
         }
         if let Some(r) = &self.receiver {
             if !in_open_closed(r.aperture_diameter_m, 0.0, 10.0) {
-                return Err(bad("simulation.receiver.aperture_diameter_m", r.aperture_diameter_m, "(0, 10] m"));
+                return Err(bad(
+                    "simulation.receiver.aperture_diameter_m",
+                    r.aperture_diameter_m,
+                    "(0, 10] m",
+                ));
             }
             if !in_open_closed(r.optics_efficiency, 0.0, 1.0) {
-                return Err(bad("simulation.receiver.optics_efficiency", r.optics_efficiency, "(0, 1]"));
+                return Err(bad(
+                    "simulation.receiver.optics_efficiency",
+                    r.optics_efficiency,
+                    "(0, 1]",
+                ));
             }
             if !in_open_closed(r.fov_half_angle_rad, 0.0, 1.5) {
-                return Err(bad("simulation.receiver.fov_half_angle_rad", r.fov_half_angle_rad, "(0, 1.5] rad"));
+                return Err(bad(
+                    "simulation.receiver.fov_half_angle_rad",
+                    r.fov_half_angle_rad,
+                    "(0, 1.5] rad",
+                ));
             }
             if !in_closed(r.tx_rx_separation_m, 0.0, 10.0) {
-                return Err(bad("simulation.receiver.tx_rx_separation_m", r.tx_rx_separation_m, "[0, 10] m"));
+                return Err(bad(
+                    "simulation.receiver.tx_rx_separation_m",
+                    r.tx_rx_separation_m,
+                    "[0, 10] m",
+                ));
             }
             if !in_open_closed(r.filter_bandwidth_m, 0.0, 1e-5) {
-                return Err(bad("simulation.receiver.filter_bandwidth_m", r.filter_bandwidth_m, "(0, 1e-5] m"));
+                return Err(bad(
+                    "simulation.receiver.filter_bandwidth_m",
+                    r.filter_bandwidth_m,
+                    "(0, 1e-5] m",
+                ));
             }
         }
         if let Some(b) = &self.background {
@@ -547,21 +629,37 @@ impl SimulationConfig {
                 ));
             }
             if !in_closed(b.reflectivity, 0.0, 1.0) {
-                return Err(bad("simulation.background.reflectivity", b.reflectivity, "[0, 1]"));
+                return Err(bad(
+                    "simulation.background.reflectivity",
+                    b.reflectivity,
+                    "[0, 1]",
+                ));
             }
         }
         if let Some(a) = &self.apd {
             if !in_open_closed(a.responsivity_a_per_w, 0.0, 100.0) {
-                return Err(bad("simulation.apd.responsivity_a_per_w", a.responsivity_a_per_w, "(0, 100] A/W"));
+                return Err(bad(
+                    "simulation.apd.responsivity_a_per_w",
+                    a.responsivity_a_per_w,
+                    "(0, 100] A/W",
+                ));
             }
             if !in_closed(a.gain, 1.0, 1e4) {
                 return Err(bad("simulation.apd.gain", a.gain, "[1, 10000]"));
             }
             if !in_closed(a.ionisation_ratio_k, 0.0, 1.0) {
-                return Err(bad("simulation.apd.ionisation_ratio_k", a.ionisation_ratio_k, "[0, 1]"));
+                return Err(bad(
+                    "simulation.apd.ionisation_ratio_k",
+                    a.ionisation_ratio_k,
+                    "[0, 1]",
+                ));
             }
             if !in_closed(a.dark_current_a, 0.0, 1.0) {
-                return Err(bad("simulation.apd.dark_current_a", a.dark_current_a, "[0, 1] A"));
+                return Err(bad(
+                    "simulation.apd.dark_current_a",
+                    a.dark_current_a,
+                    "[0, 1] A",
+                ));
             }
         }
         if let Some(t) = &self.tia {
@@ -569,10 +667,18 @@ impl SimulationConfig {
                 return Err(bad("simulation.tia.gain_ohm", t.gain_ohm, "(0, 1e12] ohm"));
             }
             if !in_open_closed(t.bandwidth_hz, 0.0, 1e12) {
-                return Err(bad("simulation.tia.bandwidth_hz", t.bandwidth_hz, "(0, 1e12] Hz"));
+                return Err(bad(
+                    "simulation.tia.bandwidth_hz",
+                    t.bandwidth_hz,
+                    "(0, 1e12] Hz",
+                ));
             }
             if !in_closed(t.noise_current_a, 0.0, 1.0) {
-                return Err(bad("simulation.tia.noise_current_a", t.noise_current_a, "[0, 1] A"));
+                return Err(bad(
+                    "simulation.tia.noise_current_a",
+                    t.noise_current_a,
+                    "[0, 1] A",
+                ));
             }
             if let Some(s) = t.swing_v
                 && !in_open_closed(s, 0.0, 1e3)
@@ -588,23 +694,47 @@ impl SimulationConfig {
                 return Err(bad("simulation.tia.delay_s", t.delay_s, "[0, 1e-3] s"));
             }
             match &t.ringing {
-                Some(RingingConfig::Resonance { frequency_hz, q, amplitude }) => {
+                Some(RingingConfig::Resonance {
+                    frequency_hz,
+                    q,
+                    amplitude,
+                }) => {
                     if !in_open_closed(*frequency_hz, 0.0, 1e12) {
-                        return Err(bad("simulation.tia.ringing.frequency_hz", frequency_hz, "(0, 1e12] Hz"));
+                        return Err(bad(
+                            "simulation.tia.ringing.frequency_hz",
+                            frequency_hz,
+                            "(0, 1e12] Hz",
+                        ));
                     }
                     if !in_closed(*q, 0.05, 1e4) {
                         return Err(bad("simulation.tia.ringing.q", q, "[0.05, 10000]"));
                     }
                     if !in_closed(*amplitude, -10.0, 10.0) {
-                        return Err(bad("simulation.tia.ringing.amplitude", amplitude, "[-10, 10]"));
+                        return Err(bad(
+                            "simulation.tia.ringing.amplitude",
+                            amplitude,
+                            "[-10, 10]",
+                        ));
                     }
                 }
-                Some(RingingConfig::Reflection { coefficient, round_trip_s, echoes }) => {
+                Some(RingingConfig::Reflection {
+                    coefficient,
+                    round_trip_s,
+                    echoes,
+                }) => {
                     if !(coefficient.is_finite() && coefficient.abs() < 1.0) {
-                        return Err(bad("simulation.tia.ringing.coefficient", coefficient, "(-1, 1)"));
+                        return Err(bad(
+                            "simulation.tia.ringing.coefficient",
+                            coefficient,
+                            "(-1, 1)",
+                        ));
                     }
                     if !in_open_closed(*round_trip_s, 0.0, 1e-5) {
-                        return Err(bad("simulation.tia.ringing.round_trip_s", round_trip_s, "(0, 1e-5] s"));
+                        return Err(bad(
+                            "simulation.tia.ringing.round_trip_s",
+                            round_trip_s,
+                            "(0, 1e-5] s",
+                        ));
                     }
                     if *echoes == 0 || *echoes > 100 {
                         return Err(bad("simulation.tia.ringing.echoes", echoes, "[1, 100]"));
@@ -615,42 +745,85 @@ impl SimulationConfig {
         }
         if let Some(s) = &self.start {
             if !in_open_closed(s.tap_fraction, 0.0, 1.0) {
-                return Err(bad("simulation.start.tap_fraction", s.tap_fraction, "(0, 1]"));
+                return Err(bad(
+                    "simulation.start.tap_fraction",
+                    s.tap_fraction,
+                    "(0, 1]",
+                ));
             }
             if !in_open_closed(s.responsivity_a_per_w, 0.0, 100.0) {
-                return Err(bad("simulation.start.responsivity_a_per_w", s.responsivity_a_per_w, "(0, 100] A/W"));
+                return Err(bad(
+                    "simulation.start.responsivity_a_per_w",
+                    s.responsivity_a_per_w,
+                    "(0, 100] A/W",
+                ));
             }
             if !in_open_closed(s.gain_ohm, 0.0, 1e12) {
-                return Err(bad("simulation.start.gain_ohm", s.gain_ohm, "(0, 1e12] ohm"));
+                return Err(bad(
+                    "simulation.start.gain_ohm",
+                    s.gain_ohm,
+                    "(0, 1e12] ohm",
+                ));
             }
             if !in_open_closed(s.bandwidth_hz, 0.0, 1e12) {
-                return Err(bad("simulation.start.bandwidth_hz", s.bandwidth_hz, "(0, 1e12] Hz"));
+                return Err(bad(
+                    "simulation.start.bandwidth_hz",
+                    s.bandwidth_hz,
+                    "(0, 1e12] Hz",
+                ));
             }
             if !in_closed(s.delay_s, 0.0, 1e-3) {
                 return Err(bad("simulation.start.delay_s", s.delay_s, "[0, 1e-3] s"));
             }
             if !in_closed(s.noise_sigma_v, 0.0, 1e3) {
-                return Err(bad("simulation.start.noise_sigma_v", s.noise_sigma_v, "[0, 1000] V"));
+                return Err(bad(
+                    "simulation.start.noise_sigma_v",
+                    s.noise_sigma_v,
+                    "[0, 1000] V",
+                ));
             }
             if !in_closed(s.dip_fraction, 0.0, 1.0) {
-                return Err(bad("simulation.start.dip_fraction", s.dip_fraction, "[0, 1]"));
+                return Err(bad(
+                    "simulation.start.dip_fraction",
+                    s.dip_fraction,
+                    "[0, 1]",
+                ));
             }
             if !in_closed(s.dip_delay_s, 0.0, 1e-5) {
-                return Err(bad("simulation.start.dip_delay_s", s.dip_delay_s, "[0, 1e-5] s"));
+                return Err(bad(
+                    "simulation.start.dip_delay_s",
+                    s.dip_delay_s,
+                    "[0, 1e-5] s",
+                ));
             }
         }
         if let Some(i) = &self.interference {
             if !in_closed(i.amplitude_v, 0.0, 1e3) {
-                return Err(bad("simulation.interference.amplitude_v", i.amplitude_v, "[0, 1000] V"));
+                return Err(bad(
+                    "simulation.interference.amplitude_v",
+                    i.amplitude_v,
+                    "[0, 1000] V",
+                ));
             }
             if !in_open_closed(i.rate_hz, 0.0, 1e6) {
-                return Err(bad("simulation.interference.rate_hz", i.rate_hz, "(0, 1e6] Hz"));
+                return Err(bad(
+                    "simulation.interference.rate_hz",
+                    i.rate_hz,
+                    "(0, 1e6] Hz",
+                ));
             }
             if !(in_open_closed(i.duration_s, 0.0, 1.0) && i.duration_s * i.rate_hz < 1.0) {
                 return Err(bad(
                     "simulation.interference.duration_s",
                     i.duration_s,
                     "(0, 1/rate_hz) s (bursts must not overlap)",
+                ));
+            }
+            if !(in_closed(i.wander_s, 0.0, 1.0) && (i.wander_s + i.duration_s) * i.rate_hz < 1.0) {
+                return Err(bad(
+                    "simulation.interference.wander_s",
+                    i.wander_s,
+                    "[0, 1/rate_hz - duration_s) s (bursts must not overlap)",
                 ));
             }
             if i.frequencies_hz.is_empty() || i.frequencies_hz.len() > 32 {
@@ -663,7 +836,11 @@ impl SimulationConfig {
             for (k, f) in i.frequencies_hz.iter().enumerate() {
                 if !in_open_closed(*f, 0.0, 1e10) {
                     let _ = k;
-                    return Err(bad("simulation.interference.frequencies_hz", f, "(0, 1e10] Hz each"));
+                    return Err(bad(
+                        "simulation.interference.frequencies_hz",
+                        f,
+                        "(0, 1e10] Hz each",
+                    ));
                 }
             }
         }
@@ -679,7 +856,11 @@ impl SimulationConfig {
                 return Err(bad("simulation.noise.skewness", g, "[-2, 2]"));
             }
             if !in_closed(n.offset_v, -1e3, 1e3) {
-                return Err(bad("simulation.noise.offset_v", n.offset_v, "[-1000, 1000] V"));
+                return Err(bad(
+                    "simulation.noise.offset_v",
+                    n.offset_v,
+                    "[-1000, 1000] V",
+                ));
             }
         }
 

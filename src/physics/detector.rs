@@ -82,7 +82,8 @@ mod mat {
         let mut m = a.to_vec();
         let mut x = b.to_vec();
         for col in 0..n {
-            let piv = (col..n).max_by(|&i, &j| m[i * n + col].abs().total_cmp(&m[j * n + col].abs()))?;
+            let piv =
+                (col..n).max_by(|&i, &j| m[i * n + col].abs().total_cmp(&m[j * n + col].abs()))?;
             if m[piv * n + col].abs() < 1e-300 {
                 return None;
             }

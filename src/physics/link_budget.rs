@@ -36,8 +36,12 @@ fn circle_intersection_area(r1: f64, r2: f64, d: f64) -> f64 {
         let r = r1.min(r2);
         return PI * r * r;
     }
-    let a1 = ((d * d + r1 * r1 - r2 * r2) / (2.0 * d * r1)).clamp(-1.0, 1.0).acos();
-    let a2 = ((d * d + r2 * r2 - r1 * r1) / (2.0 * d * r2)).clamp(-1.0, 1.0).acos();
+    let a1 = ((d * d + r1 * r1 - r2 * r2) / (2.0 * d * r1))
+        .clamp(-1.0, 1.0)
+        .acos();
+    let a2 = ((d * d + r2 * r2 - r1 * r1) / (2.0 * d * r2))
+        .clamp(-1.0, 1.0)
+        .acos();
     let k = ((-d + r1 + r2) * (d + r1 - r2) * (d - r1 + r2) * (d + r1 + r2)).max(0.0);
     r1 * r1 * a1 + r2 * r2 * a2 - 0.5 * k.sqrt()
 }
@@ -164,7 +168,12 @@ pub fn background_power_w(cfg: &SimulationConfig) -> f64 {
     let area = PI * 0.25 * rx.aperture_diameter_m * rx.aperture_diameter_m;
     let omega = 2.0 * PI * (1.0 - rx.fov_half_angle_rad.cos());
     let dl_nm = rx.filter_bandwidth_m * 1e9;
-    rx.optics_efficiency * bg.reflectivity * bg.spectral_radiance_w_per_m2_sr_nm * area * omega * dl_nm
+    rx.optics_efficiency
+        * bg.reflectivity
+        * bg.spectral_radiance_w_per_m2_sr_nm
+        * area
+        * omega
+        * dl_nm
 }
 
 /// Peak received optical power from one target, W (with overlap and extinction).
@@ -176,7 +185,11 @@ pub fn received_power_w(cfg: &SimulationConfig, target: &TargetConfig) -> f64 {
     let alpha = cfg.atmosphere.as_ref().map_or(0.0, |a| a.extinction_per_km);
     let t = transmission(alpha, r);
     let area = PI * 0.25 * rx.aperture_diameter_m * rx.aperture_diameter_m;
-    let mut p = target.reflectivity * target.incidence_deg.to_radians().cos() * t * t * rx.optics_efficiency
+    let mut p = target.reflectivity
+        * target.incidence_deg.to_radians().cos()
+        * t
+        * t
+        * rx.optics_efficiency
         * laser.peak_power_w
         * area
         / (PI * r * r);

@@ -62,7 +62,11 @@ impl ColouredNoise {
     pub fn new(filter: Discrete, sigma_v: f64, skew_c: f64) -> ColouredNoise {
         let var1 = filter.stationary_output_variance();
         let chol = filter.stationary_cholesky();
-        let stationary_std = if var1 > 0.0 { sigma_v / var1.sqrt() } else { 0.0 };
+        let stationary_std = if var1 > 0.0 {
+            sigma_v / var1.sqrt()
+        } else {
+            0.0
+        };
         ColouredNoise {
             filter,
             chol,
@@ -96,7 +100,13 @@ impl ColouredNoise {
     /// Adds noise to `out`: `envelope_var[i]` is the extra (non-stationary,
     /// shot-noise) innovation variance at sample i (V² at the input), indexed
     /// from `envelope_shift` (clamped to the array).
-    pub fn add_to<R: Rng>(&self, rng: &mut R, out: &mut [f64], envelope_var: Option<&[f64]>, envelope_shift: isize) {
+    pub fn add_to<R: Rng>(
+        &self,
+        rng: &mut R,
+        out: &mut [f64],
+        envelope_var: Option<&[f64]>,
+        envelope_shift: isize,
+    ) {
         // Monomorphised per state count: fixed-size arrays keep the state in
         // registers (the per-sample path is the simulator's hot loop).
         match self.filter.n {
@@ -129,7 +139,13 @@ impl ColouredNoise {
         }
     }
 
-    fn run<const N: usize, R: Rng>(&self, rng: &mut R, out: &mut [f64], env: Option<&[f64]>, shift: isize) {
+    fn run<const N: usize, R: Rng>(
+        &self,
+        rng: &mut R,
+        out: &mut [f64],
+        env: Option<&[f64]>,
+        shift: isize,
+    ) {
         let mut phi = [[0.0f64; N]; N];
         let mut gamma = [0.0f64; N];
         let mut c = [0.0f64; N];
@@ -177,7 +193,9 @@ impl ColouredNoise {
         let n = self.filter.n;
         let mut x = vec![0.0f64; n];
         let mut s = vec![0.0f64; n];
-        let z: Vec<f64> = (0..n).map(|_| rng.sample::<f64, _>(StandardNormal)).collect();
+        let z: Vec<f64> = (0..n)
+            .map(|_| rng.sample::<f64, _>(StandardNormal))
+            .collect();
         for i in 0..n {
             let v: f64 = (0..=i).map(|j| self.chol[i * n + j] * z[j]).sum();
             x[i] = v * self.stationary_std;
@@ -203,11 +221,19 @@ pub struct Burst {
     modes: Vec<(f64, f64)>,
     /// Normalisation so the burst's peak |value| is `amplitude_v`.
     norm: f64,
+    /// Each burst starts up to this much after its nominal mains instant, s.
+    wander_s: f64,
 }
 
 impl Burst {
     /// Builds the burst shape.
-    pub fn new(amplitude_v: f64, rate_hz: f64, duration_s: f64, frequencies_hz: &[f64]) -> Burst {
+    pub fn new(
+        amplitude_v: f64,
+        rate_hz: f64,
+        duration_s: f64,
+        frequencies_hz: &[f64],
+        wander_s: f64,
+    ) -> Burst {
         let modes: Vec<(f64, f64)> = frequencies_hz
             .iter()
             .enumerate()
@@ -220,6 +246,7 @@ impl Burst {
             duration_s,
             modes,
             norm: 1.0,
+            wander_s,
         };
         let n = 20_000;
         let peak = (0..=n)
@@ -235,7 +262,11 @@ impl Burst {
             return 0.0;
         }
         let env = (std::f64::consts::PI * t / self.duration_s).sin().powi(2);
-        env * self.modes.iter().map(|(w, ph)| (w * t + ph).sin()).sum::<f64>()
+        env * self
+            .modes
+            .iter()
+            .map(|(w, ph)| (w * t + ph).sin())
+            .sum::<f64>()
     }
 
     /// Burst value at time `t` since the burst began, V.
@@ -243,11 +274,30 @@ impl Burst {
         self.amplitude_v * self.norm * self.shape(t)
     }
 
-    /// Start time of the burst overlapping `[t0, t1]` (absolute seconds), if
-    /// any, given the first burst at `phase_s`.
-    pub fn overlapping(&self, phase_s: f64, t0: f64, t1: f64) -> Option<f64> {
-        let k = ((t0 - self.duration_s - phase_s) / self.period_s).ceil();
-        let start = phase_s + k * self.period_s;
-        if start <= t1 && start + self.duration_s >= t0 { Some(start) } else { None }
+    /// Start time of burst `k` (absolute seconds) for `seed`: the nominal
+    /// mains instant `phase + k/rate` plus a wander uniform in `[0, wander_s)`
+    /// drawn from a hash of `(seed, k)` (the mains phase drifts against the
+    /// laser clock, so bursts land at random positions relative to the shots).
+    pub fn start_of(&self, seed: u64, phase_s: f64, k: i64) -> f64 {
+        let u = (splitmix64(seed ^ (k as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15)) >> 11) as f64
+            / (1u64 << 53) as f64;
+        phase_s + k as f64 * self.period_s + u * self.wander_s
     }
+
+    /// Start time of the burst overlapping `[t0, t1]` (absolute seconds), if any.
+    pub fn overlapping(&self, seed: u64, phase_s: f64, t0: f64, t1: f64) -> Option<f64> {
+        let k0 = ((t0 - self.duration_s - self.wander_s - phase_s) / self.period_s).floor() as i64;
+        let k1 = ((t1 - phase_s) / self.period_s).ceil() as i64;
+        (k0..=k1)
+            .map(|k| self.start_of(seed, phase_s, k))
+            .find(|&start| start <= t1 && start + self.duration_s >= t0)
+    }
+}
+
+/// SplitMix64 finaliser: a well-mixed 64-bit hash.
+fn splitmix64(mut z: u64) -> u64 {
+    z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
 }

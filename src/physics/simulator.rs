@@ -17,7 +17,9 @@
 //! channel: the trigger is then the time reference). For each return,
 //! `t_stop_s` is the 50 % leading-edge crossing of that target's own noise-free
 //! stop pulse (50 % of its peak above the baseline just before it) and
-//! `tof_s = t_stop_s − t_start_s`, nothing subtracted: the chain's system delay
+//! `tof_s = t_stop_s − t_start_s` (for a return of another shot, e.g. a target
+//! beyond the unambiguous range, from that shot's start crossing
+//! `t_start_s + shot_offset / PRF`), nothing subtracted: the chain's system delay
 //! (different rise times and electrical delays of the two paths) stays in, and
 //! is what `calibrate` learns. `range_m` is the geometric range.
 
@@ -42,7 +44,9 @@ pub struct TrueReturn {
     pub target: usize,
     /// Geometric range of the target, m.
     pub range_m: f64,
-    /// `t_stop_s − t_start_s`, s (includes the system delay; see the module docs).
+    /// `t_stop_s` minus the start crossing of this return's own shot
+    /// (`t_start_s + shot_offset / PRF`), s: the true, unwrapped time of flight
+    /// including the system delay (see the module docs).
     pub tof_s: f64,
     /// Which shot this return belongs to: 0 this frame's, −1 the previous one
     /// (a target beyond the unambiguous range), +1 the next one.
@@ -139,9 +143,16 @@ impl Pulse {
 enum Post {
     None,
     /// `v(t) + Σ_j c^j v(t − j T)`.
-    Echoes { coefficient: f64, round_trip_s: f64, echoes: u32 },
+    Echoes {
+        coefficient: f64,
+        round_trip_s: f64,
+        echoes: u32,
+    },
     /// `v(t) − d v(t − τ)`.
-    Dip { fraction: f64, delay_s: f64 },
+    Dip {
+        fraction: f64,
+        delay_s: f64,
+    },
 }
 
 /// The stop channel's chain from a config: TIA pole (gain R_o·M·R_TIA, input
@@ -154,10 +165,19 @@ pub fn stop_chain(cfg: &SimulationConfig) -> Chain {
             if let Some(tau) = t.ac_coupling_s {
                 stage2 = stage2.then(&StateSpace::ac_coupling(tau));
             }
-            if let Some(RingingConfig::Resonance { frequency_hz, q, amplitude }) = &t.ringing {
+            if let Some(RingingConfig::Resonance {
+                frequency_hz,
+                q,
+                amplitude,
+            }) = &t.ringing
+            {
                 stage2 = stage2.then(&StateSpace::resonance(*frequency_hz, *q, *amplitude));
             }
-            let g = cfg.apd.as_ref().map_or(1.0, |a| a.responsivity_a_per_w * a.gain) * t.gain_ohm;
+            let g = cfg
+                .apd
+                .as_ref()
+                .map_or(1.0, |a| a.responsivity_a_per_w * a.gain)
+                * t.gain_ohm;
             (StateSpace::low_pass(t.bandwidth_hz), g, t.swing_v)
         }
         None => (StateSpace::identity(), 1.0, None),
@@ -203,8 +223,14 @@ fn fast_time_s(cfg: &SimulationConfig, start: bool) -> f64 {
     } else if let Some(tia) = &cfg.tia {
         t += 1.0 / (2.0 * PI * tia.bandwidth_hz);
         match tia.ringing {
-            Some(RingingConfig::Resonance { frequency_hz, q, .. }) => t += q / (PI * frequency_hz),
-            Some(RingingConfig::Reflection { round_trip_s, echoes, .. }) => t += round_trip_s * echoes as f64,
+            Some(RingingConfig::Resonance {
+                frequency_hz, q, ..
+            }) => t += q / (PI * frequency_hz),
+            Some(RingingConfig::Reflection {
+                round_trip_s,
+                echoes,
+                ..
+            }) => t += round_trip_s * echoes as f64,
             None => {}
         }
     }
@@ -301,7 +327,9 @@ fn render(
             }
             let steps = ((end - start) / h).ceil().max(0.0) as usize;
             let group = &inst[i..j];
-            let input: Vec<f64> = (0..steps).map(|k| input_at(group, start + k as f64 * h)).collect();
+            let input: Vec<f64> = (0..steps)
+                .map(|k| input_at(group, start + k as f64 * h))
+                .collect();
             run_chain(chain, &d1, &d2, &mut x1, &mut x2, &input);
             t = start + steps as f64 * h;
             i = j;
@@ -320,7 +348,9 @@ fn render(
     // The window, finely, from the cut.
     let steps = ((t_hi - t_cut) / h).ceil() as usize + 2;
     let inst = instances(t_cut, t_cut + steps as f64 * h);
-    let input: Vec<f64> = (0..steps).map(|k| input_at(&inst, t_cut + k as f64 * h)).collect();
+    let input: Vec<f64> = (0..steps)
+        .map(|k| input_at(&inst, t_cut + k as f64 * h))
+        .collect();
     // Amplifier output before the clamp (for saturation flags).
     let mut amp = Vec::with_capacity(steps);
     {
@@ -331,7 +361,11 @@ fn render(
         }
     }
     let v = run_chain(chain, &d1, &d2, &mut x1, &mut x2, &input);
-    let raw = FineWave { t0_s: t_cut, h_s: h, v };
+    let raw = FineWave {
+        t0_s: t_cut,
+        h_s: h,
+        v,
+    };
     let wave = match post {
         Post::None => raw,
         Post::Echoes {
@@ -377,7 +411,9 @@ struct Found {
 /// Finds the pulse in `w` between `t_a` and `t_b`: peak above the baseline at
 /// `t_a`, 50 % leading-edge crossing, and the 1 % span (searched to `t_tail`).
 fn find_pulse(w: &FineWave, amp: &[f64], t_a: f64, t_b: f64, t_tail: f64) -> Option<Found> {
-    let idx = |t: f64| (((t - w.t0_s) / w.h_s).round().max(0.0) as usize).min(w.v.len().saturating_sub(1));
+    let idx = |t: f64| {
+        (((t - w.t0_s) / w.h_s).round().max(0.0) as usize).min(w.v.len().saturating_sub(1))
+    };
     let (ia, ib, it) = (idx(t_a), idx(t_b), idx(t_tail));
     if ib <= ia {
         return None;
@@ -405,8 +441,13 @@ fn find_pulse(w: &FineWave, amp: &[f64], t_a: f64, t_b: f64, t_tail: f64) -> Opt
         w.t0_s + i as f64 * w.h_s
     };
     let thr = 0.01 * peak;
-    let first = (ia..=ip).find(|&k| (w.v[k] - base).abs() > thr).unwrap_or(ip);
-    let last = (ip..=it.max(ip)).rev().find(|&k| (w.v[k] - base).abs() > thr).unwrap_or(ip);
+    let first = (ia..=ip)
+        .find(|&k| (w.v[k] - base).abs() > thr)
+        .unwrap_or(ip);
+    let last = (ip..=it.max(ip))
+        .rev()
+        .find(|&k| (w.v[k] - base).abs() > thr)
+        .unwrap_or(ip);
     let max_amp_out = amp[ia.min(amp.len() - 1)..=ib.min(amp.len() - 1)]
         .iter()
         .fold(0.0f64, |m, x| m.max(x.abs()));
@@ -470,10 +511,13 @@ impl Simulator {
     /// Builds the simulator; fails if the scene has no `[simulation]` section
     /// or the section is invalid.
     pub fn new(scene: &Scene) -> Result<Simulator, PhysicsError> {
-        let cfg = scene.simulation.clone().ok_or(PhysicsError::MissingSection {
-            section: "simulation",
-            needed_by: "the simulator (add a [simulation] section to the scene)",
-        })?;
+        let cfg = scene
+            .simulation
+            .clone()
+            .ok_or(PhysicsError::MissingSection {
+                section: "simulation",
+                needed_by: "the simulator (add a [simulation] section to the scene)",
+            })?;
         cfg.validate()?;
         let d = &cfg.digitiser;
         let dt = d.sample_interval_s;
@@ -483,13 +527,18 @@ impl Simulator {
         let h = dt / d.oversample as f64;
         // The fine grid covers every instant a jittered sample can take.
         let jitter_span = 8.0 * (d.trigger_jitter_s + d.aperture_jitter_s) + dt;
-        let (t_lo, t_hi) = (t_first - jitter_span - 2.0 * dt, t_last + jitter_span + 2.0 * dt);
+        let (t_lo, t_hi) = (
+            t_first - jitter_span - 2.0 * dt,
+            t_last + jitter_span + 2.0 * dt,
+        );
         let laser = cfg.laser.clone();
         let laser_off = laser.as_ref().is_none_or(|l| l.off);
         let period = laser.as_ref().map(|l| 1.0 / l.prf_hz);
         let frame_period_s = period.unwrap_or(n as f64 * dt);
         let pulse = Pulse {
-            shape: laser.as_ref().map_or(PulseShape::Gaussian, |l| l.pulse_shape),
+            shape: laser
+                .as_ref()
+                .map_or(PulseShape::Gaussian, |l| l.pulse_shape),
             width_s: laser.as_ref().map_or(1e-9, |l| l.pulse_width_s),
         };
         let c_m = scene.c_medium_m_per_s();
@@ -529,7 +578,16 @@ impl Simulator {
                 })
                 .collect()
         };
-        let (stop_wave, _) = render(&chain, pulse, &target_events, period, t_lo, t_hi, h, stop_post);
+        let (stop_wave, _) = render(
+            &chain,
+            pulse,
+            &target_events,
+            period,
+            t_lo,
+            t_hi,
+            h,
+            stop_post,
+        );
 
         // ---- start channel ----
         let s_chain = start_chain(&cfg);
@@ -551,7 +609,10 @@ impl Simulator {
                 } else {
                     Post::None
                 };
-                (Some(render(sc, pulse, &ev, period, t_lo, t_hi, h, post).0), ev)
+                (
+                    Some(render(sc, pulse, &ev, period, t_lo, t_hi, h, post).0),
+                    ev,
+                )
             }
             _ => (None, vec![]),
         };
@@ -569,7 +630,16 @@ impl Simulator {
                     },
                     _ => Post::None,
                 };
-                let (w, amp) = render(sc, pulse, &[*ev], period, lo.min(t_lo), hi.max(t_hi), h, post);
+                let (w, amp) = render(
+                    sc,
+                    pulse,
+                    &[*ev],
+                    period,
+                    lo.min(t_lo),
+                    hi.max(t_hi),
+                    h,
+                    post,
+                );
                 find_pulse(&w, &amp, lo, hi, hi).map_or(0.0, |f| f.t_half_s)
             }
             _ => 0.0,
@@ -592,7 +662,13 @@ impl Simulator {
                 if b < t_first || a > t_last {
                     continue;
                 }
-                let Some(f) = find_pulse(&w, &amp, a.max(t_lo), b.min(t_hi), (b + 20.0 * fast).min(t_hi)) else {
+                let Some(f) = find_pulse(
+                    &w,
+                    &amp,
+                    a.max(t_lo),
+                    b.min(t_hi),
+                    (b + 20.0 * fast).min(t_hi),
+                ) else {
                     continue;
                 };
                 let saturated = chain.swing_v.is_some_and(|s| f.max_amp_out >= s)
@@ -601,7 +677,7 @@ impl Simulator {
                     ret: TrueReturn {
                         target: j,
                         range_m: cfg.targets[j].range_m,
-                        tof_s: f.t_half_s - t_start_s,
+                        tof_s: f.t_half_s - (t_start_s + k as f64 * period.unwrap_or(0.0)),
                         shot_offset: k,
                         peak_amplitude_v: f.peak_v,
                         t_stop_s: f.t_half_s,
@@ -643,23 +719,31 @@ impl Simulator {
                     0.0
                 }
             }
-            None => cfg
-                .tia
-                .as_ref()
-                .map_or(0.0, |t| per_sample(t.noise_current_a * t.noise_current_a / t.bandwidth_hz)),
+            None => cfg.tia.as_ref().map_or(0.0, |t| {
+                per_sample(t.noise_current_a * t.noise_current_a / t.bandwidth_hz)
+            }),
         };
         let sigma_stationary = ((var_th + var_db).max(0.0)).sqrt() * unit_gain;
         // Shot-noise envelope from the optical power at the detector.
         let stop_envelope = if !laser_off && !target_events.is_empty() && m2f > 0.0 {
             let p_wave = render_optical(pulse, &target_events, period, t_first, dt, n, chain.gain);
-            Some(p_wave.iter().map(|&p| per_sample(2.0 * Q_E * r_o * p * m2f)).collect::<Vec<f64>>())
+            Some(
+                p_wave
+                    .iter()
+                    .map(|&p| per_sample(2.0 * Q_E * r_o * p * m2f))
+                    .collect::<Vec<f64>>(),
+            )
         } else {
             None
         };
         let skew_c = match cfg.noise.as_ref().and_then(|n| n.skewness) {
             Some(g) if g != 0.0 => {
                 let kappa = ColouredNoise::skew_transfer(&nf);
-                let needed = if kappa > 0.0 { g / kappa } else { f64::INFINITY };
+                let needed = if kappa > 0.0 {
+                    g / kappa
+                } else {
+                    f64::INFINITY
+                };
                 c_for_skew(needed).ok_or(PhysicsError::Invalid {
                     field: "simulation.noise.skewness".into(),
                     value: format!("{g} (needs innovation skewness {needed:.3} through this chain)"),
@@ -671,17 +755,25 @@ impl Simulator {
         let stop_noise = (sigma_stationary > 0.0 || stop_envelope.is_some())
             .then(|| ColouredNoise::new(nf.clone(), sigma_stationary, skew_c));
         let start_noise = match (&s_chain, &cfg.start) {
-            (Some(sc), Some(s)) if s.noise_sigma_v > 0.0 => {
-                Some(ColouredNoise::new(sc.linear().discretise(dt), s.noise_sigma_v, 0.0))
-            }
+            (Some(sc), Some(s)) if s.noise_sigma_v > 0.0 => Some(ColouredNoise::new(
+                sc.linear().discretise(dt),
+                s.noise_sigma_v,
+                0.0,
+            )),
             _ => None,
         };
-        let burst = cfg
-            .interference
-            .as_ref()
-            .map(|i| Burst::new(i.amplitude_v, i.rate_hz, i.duration_s, &i.frequencies_hz));
+        let burst = cfg.interference.as_ref().map(|i| {
+            Burst::new(
+                i.amplitude_v,
+                i.rate_hz,
+                i.duration_s,
+                &i.frequencies_hz,
+                i.wander_s,
+            )
+        });
 
-        let no_jitter = d.trigger_jitter_s == 0.0 && d.aperture_jitter_s == 0.0 && !d.sample_clock_asynchronous;
+        let no_jitter =
+            d.trigger_jitter_s == 0.0 && d.aperture_jitter_s == 0.0 && !d.sample_clock_asynchronous;
         let sample_all = |w: &FineWave| {
             let mut v = vec![0.0; n];
             w.sample_into(t_first, dt, &mut v);
@@ -728,7 +820,8 @@ impl Simulator {
     /// The noise-free stop waveform at the nominal sample instants (no jitter, no offset), V.
     pub fn noise_free_stop_v(&self) -> Vec<f64> {
         let mut v = vec![0.0; self.n_samples];
-        self.stop_wave.sample_into(self.t_first_s, self.dt_s, &mut v);
+        self.stop_wave
+            .sample_into(self.t_first_s, self.dt_s, &mut v);
         v
     }
 
@@ -742,7 +835,12 @@ impl Simulator {
     /// Per-target link budget (with the TIA bandwidth as the noise bandwidth).
     pub fn link_budget(&self) -> Vec<LinkBudgetLine> {
         match link_budget::Receiver::from_config(&self.cfg) {
-            Some(r) => self.cfg.targets.iter().map(|t| link_budget::line(&self.cfg, &r, t)).collect(),
+            Some(r) => self
+                .cfg
+                .targets
+                .iter()
+                .map(|t| link_budget::line(&self.cfg, &r, t))
+                .collect(),
             None => vec![],
         }
     }
@@ -796,8 +894,11 @@ impl Simulator {
             prng.set_stream(SEED_STREAM);
             let period = 1.0 / self.cfg.interference.as_ref().map_or(60.0, |i| i.rate_hz);
             let phase = prng.random::<f64>() * period;
-            let (a0, a1) = (trigger_time_s + t0, trigger_time_s + t0 + (n - 1) as f64 * dt);
-            if let Some(start) = b.overlapping(phase, a0, a1) {
+            let (a0, a1) = (
+                trigger_time_s + t0,
+                trigger_time_s + t0 + (n - 1) as f64 * dt,
+            );
+            if let Some(start) = b.overlapping(seed, phase, a0, a1) {
                 interference = true;
                 for (k, v) in stop.iter_mut().enumerate() {
                     *v += b.value_v(a0 + k as f64 * dt - start);
@@ -883,9 +984,9 @@ fn render_optical(
     let mut p = vec![0.0; n];
     for e in events {
         let ks: Vec<i64> = match period_s {
-            Some(t) => {
-                (((t_first - e.t_s - ext_b) / t).floor() as i64..=((t_last - e.t_s + ext_a) / t).ceil() as i64).collect()
-            }
+            Some(t) => (((t_first - e.t_s - ext_b) / t).floor() as i64
+                ..=((t_last - e.t_s + ext_a) / t).ceil() as i64)
+                .collect(),
             None => vec![0],
         };
         for k in ks {
@@ -919,7 +1020,10 @@ pub fn peak_response_v(cfg: &SimulationConfig, optical_peak_w: f64) -> f64 {
     let (w, _) = render(
         &chain,
         pulse,
-        &[Event { t_s: 0.0, amp: optical_peak_w }],
+        &[Event {
+            t_s: 0.0,
+            amp: optical_peak_w,
+        }],
         None,
         -a - h,
         t_hi,

@@ -11,6 +11,10 @@
 //! constants, so a 0.1 ns rise against a 10 µs AC-coupling tail stays stable
 //! and accurate (no explicit-Euler stiffness limit).
 
+// Dense small-matrix kernels index several arrays in lockstep; index loops
+// read closer to the maths than zipped iterators here.
+#![allow(clippy::needless_range_loop)]
+
 use std::f64::consts::PI;
 
 /// Dense row-major square matrix helpers for the small (≤ ~10 states) systems here.

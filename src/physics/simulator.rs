@@ -246,11 +246,10 @@ fn render(
     pulse: Pulse,
     events: &[Event],
     period_s: Option<f64>,
-    t_lo: f64,
-    t_hi: f64,
-    h: f64,
+    grid: Grid,
     post: Post,
 ) -> (FineWave, Vec<f64>) {
+    let Grid { t_lo, t_hi, h } = grid;
     let d1 = chain.stage1.discretise(h);
     let d2 = chain.stage2.discretise(h);
     let (ext_a, ext_b) = pulse.extent();
@@ -395,6 +394,14 @@ fn render(
         }
     };
     (wave, amp)
+}
+
+/// The fine grid to render on: `[t_lo, t_hi]` with step `h`, seconds.
+#[derive(Debug, Clone, Copy)]
+struct Grid {
+    t_lo: f64,
+    t_hi: f64,
+    h: f64,
 }
 
 /// A pulse found in a rendered waveform near a reference instant.
@@ -578,16 +585,8 @@ impl Simulator {
                 })
                 .collect()
         };
-        let (stop_wave, _) = render(
-            &chain,
-            pulse,
-            &target_events,
-            period,
-            t_lo,
-            t_hi,
-            h,
-            stop_post,
-        );
+        let grid = Grid { t_lo, t_hi, h };
+        let (stop_wave, _) = render(&chain, pulse, &target_events, period, grid, stop_post);
 
         // ---- start channel ----
         let s_chain = start_chain(&cfg);
@@ -610,7 +609,7 @@ impl Simulator {
                     Post::None
                 };
                 (
-                    Some(render(sc, pulse, &ev, period, t_lo, t_hi, h, post).0),
+                    Some(render(sc, pulse, &ev, period, Grid { t_lo, t_hi, h }, post).0),
                     ev,
                 )
             }
@@ -635,9 +634,11 @@ impl Simulator {
                     pulse,
                     &[*ev],
                     period,
-                    lo.min(t_lo),
-                    hi.max(t_hi),
-                    h,
+                    Grid {
+                        t_lo: lo.min(t_lo),
+                        t_hi: hi.max(t_hi),
+                        h,
+                    },
                     post,
                 );
                 find_pulse(&w, &amp, lo, hi, hi).map_or(0.0, |f| f.t_half_s)
@@ -647,7 +648,14 @@ impl Simulator {
         let fast = fast_time_s(&cfg, false);
         let mut returns = Vec::new();
         for (j, ev) in target_events.iter().enumerate() {
-            let (w, amp) = render(&chain, pulse, &[*ev], period, t_lo, t_hi, h, stop_post);
+            let (w, amp) = render(
+                &chain,
+                pulse,
+                &[*ev],
+                period,
+                Grid { t_lo, t_hi, h },
+                stop_post,
+            );
             let shots: Vec<i64> = match period {
                 Some(p) => {
                     let k0 = ((t_lo - ev.t_s - ext_b - 10.0 * fast) / p).floor() as i64;
@@ -1025,9 +1033,11 @@ pub fn peak_response_v(cfg: &SimulationConfig, optical_peak_w: f64) -> f64 {
             amp: optical_peak_w,
         }],
         None,
-        -a - h,
-        t_hi,
-        h,
+        Grid {
+            t_lo: -a - h,
+            t_hi,
+            h,
+        },
         Post::None,
     );
     w.v.iter().fold(0.0f64, |m, x| m.max(*x))

@@ -709,3 +709,44 @@ fn quantiser_round_trips_and_clips() {
         assert_eq!(q.code(v - 0.49 * q.volts_per_code), k);
     }
 }
+
+/// Table 9.2's biaxial geometry: 2.2546° FOV, 7 cm Tx-Rx separation, 0.016°
+/// beam divergence. A point beam is fully inside the FOV from
+/// 0.07 / tan 2.2546° = 1.778 m; a 1 mm beam from 1.816 m; below 1.74 m the
+/// beam misses the FOV (blind zone).
+#[test]
+fn overlap_reproduces_table_9_2_blind_zone() {
+    let (fov, div) = (2.2546f64.to_radians(), 0.016f64.to_radians());
+    let full_point = 0.07 / fov.tan();
+    assert!((full_point - 1.778).abs() < 1e-3);
+    assert_eq!(
+        link_budget::overlap(full_point * 1.0001, 1e-9, 0.0, fov, 0.07),
+        1.0
+    );
+    assert!(link_budget::overlap(full_point * 0.999, 1e-4, 0.0, fov, 0.07) < 1.0);
+    assert_eq!(link_budget::overlap(1.0, 1e-3, div, fov, 0.07), 0.0);
+    assert_eq!(link_budget::overlap(1.73, 1e-3, div, fov, 0.07), 0.0);
+    let mid = link_budget::overlap(1.78, 1e-3, div, fov, 0.07);
+    assert!(mid > 0.0 && mid < 1.0, "{mid}");
+    assert_eq!(link_budget::overlap(1.82, 1e-3, div, fov, 0.07), 1.0);
+    // Monotone through the transition.
+    let mut last = 0.0;
+    for k in 0..200 {
+        let o = link_budget::overlap(1.7 + k as f64 * 0.001, 1e-3, div, fov, 0.07);
+        assert!(o >= last - 1e-15, "non-monotone at {k}");
+        last = o;
+    }
+    // Coaxial: always 1.
+    assert_eq!(link_budget::overlap(0.1, 1e-3, div, fov, 0.0), 1.0);
+}
+
+/// Shipped scenes survive a TOML round trip, simulation section included.
+#[test]
+fn scenes_round_trip_through_toml() {
+    for name in SCENES {
+        let sc = scene(name);
+        let again =
+            Scene::from_toml_str(&sc.to_toml(), name).unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert_eq!(sc, again, "{name}");
+    }
+}

@@ -409,22 +409,6 @@ impl Chain {
     pub fn linear(&self) -> StateSpace {
         self.stage1.then(&self.stage2)
     }
-
-    /// Slowest time constant of the chain, s (for settling margins).
-    pub fn slowest_time_constant_s(&self) -> f64 {
-        let lin = self.linear();
-        // Gershgorin-free estimate: the smallest |diagonal| of A is the slowest
-        // real pole for the cascaded first-order sections used here; resonances
-        // are bounded by Q/ω0.
-        let mut slow: f64 = 0.0;
-        for i in 0..lin.n {
-            let a = lin.a[i * lin.n + i].abs();
-            if a > 0.0 {
-                slow = slow.max(1.0 / a);
-            }
-        }
-        slow
-    }
 }
 
 /// Runs a [`Chain`] over an input sampled on a fine grid (held over each

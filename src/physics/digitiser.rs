@@ -90,8 +90,8 @@ pub struct FineWave {
 }
 
 impl FineWave {
-    /// Value at time `t_s` (linear interpolation; 0 outside the grid... the
-    /// edge value, since the grid is built to cover every sampled instant).
+    /// Value at time `t_s` by linear interpolation; outside the grid, the
+    /// edge value (grids are built to cover every instant that is sampled).
     #[inline]
     pub fn at(&self, t_s: f64) -> f64 {
         let x = (t_s - self.t0_s) / self.h_s;

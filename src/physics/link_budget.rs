@@ -48,14 +48,15 @@ fn circle_intersection_area(r1: f64, r2: f64, d: f64) -> f64 {
 
 /// Geometric overlap of a biaxial transceiver with parallel axes: the
 /// fraction of the beam spot (radius `w0 + R tan θ_t`) inside the receiver's
-/// field of view at range R (radius `D_rec/2 + R tan θ_fov`), axes `d` apart.
-/// With the source's 2.2546° FOV and 7 cm separation, overlap is full from
-/// about 1.78 m (Table 9.2).
+/// field of view at range R (footprint radius `R tan θ_fov`, the source's
+/// chief-ray form), axes `d` apart. With the source's 2.2546° FOV and 7 cm
+/// separation the overlap is full from 0.07 / tan 2.2546° = 1.78 m for a
+/// point beam (Table 9.2); with the default 1 mm beam it is zero (blind zone)
+/// below 1.74 m and full from 1.82 m.
 pub fn overlap(
     range_m: f64,
     beam_radius_m: f64,
     divergence_half_angle_rad: f64,
-    aperture_diameter_m: f64,
     fov_half_angle_rad: f64,
     separation_m: f64,
 ) -> f64 {
@@ -63,7 +64,7 @@ pub fn overlap(
         return 1.0;
     }
     let r_beam = beam_radius_m + range_m * divergence_half_angle_rad.tan();
-    let r_fov = 0.5 * aperture_diameter_m + range_m * fov_half_angle_rad.tan();
+    let r_fov = range_m * fov_half_angle_rad.tan();
     circle_intersection_area(r_beam, r_fov, separation_m) / (PI * r_beam * r_beam)
 }
 
@@ -202,7 +203,6 @@ pub fn received_power_w(cfg: &SimulationConfig, target: &TargetConfig) -> f64 {
         r,
         laser.beam_radius_m,
         laser.beam_divergence_half_angle_rad,
-        rx.aperture_diameter_m,
         rx.fov_half_angle_rad,
         rx.tx_rx_separation_m,
     )
@@ -223,7 +223,6 @@ pub fn line(cfg: &SimulationConfig, rcv: &Receiver, target: &TargetConfig) -> Li
                 target.range_m,
                 l.beam_radius_m,
                 l.beam_divergence_half_angle_rad,
-                r.aperture_diameter_m,
                 r.fov_half_angle_rad,
                 r.tx_rx_separation_m,
             ),

@@ -209,8 +209,9 @@ pub fn start_chain(cfg: &SimulationConfig) -> Option<Chain> {
     })
 }
 
-/// Fast (non-AC-coupling) time scale of a chain: sum of the pole time
-/// constants below `slow_cut_s`, plus resonance decay.
+/// Fast time scale of a channel's response (everything but the AC-coupling
+/// tail): the sum of its pole time constants, resonance decay and echo spread,
+/// s. Used to size search windows around a pulse.
 fn fast_time_s(cfg: &SimulationConfig, start: bool) -> f64 {
     let mut t = 0.0;
     if let Some(b) = cfg.digitiser.bandwidth_hz {
@@ -287,7 +288,9 @@ fn render(
     };
     // A quiet cut at or before t_lo.
     let mut t_cut = t_lo;
-    loop {
+    // Bounded: with pulses back to back there may be no quiet instant; then the
+    // window starts from rest at the last cut tried.
+    for _ in 0..10_000 {
         let moved = instances(t_cut - h, t_cut + h)
             .iter()
             .filter(|i| i.0 < t_cut && i.1 > t_cut)
@@ -734,7 +737,7 @@ impl Simulator {
         let sigma_stationary = ((var_th + var_db).max(0.0)).sqrt() * unit_gain;
         // Shot-noise envelope from the optical power at the detector.
         let stop_envelope = if !laser_off && !target_events.is_empty() && m2f > 0.0 {
-            let p_wave = render_optical(pulse, &target_events, period, t_first, dt, n, chain.gain);
+            let p_wave = render_optical(pulse, &target_events, period, t_first, dt, n);
             Some(
                 p_wave
                     .iter()
@@ -985,7 +988,6 @@ fn render_optical(
     t_first: f64,
     dt: f64,
     n: usize,
-    _gain: f64,
 ) -> Vec<f64> {
     let (ext_a, ext_b) = pulse.extent();
     let t_last = t_first + n as f64 * dt;

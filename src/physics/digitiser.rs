@@ -18,6 +18,8 @@ pub struct Quantiser {
     pub volts_per_code: f64,
     /// Volts at code 0.
     pub offset_v: f64,
+    /// 1 / volts_per_code (the hot loop multiplies).
+    codes_per_volt: f64,
     /// Lowest code.
     pub code_min: i32,
     /// Highest code.
@@ -35,6 +37,7 @@ impl Quantiser {
             bits,
             volts_per_code: vpc,
             offset_v: low_v - code_min as f64 * vpc,
+            codes_per_volt: 1.0 / vpc,
             code_min,
             code_max,
         }
@@ -43,7 +46,7 @@ impl Quantiser {
     /// The code for `v` (rounded to nearest, clipped to the range; NaN → lowest code).
     #[inline]
     pub fn code(&self, v: f64) -> i32 {
-        let x = (v - self.offset_v) / self.volts_per_code;
+        let x = (v - self.offset_v) * self.codes_per_volt;
         if x.is_nan() {
             return self.code_min;
         }
@@ -126,9 +129,27 @@ impl FineWave {
     }
 
     /// Samples at `t0 + k dt` into `out` (aperture jitter handled by the caller).
+    /// When `dt` is a whole number of fine steps (the simulator's grids are)
+    /// every sample shares one interpolation fraction, so no per-sample
+    /// division or floor is needed.
     pub fn sample_into(&self, t0_s: f64, dt_s: f64, out: &mut [f64]) {
+        let ratio = dt_s / self.h_s;
+        let stride = ratio.round();
+        let x0 = (t0_s - self.t0_s) / self.h_s;
+        let n = self.v.len();
+        let last_x = x0 + stride * out.len().saturating_sub(1) as f64;
+        if (ratio - stride).abs() > 1e-9 * ratio || x0 < 0.0 || last_x + 1.0 >= n as f64 || n < 2 {
+            for (k, o) in out.iter_mut().enumerate() {
+                *o = self.at(t0_s + k as f64 * dt_s);
+            }
+            return;
+        }
+        let i0 = x0.floor() as usize;
+        let f = x0 - i0 as f64;
+        let stride = stride as usize;
         for (k, o) in out.iter_mut().enumerate() {
-            *o = self.at(t0_s + k as f64 * dt_s);
+            let i = i0 + k * stride;
+            *o = self.v[i] + f * (self.v[i + 1] - self.v[i]);
         }
     }
 }

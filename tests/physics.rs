@@ -794,3 +794,75 @@ fn shot_noise_follows_the_pulse() {
         "{s_peak:e} vs budget {budget:e}"
     );
 }
+
+/// Cable mismatch: each echo is the signal times the reflection coefficient,
+/// one round trip later.
+#[test]
+fn cable_reflection_echoes_the_pulse() {
+    let text = table_9_5("[[simulation.targets]]\nrange_m = 10.0\nreflectivity = 0.1\n", false).replace(
+        "noise_current_a = 25e-9",
+        "noise_current_a = 25e-9\nringing = { kind = \"reflection\", coefficient = 0.3, round_trip_s = 20e-9, echoes = 2 }",
+    );
+    let v = sim_of(&text).noise_free_stop_v();
+    let ip = (0..v.len()).max_by(|&a, &b| v[a].total_cmp(&v[b])).unwrap();
+    assert!(
+        (v[ip + 20] / v[ip] - 0.3).abs() < 1e-3,
+        "{}",
+        v[ip + 20] / v[ip]
+    );
+    assert!(
+        (v[ip + 40] / v[ip] - 0.09).abs() < 1e-3,
+        "{}",
+        v[ip + 40] / v[ip]
+    );
+    assert!(v[ip + 60].abs() < 1e-3 * v[ip], "only two echoes");
+}
+
+/// A damped resonance (f = 60 MHz, Q = 5) rings after the pulse at its
+/// damped frequency f·sqrt(1 − 1/(4Q²)): zero crossings 1/(2 f_d) apart (3 %).
+#[test]
+fn resonance_rings_at_its_frequency() {
+    let text = table_9_5("[[simulation.targets]]\nrange_m = 10.0\nreflectivity = 0.1\n", false).replace(
+        "noise_current_a = 25e-9",
+        "noise_current_a = 25e-9\nringing = { kind = \"resonance\", frequency_hz = 60e6, q = 5.0, amplitude = 0.5 }",
+    );
+    let v = sim_of(&text).noise_free_stop_v();
+    let ip = (0..v.len()).max_by(|&a, &b| v[a].total_cmp(&v[b])).unwrap();
+    let mut crossings = vec![];
+    for k in ip + 15..ip + 100 {
+        if v[k] == 0.0 || (v[k] > 0.0) != (v[k + 1] > 0.0) {
+            crossings.push(k as f64 + v[k] / (v[k] - v[k + 1]));
+        }
+    }
+    assert!(crossings.len() >= 6, "{crossings:?}");
+    let span_s = (crossings[crossings.len() - 1] - crossings[0]) * 1e-9;
+    let f_est = (crossings.len() - 1) as f64 / (2.0 * span_s);
+    let f_d = 60e6 * (1.0 - 1.0 / 100.0f64).sqrt();
+    assert!((f_est / f_d - 1.0).abs() < 0.03, "{f_est:e} vs {f_d:e}");
+}
+
+/// The start channel's optional negative dip: `dip_fraction` of the pulse,
+/// inverted, `dip_delay_s` later; the truth start crossing is unaffected.
+#[test]
+fn start_dip_is_an_inverted_delayed_copy() {
+    let base = table_9_5("", false);
+    let start = "\n[simulation.start]\ntap_fraction = 1e-6\nresponsivity_a_per_w = 0.85\ngain_ohm = 2000.0\nbandwidth_hz = 10e9\n";
+    let plain = sim_of(&format!("{base}{start}"));
+    let dipped = sim_of(&format!(
+        "{base}{start}dip_fraction = 0.3\ndip_delay_s = 30e-9\n"
+    ));
+    let (fp, tp) = plain.frame(0, 0);
+    let (fd, td) = dipped.frame(0, 0);
+    let (vp, vd) = (
+        fp.channel("CH1").unwrap().volts(),
+        fd.channel("CH1").unwrap().volts(),
+    );
+    let max = vp.iter().cloned().fold(f64::MIN, f64::max);
+    let min = vd.iter().cloned().fold(f64::MAX, f64::min);
+    assert!((min / max + 0.3).abs() < 0.01, "{}", min / max);
+    assert!((tp.t_start_s - td.t_start_s).abs() < 1e-12);
+    assert!(
+        (max - 300.0 * 1e-6 * 0.85 * 2000.0).abs() < 0.01 * max,
+        "start peak {max}"
+    );
+}

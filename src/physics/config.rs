@@ -835,11 +835,10 @@ impl SimulationConfig {
             }
             for (k, f) in i.frequencies_hz.iter().enumerate() {
                 if !in_open_closed(*f, 0.0, 1e10) {
-                    let _ = k;
                     return Err(bad(
-                        "simulation.interference.frequencies_hz",
+                        format!("simulation.interference.frequencies_hz[{k}]"),
                         f,
-                        "(0, 1e10] Hz each",
+                        "(0, 1e10] Hz",
                     ));
                 }
             }

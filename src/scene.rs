@@ -44,6 +44,14 @@ pub enum SceneError {
         /// The allowed range or set.
         allowed: &'static str,
     },
+    /// The `[simulation]` section is invalid (the message names the dotted field).
+    #[error("scene {origin}: {source}")]
+    Simulation {
+        /// File path or "embedded default".
+        origin: String,
+        /// The physics layer's error, naming the field and the allowed range.
+        source: crate::physics::PhysicsError,
+    },
 }
 
 /// One sensor set-up.
@@ -86,6 +94,10 @@ pub struct Scene {
     /// Propagation medium.
     #[serde(default)]
     pub medium: MediumConfig,
+    /// What `tofwave simulate` synthesises for this scene (laser, targets,
+    /// receiver, noise, digitiser); absent in scenes of real sensors.
+    #[serde(default)]
+    pub simulation: Option<crate::physics::SimulationConfig>,
 }
 
 fn default_name() -> String {
@@ -586,6 +598,12 @@ impl Scene {
         let n = self.medium.refractive_index;
         if !(n.is_finite() && (1.0..=4.0).contains(&n)) {
             return Err(bad("medium.refractive_index", n.to_string(), "[1, 4]"));
+        }
+        if let Some(sim) = &self.simulation {
+            sim.validate().map_err(|source| SceneError::Simulation {
+                origin: origin.to_string(),
+                source,
+            })?;
         }
         Ok(())
     }

@@ -74,7 +74,13 @@ impl Iterator for FrameSource {
 
 /// Opens captures (files or directories) as a frame source.
 pub fn frames(paths: &[PathBuf], opts: &ReadOptions) -> Result<FrameSource, CaptureError> {
-    Ok(FrameSource { frames: read_paths(paths, opts)?.into_iter().map(Ok).collect::<Vec<_>>().into_iter() })
+    Ok(FrameSource {
+        frames: read_paths(paths, opts)?
+            .into_iter()
+            .map(Ok)
+            .collect::<Vec<_>>()
+            .into_iter(),
+    })
 }
 
 /// Reads all frames of the captures.
@@ -82,7 +88,10 @@ pub fn read_paths(paths: &[PathBuf], opts: &ReadOptions) -> Result<Vec<Frame>, C
     let mut files = Vec::new();
     for p in paths {
         if p.is_dir() {
-            let rd = std::fs::read_dir(p).map_err(|source| CaptureError::Io { path: p.display().to_string(), source })?;
+            let rd = std::fs::read_dir(p).map_err(|source| CaptureError::Io {
+                path: p.display().to_string(),
+                source,
+            })?;
             let mut v: Vec<PathBuf> = rd.filter_map(|e| e.ok().map(|e| e.path())).collect();
             v.sort();
             files.extend(v);
@@ -96,11 +105,20 @@ pub fn read_paths(paths: &[PathBuf], opts: &ReadOptions) -> Result<Vec<Frame>, C
         let mut bytes = Vec::new();
         std::fs::File::open(&f)
             .and_then(|mut h| h.read_to_end(&mut bytes))
-            .map_err(|source| CaptureError::Io { path: path.clone(), source })?;
-        let bad = |m: &str| CaptureError::Format { path: path.clone(), message: m.to_string() };
-        let mut rest = bytes.strip_prefix(MAGIC).ok_or_else(|| bad("not a tofwave recording"))?;
+            .map_err(|source| CaptureError::Io {
+                path: path.clone(),
+                source,
+            })?;
+        let bad = |m: &str| CaptureError::Format {
+            path: path.clone(),
+            message: m.to_string(),
+        };
+        let mut rest = bytes
+            .strip_prefix(MAGIC)
+            .ok_or_else(|| bad("not a tofwave recording"))?;
         while !rest.is_empty() {
-            let msg = proto::Frame::decode_length_delimited(&mut rest).map_err(|e| bad(&e.to_string()))?;
+            let msg = proto::Frame::decode_length_delimited(&mut rest)
+                .map_err(|e| bad(&e.to_string()))?;
             let mut frame = convert::frame_from_proto(&msg).map_err(|e| bad(&e.to_string()))?;
             if frame.sensor_id.is_empty() {
                 frame.sensor_id = opts.sensor_id.clone();
@@ -119,19 +137,28 @@ pub struct RecordingWriter<W: Write> {
 impl<W: Write> RecordingWriter<W> {
     /// Writes the header.
     pub fn new(mut w: W) -> Result<Self, CaptureError> {
-        w.write_all(MAGIC).map_err(|source| CaptureError::Io { path: "recording".into(), source })?;
+        w.write_all(MAGIC).map_err(|source| CaptureError::Io {
+            path: "recording".into(),
+            source,
+        })?;
         Ok(RecordingWriter { w })
     }
 
     /// Appends one frame.
     pub fn write_frame(&mut self, frame: &Frame) -> Result<(), CaptureError> {
         let buf = convert::frame_to_proto(frame).encode_length_delimited_to_vec();
-        self.w.write_all(&buf).map_err(|source| CaptureError::Io { path: "recording".into(), source })
+        self.w.write_all(&buf).map_err(|source| CaptureError::Io {
+            path: "recording".into(),
+            source,
+        })
     }
 
     /// Flushes and returns the writer.
     pub fn finish(mut self) -> Result<W, CaptureError> {
-        self.w.flush().map_err(|source| CaptureError::Io { path: "recording".into(), source })?;
+        self.w.flush().map_err(|source| CaptureError::Io {
+            path: "recording".into(),
+            source,
+        })?;
         Ok(self.w)
     }
 }

@@ -1,0 +1,318 @@
+//! `Ingest.Push`: frame batches in, one acknowledgement per batch out.
+//!
+//! Each frame is decoded and checked against its sensor's scene at the edge;
+//! a bad frame becomes a [`proto::Rejection`] naming the field and the stream
+//! carries on. Good frames go to their sensor's queue (waiting while it is
+//! full: backpressure), and the batch is acknowledged once the pipeline has
+//! processed them, so the counts in an ack are final. Frames of one sensor
+//! keep their order: one stream queues them in order, and the worker processes
+//! its queue in order.
+
+use super::convert::{self, ConvertError};
+use super::session::Session;
+use super::{Shared, proto};
+use crate::frame::{ChannelRole, Frame, channel_key};
+use crate::scene::Scene;
+use crate::telemetry;
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+use tokio::sync::{mpsc, oneshot};
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::{Request, Response, Status, Streaming};
+
+/// Relative tolerance of the sample-interval check against the scene.
+const SAMPLE_INTERVAL_TOLERANCE: f64 = 1e-6;
+
+/// The Ingest service.
+pub struct IngestService {
+    shared: Arc<Shared>,
+    /// The decoding limit, quoted in oversize errors.
+    max_message_bytes: usize,
+}
+
+impl IngestService {
+    pub(crate) fn new(shared: Arc<Shared>, max_message_bytes: usize) -> Self {
+        IngestService {
+            shared,
+            max_message_bytes,
+        }
+    }
+}
+
+/// Why a frame was refused at the edge: metric label and message.
+#[derive(Debug)]
+pub(crate) struct EdgeRejection {
+    /// Metric `reason` label.
+    reason: &'static str,
+    /// Field at fault (relative to the frame).
+    field: String,
+    /// What was wrong.
+    message: String,
+}
+
+impl From<ConvertError> for EdgeRejection {
+    fn from(e: ConvertError) -> Self {
+        EdgeRejection {
+            reason: "invalid_frame",
+            field: e.field,
+            message: e.message,
+        }
+    }
+}
+
+/// Checks a decoded frame against the scene its sensor runs: sample interval,
+/// samples per frame and the presence of a stop channel.
+pub(crate) fn check_against_scene(frame: &Frame, scene: &Scene) -> Result<(), EdgeRejection> {
+    let want = scene.digitiser.sample_interval_s;
+    if want > 0.0 && ((frame.sample_interval_s - want) / want).abs() > SAMPLE_INTERVAL_TOLERANCE {
+        return Err(EdgeRejection {
+            reason: "sample_rate",
+            field: "sample_interval_s".into(),
+            message: format!(
+                "{} s does not match the scene's digitiser.sample_interval_s = {want} s",
+                frame.sample_interval_s
+            ),
+        });
+    }
+    let n = scene.digitiser.samples_per_frame;
+    if n > 0 && frame.len() != n {
+        return Err(EdgeRejection {
+            reason: "samples_per_frame",
+            field: "channels[0].samples".into(),
+            message: format!(
+                "{} samples; the scene's digitiser.samples_per_frame is {n}",
+                frame.len()
+            ),
+        });
+    }
+    // A stop channel: named as the scene says, marked STOP, or the only channel.
+    let stop = channel_key(&scene.channels.stop);
+    let has_stop = frame.channels.len() == 1
+        || frame
+            .channels
+            .iter()
+            .any(|c| c.role == ChannelRole::Stop || channel_key(&c.name) == stop);
+    if !has_stop {
+        return Err(EdgeRejection {
+            reason: "missing_stop",
+            field: "channels".into(),
+            message: format!(
+                "no stop channel: the scene's channels.stop is {:?} and no channel has role STOP; channels are {:?}",
+                scene.channels.stop,
+                frame.channel_names()
+            ),
+        });
+    }
+    Ok(())
+}
+
+/// What one stream has acknowledged so far.
+#[derive(Default)]
+struct StreamTotals {
+    batches: u64,
+    accepted: u64,
+    rejected: u64,
+}
+
+#[tonic::async_trait]
+impl proto::ingest_server::Ingest for IngestService {
+    type PushStream = ReceiverStream<Result<proto::IngestAck, Status>>;
+
+    async fn push(
+        &self,
+        request: Request<Streaming<proto::FrameBatch>>,
+    ) -> Result<Response<Self::PushStream>, Status> {
+        let peer = request.remote_addr();
+        let mut incoming = request.into_inner();
+        let shared = self.shared.clone();
+        let limit = self.max_message_bytes;
+        let (tx, rx) = mpsc::channel(4);
+        tokio::spawn(async move {
+            let mut shutdown = shared.shutdown.clone();
+            let _guard = shared.sessions.ingest_guard();
+            if shutdown.is_shutdown() {
+                let _ = tx
+                    .send(Err(Status::unavailable("server is shutting down")))
+                    .await;
+                return;
+            }
+            tracing::info!(?peer, "ingest stream opened");
+            let mut totals = StreamTotals::default();
+            loop {
+                let msg = tokio::select! {
+                    biased;
+                    _ = shutdown.recv() => break,
+                    m = incoming.message() => m,
+                };
+                match msg {
+                    Ok(Some(batch)) => {
+                        let ack = handle_batch(&shared, batch, &mut totals).await;
+                        if tx.send(Ok(ack)).await.is_err() {
+                            break;
+                        }
+                    }
+                    Ok(None) => break,
+                    Err(status) => {
+                        let status = map_stream_error(status, limit);
+                        tracing::warn!(?peer, %status, "ingest stream failed");
+                        let _ = tx.send(Err(status)).await;
+                        break;
+                    }
+                }
+            }
+            tracing::info!(
+                ?peer,
+                batches = totals.batches,
+                accepted = totals.accepted,
+                rejected = totals.rejected,
+                "ingest stream closed"
+            );
+        });
+        Ok(Response::new(ReceiverStream::new(rx)))
+    }
+}
+
+/// An over-limit message fails in tonic's decoder (OUT_OF_RANGE); say it as
+/// the bad-input error it is, naming the limit. Other errors pass through.
+fn map_stream_error(status: Status, limit: usize) -> Status {
+    if status.code() == tonic::Code::OutOfRange && status.message().contains("too large") {
+        telemetry::frames_rejected("", "oversize", 1);
+        Status::invalid_argument(format!(
+            "FrameBatch: message exceeds the server's limit of {limit} bytes ({}); send smaller batches",
+            status.message()
+        ))
+    } else {
+        status
+    }
+}
+
+/// A frame in flight: where it came from and the pipeline's verdict to come.
+struct Pending {
+    index: usize,
+    sensor: String,
+    sequence: u64,
+    session: Arc<Session>,
+    verdict: oneshot::Receiver<Result<(), crate::pipeline::FrameError>>,
+}
+
+async fn handle_batch(
+    shared: &Shared,
+    batch: proto::FrameBatch,
+    totals: &mut StreamTotals,
+) -> proto::IngestAck {
+    let mut ack = proto::IngestAck::default();
+    let mut pending = Vec::with_capacity(batch.frames.len());
+    for (index, msg) in batch.frames.iter().enumerate() {
+        let sensor = msg.sensor_id.clone();
+        let sequence = msg.sequence;
+        let mut reject = |r: EdgeRejection, session: Option<&Session>| {
+            telemetry::frames_rejected(&sensor, r.reason, 1);
+            if let Some(s) = session {
+                s.stats.frames_rejected.fetch_add(1, Ordering::Relaxed);
+            }
+            ack.rejections.push(proto::Rejection {
+                sensor_id: sensor.clone(),
+                sequence,
+                code: "INVALID_ARGUMENT".into(),
+                message: format!("frames[{index}].{}: {}", r.field, r.message),
+            });
+        };
+        if sensor.is_empty() {
+            reject(
+                EdgeRejection {
+                    reason: "invalid_frame",
+                    field: "sensor_id".into(),
+                    message: "empty; every frame names its sensor".into(),
+                },
+                None,
+            );
+            continue;
+        }
+        telemetry::frame_received(&sensor);
+        let session = match shared.sessions.get_or_start(&sensor) {
+            Ok(s) => s,
+            Err(message) => {
+                reject(
+                    EdgeRejection {
+                        reason: "pipeline",
+                        field: "sensor_id".into(),
+                        message,
+                    },
+                    None,
+                );
+                continue;
+            }
+        };
+        session
+            .stats
+            .frames_received
+            .fetch_add(1, Ordering::Relaxed);
+        if let Some((first_missing, count)) = session.observe_sequence(sequence) {
+            ack.gaps.push(proto::SequenceGap {
+                sensor_id: sensor.clone(),
+                first_missing,
+                count,
+            });
+        }
+        let frame = match convert::frame_from_proto(msg)
+            .map_err(EdgeRejection::from)
+            .and_then(|f| check_against_scene(&f, &session.scene()).map(|()| f))
+        {
+            Ok(f) => f,
+            Err(r) => {
+                reject(r, Some(&session));
+                continue;
+            }
+        };
+        match session.enqueue(frame).await {
+            Ok(verdict) => pending.push(Pending {
+                index,
+                sensor,
+                sequence,
+                session,
+                verdict,
+            }),
+            Err(e) => reject(
+                EdgeRejection {
+                    reason: "shutdown",
+                    field: "sensor_id".into(),
+                    message: e.to_string(),
+                },
+                Some(&session),
+            ),
+        }
+    }
+    for p in pending {
+        match p.verdict.await {
+            Ok(Ok(())) => ack.accepted += 1,
+            Ok(Err(e)) => ack.rejections.push(proto::Rejection {
+                sensor_id: p.sensor,
+                sequence: p.sequence,
+                code: "INVALID_ARGUMENT".into(),
+                message: format!("frames[{}].{}: {}", p.index, e.field, e.message),
+            }),
+            // The worker ended without answering (it panicked): not processed.
+            Err(_) => {
+                telemetry::frames_rejected(&p.sensor, "pipeline", 1);
+                p.session
+                    .stats
+                    .frames_rejected
+                    .fetch_add(1, Ordering::Relaxed);
+                ack.rejections.push(proto::Rejection {
+                    sensor_id: p.sensor,
+                    sequence: p.sequence,
+                    code: "INTERNAL".into(),
+                    message: format!("frames[{}]: the sensor's pipeline stopped", p.index),
+                });
+            }
+        }
+    }
+    ack.rejected = ack.rejections.len() as u64;
+    totals.batches += 1;
+    totals.accepted += ack.accepted;
+    totals.rejected += ack.rejected;
+    ack.batch = totals.batches;
+    ack.total_accepted = totals.accepted;
+    ack.total_rejected = totals.rejected;
+    ack
+}

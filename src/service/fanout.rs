@@ -24,10 +24,12 @@ pub struct Published {
 impl Published {
     /// The wire event for a subscriber keeping returns with SNR >= `min_snr_db`.
     pub fn event(&self, min_snr_db: Option<f64>) -> proto::ReportEvent {
+        // A NaN SNR never passes a threshold.
+        let keep = |snr_db: f64, min: f64| snr_db >= min;
         let msg = match min_snr_db {
-            Some(min) if self.report.returns.iter().any(|r| !(r.snr_db >= min)) => {
+            Some(min) if self.report.returns.iter().any(|r| !keep(r.snr_db, min)) => {
                 let mut r = self.report.clone();
-                r.returns.retain(|x| x.snr_db >= min);
+                r.returns.retain(|x| keep(x.snr_db, min));
                 let json = report_json(&r);
                 report_to_proto(&r, json)
             }

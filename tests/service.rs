@@ -922,3 +922,10 @@ async fn cli_replay_and_subscribe_round_trip() {
         "{e}"
     );
 }
+
+#[test]
+fn deploy_example_scene_is_valid() {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("deploy/config/scene.toml");
+    let scene = Scene::load(&path).unwrap();
+    assert_eq!(scene, Scene::default_scene(), "the example documents the default");
+}

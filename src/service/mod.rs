@@ -118,6 +118,12 @@ pub enum ServiceError {
         /// Cause.
         message: String,
     },
+    /// A server task failed unexpectedly (a panic).
+    #[error("internal: {0}")]
+    Internal(String),
+    /// The reflection service could not be built from the descriptors.
+    #[error("gRPC reflection: {0}")]
+    Reflection(#[from] tonic_reflection::server::Error),
     /// A scene could not be applied (pipeline construction failed).
     #[error("sensor {sensor}: {message}")]
     Scene {
@@ -226,14 +232,16 @@ pub async fn run(
     health
         .set_serving::<proto::control_server::ControlServer<control::ControlService>>()
         .await;
-    let reflection = tonic_reflection::server::Builder::configure()
-        .register_encoded_file_descriptor_set(proto::FILE_DESCRIPTOR_SET)
-        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
-        .build_v1()
-        .map_err(|e| ServiceError::Scene {
-            sensor: String::new(),
-            message: e.to_string(),
-        })?;
+    // v1 for current grpcurl/grpcui, v1alpha for older tools.
+    let reflection = || {
+        tonic_reflection::server::Builder::configure()
+            .register_encoded_file_descriptor_set(proto::FILE_DESCRIPTOR_SET)
+            .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+    };
+    let reflection_v1 = reflection().build_v1().map_err(ServiceError::Reflection)?;
+    let reflection_v1alpha = reflection()
+        .build_v1alpha()
+        .map_err(ServiceError::Reflection)?;
 
     let metrics_task = config.metrics_listener.map(|l| {
         let handle = crate::telemetry::prometheus_handle();
@@ -253,7 +261,8 @@ pub async fn run(
     }
     let router = builder
         .add_service(health_svc)
-        .add_service(reflection)
+        .add_service(reflection_v1)
+        .add_service(reflection_v1alpha)
         .add_service(ingest)
         .add_service(reports)
         .add_service(control);
@@ -275,6 +284,13 @@ pub async fn run(
     let serve = router.serve_with_incoming_shutdown(TcpListenerStream::new(listener), async move {
         shutdown.await;
         tracing::info!("shutdown: draining");
+        // Load balancers stop sending new work while the drain runs.
+        health
+            .set_not_serving::<proto::ingest_server::IngestServer<ingest::IngestService>>()
+            .await;
+        health
+            .set_not_serving::<proto::control_server::ControlServer<control::ControlService>>()
+            .await;
         let _ = notify_tx.send(true);
     });
     let served = serve.await;

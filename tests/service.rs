@@ -644,8 +644,9 @@ async fn replay_paces_by_trigger_time() {
     let elapsed = t.elapsed();
     assert_eq!(summary.accepted, 10);
     assert!(elapsed >= Duration::from_millis(90), "{elapsed:?}");
-    // Paced frames go out as they fall due, one per message here.
-    assert!(summary.batches >= 9, "{summary}");
+    // Paced frames go out as they fall due, not in one message (a late
+    // wake-up under load may merge frames that fell due together).
+    assert!(summary.batches > 1, "{summary}");
     server.shutdown().await.unwrap();
 }
 

@@ -928,5 +928,40 @@ async fn cli_replay_and_subscribe_round_trip() {
 fn deploy_example_scene_is_valid() {
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("deploy/config/scene.toml");
     let scene = Scene::load(&path).unwrap();
-    assert_eq!(scene, Scene::default_scene(), "the example documents the default");
+    assert_eq!(
+        scene,
+        Scene::default_scene(),
+        "the example documents the default"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sensors_past_the_limit_are_refused() {
+    let config = ServerConfig {
+        max_sensors: 2,
+        ..Default::default()
+    };
+    let server = TestServer::start(config).await;
+    let mut c = server.connect(None).await;
+    let mut fs = frames("limit-a", 0..1, 14);
+    fs.extend(frames("limit-b", 0..1, 15));
+    fs.extend(frames("limit-c", 0..1, 16));
+    let a = &push_batches(&mut c, vec![batch(&fs)]).await.unwrap()[0];
+    assert_eq!((a.accepted, a.rejected), (2, 1));
+    let r = &a.rejections[0];
+    assert_eq!(
+        (r.sensor_id.as_str(), r.code.as_str()),
+        ("limit-c", "RESOURCE_EXHAUSTED")
+    );
+    assert!(r.message.starts_with("frames[2].sensor_id: "), "{r:?}");
+    let e = c
+        .control
+        .set_scene(proto::SetSceneRequest {
+            sensor_id: "limit-d".into(),
+            toml: String::new(),
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Code::ResourceExhausted);
+    server.shutdown().await.unwrap();
 }

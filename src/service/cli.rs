@@ -59,6 +59,9 @@ pub struct ServeArgs {
     /// Frames queued per sensor before ingest waits (backpressure), frames.
     #[arg(long, value_name = "FRAMES", default_value_t = 64)]
     pub queue_frames: usize,
+    /// Sensors served at most (each holds a worker thread and a pipeline), sensors.
+    #[arg(long, value_name = "N", default_value_t = 256)]
+    pub max_sensors: usize,
     /// Reports a subscriber may fall behind before it is told it lagged, reports.
     #[arg(long, value_name = "REPORTS", default_value_t = 1024)]
     pub subscriber_buffer: usize,
@@ -175,6 +178,7 @@ impl ServeArgs {
             max_message_bytes: self.max_message_bytes,
             max_streams_per_connection: self.max_streams_per_connection,
             queue_frames: self.queue_frames,
+            max_sensors: self.max_sensors,
             history_reports: self.history_reports,
             subscriber_buffer: self.subscriber_buffer,
             metrics_listener: None,

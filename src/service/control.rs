@@ -1,7 +1,7 @@
 //! `Control`: list sensors, read and change scenes, read noise models and status.
 
 use super::fanout::noise_to_proto;
-use super::session::Session;
+use super::session::{Session, StartError};
 use super::{ServiceError, Shared, proto};
 use crate::scene::{Scene, SceneError};
 use std::sync::Arc;
@@ -122,11 +122,16 @@ impl proto::control_server::Control for ControlService {
                 .map_err(|m| Status::invalid_argument(format!("toml: {m}")))?;
             self.shared.sessions.set_default_scene(scene.clone())?;
         } else {
-            let session = self
-                .shared
-                .sessions
-                .get_or_start(&req.sensor_id)
-                .map_err(|m| Status::invalid_argument(format!("toml: {m}")))?;
+            let session =
+                self.shared
+                    .sessions
+                    .get_or_start(&req.sensor_id)
+                    .map_err(|e| match e {
+                        StartError::Limit(_) => {
+                            Status::resource_exhausted(format!("sensor_id: {e}"))
+                        }
+                        StartError::Build(m) => Status::invalid_argument(format!("toml: {m}")),
+                    })?;
             session
                 .set_scene(scene.clone())
                 .await

@@ -9,7 +9,7 @@
 //! its queue in order.
 
 use super::convert::{self, ConvertError};
-use super::session::Session;
+use super::session::{Session, StartError};
 use super::{Shared, proto};
 use crate::frame::{ChannelRole, Frame, channel_key};
 use crate::scene::Scene;
@@ -231,15 +231,23 @@ async fn handle_batch(
         telemetry::frame_received(&sensor);
         let session = match shared.sessions.get_or_start(&sensor) {
             Ok(s) => s,
-            Err(message) => {
+            Err(e) => {
+                let (reason, code) = match e {
+                    StartError::Limit(_) => ("sensor_limit", "RESOURCE_EXHAUSTED"),
+                    StartError::Build(_) => ("pipeline", "INTERNAL"),
+                };
+                let message = e.to_string();
                 reject(
                     EdgeRejection {
-                        reason: "pipeline",
+                        reason,
                         field: "sensor_id".into(),
                         message,
                     },
                     None,
                 );
+                if let Some(r) = ack.rejections.last_mut() {
+                    r.code = code.into();
+                }
                 continue;
             }
         };

@@ -58,6 +58,9 @@ pub struct ServerConfig {
     pub max_streams_per_connection: u32,
     /// Frames queued per sensor before ingest waits (backpressure), frames.
     pub queue_frames: usize,
+    /// Sensors served at most; frames of further sensor ids are refused
+    /// (`RESOURCE_EXHAUSTED`), since each sensor holds a thread and a pipeline.
+    pub max_sensors: usize,
     /// Reports retained per sensor for `resume_from_sequence`, reports.
     pub history_reports: usize,
     /// Reports buffered for subscribers before a slow one is told it lagged, reports.
@@ -89,6 +92,7 @@ impl Default for ServerConfig {
             max_message_bytes: DEFAULT_MAX_MESSAGE_BYTES,
             max_streams_per_connection: 64,
             queue_frames: 64,
+            max_sensors: 256,
             history_reports: 1024,
             subscriber_buffer: 1024,
             metrics_listener: None,
@@ -193,6 +197,7 @@ pub async fn run(
     let sessions = session::Sessions::new(
         config.scene.clone(),
         config.queue_frames,
+        config.max_sensors,
         hub.clone(),
         state_dir,
         config.record_dir.clone(),

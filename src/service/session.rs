@@ -85,6 +85,17 @@ pub struct Session {
     worker: Mutex<Option<std::thread::JoinHandle<()>>>,
 }
 
+/// Why a session could not be started.
+#[derive(Debug, thiserror::Error)]
+pub enum StartError {
+    /// The server already runs its maximum number of sensors.
+    #[error("the server already serves its limit of {0} sensors")]
+    Limit(usize),
+    /// The pipeline could not be built from the scene, or the worker not started.
+    #[error("{0}")]
+    Build(String),
+}
+
 /// Why a frame could not be queued.
 #[derive(Debug, thiserror::Error)]
 pub enum QueueError {
@@ -178,6 +189,8 @@ pub struct Sessions {
     default_scene: Mutex<Scene>,
     /// Queue length per sensor, frames.
     queue_frames: usize,
+    /// Sessions allowed (each holds a thread and a pipeline).
+    max_sensors: usize,
     /// Where reports go.
     hub: Arc<Hub>,
     /// Persistence.
@@ -202,6 +215,7 @@ impl Sessions {
     pub fn new(
         default_scene: Scene,
         queue_frames: usize,
+        max_sensors: usize,
         hub: Arc<Hub>,
         state: Option<StateDir>,
         record_dir: Option<PathBuf>,
@@ -225,6 +239,7 @@ impl Sessions {
             map: Mutex::new(HashMap::new()),
             default_scene: Mutex::new(default_scene),
             queue_frames: queue_frames.max(1),
+            max_sensors,
             hub,
             state,
             record_dir,
@@ -235,10 +250,11 @@ impl Sessions {
                 .start(
                     &s.sensor,
                     s.scene.unwrap_or_else(|| sessions.default_scene()),
+                    false,
                 )
-                .map_err(|message| ServiceError::Scene {
+                .map_err(|e| ServiceError::Scene {
                     sensor: s.sensor.clone(),
-                    message,
+                    message: e.to_string(),
                 })?;
             *session.noise.lock().unwrap() = s.noise;
             tracing::info!(sensor = %s.sensor, "reloaded sensor state");
@@ -273,11 +289,11 @@ impl Sessions {
     }
 
     /// Session of `sensor`, started on the default scene if new.
-    pub fn get_or_start(&self, sensor: &str) -> Result<Arc<Session>, String> {
+    pub fn get_or_start(&self, sensor: &str) -> Result<Arc<Session>, StartError> {
         if let Some(s) = self.get(sensor) {
             return Ok(s);
         }
-        self.start(sensor, self.default_scene())
+        self.start(sensor, self.default_scene(), true)
     }
 
     /// Persists `scene` for `sensor` (after it was applied).
@@ -288,14 +304,20 @@ impl Sessions {
         }
     }
 
-    fn start(&self, sensor: &str, scene: Scene) -> Result<Arc<Session>, String> {
+    /// Starts a session; `limited`: refuse past `max_sensors`.
+    fn start(&self, sensor: &str, scene: Scene, limited: bool) -> Result<Arc<Session>, StartError> {
         let mut map = self.map.lock().unwrap();
         if let Some(s) = map.get(sensor) {
             return Ok(s.clone());
         }
-        let pipeline = build_pipeline(&scene, sensor)?;
+        // Saved sensors reload even past the limit: the limit guards against
+        // clients inventing ids, not against the operator's own state.
+        if limited && map.len() >= self.max_sensors {
+            return Err(StartError::Limit(self.max_sensors));
+        }
+        let pipeline = build_pipeline(&scene, sensor).map_err(StartError::Build)?;
         let recorder = match &self.record_dir {
-            Some(dir) => Some(open_recording(dir, sensor)?),
+            Some(dir) => Some(open_recording(dir, sensor).map_err(StartError::Build)?),
             None => None,
         };
         let (tx, rx) = mpsc::channel(self.queue_frames);
@@ -317,7 +339,7 @@ impl Sessions {
         let handle = std::thread::Builder::new()
             .name(format!("tofwave-{sensor}"))
             .spawn(move || worker.run(rx))
-            .map_err(|e| format!("cannot start worker thread: {e}"))?;
+            .map_err(|e| StartError::Build(format!("cannot start worker thread: {e}")))?;
         *session.worker.lock().unwrap() = Some(handle);
         map.insert(sensor.to_string(), session.clone());
         tracing::info!(sensor, "session started");

@@ -62,6 +62,9 @@ pub struct ServeArgs {
     /// Sensors served at most (each holds a worker thread and a pipeline), sensors.
     #[arg(long, value_name = "N", default_value_t = 256)]
     pub max_sensors: usize,
+    /// Longest wait after Ctrl-C/SIGTERM for clients to take their last acks and reports, seconds.
+    #[arg(long, value_name = "SECONDS", default_value_t = 20.0)]
+    pub drain_timeout_s: f64,
     /// Reports a subscriber may fall behind before it is told it lagged, reports.
     #[arg(long, value_name = "REPORTS", default_value_t = 1024)]
     pub subscriber_buffer: usize,
@@ -184,6 +187,8 @@ impl ServeArgs {
             metrics_listener: None,
             state_dir: self.state_dir.clone(),
             record_dir: self.record.clone(),
+            drain_timeout: std::time::Duration::try_from_secs_f64(self.drain_timeout_s)
+                .context("--drain-timeout-s: a number of seconds >= 0")?,
         })
     }
 }

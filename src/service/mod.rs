@@ -71,6 +71,9 @@ pub struct ServerConfig {
     pub state_dir: Option<PathBuf>,
     /// Write every accepted frame losslessly to one recording per sensor here.
     pub record_dir: Option<PathBuf>,
+    /// Longest wait, after shutdown begins, for clients to take their last
+    /// acks and reports before `run` returns anyway.
+    pub drain_timeout: std::time::Duration,
 }
 
 /// TLS identity in PEM.
@@ -98,6 +101,7 @@ impl Default for ServerConfig {
             metrics_listener: None,
             state_dir: None,
             record_dir: None,
+            drain_timeout: std::time::Duration::from_secs(20),
         }
     }
 }
@@ -286,6 +290,8 @@ pub async fn run(
     // `shared` holds a ShutdownSignal too; the drainer's copy keeps it alive.
     drop(shared);
 
+    let mut begun = notify_tx.subscribe();
+    let begun_tx = notify_tx.clone();
     let serve = router.serve_with_incoming_shutdown(TcpListenerStream::new(listener), async move {
         shutdown.await;
         tracing::info!("shutdown: draining");
@@ -298,20 +304,49 @@ pub async fn run(
             .await;
         let _ = notify_tx.send(true);
     });
-    let served = serve.await;
-    let drained = drainer.await;
-    // Every task holding a shutdown handle has ended once this returns.
-    let _ = done_rx.recv().await;
-    if let Some(t) = metrics_task {
-        let _ = t.await;
+    tokio::pin!(serve);
+    // Phase 1: serve until shutdown begins (or the transport fails).
+    tokio::select! {
+        served = &mut serve => {
+            // The transport ended by itself: still drain what was accepted.
+            let _ = begun_tx.send(true);
+            let drained = tokio::time::timeout(config.drain_timeout, drainer).await;
+            served?;
+            return match drained {
+                Ok(Ok(r)) => r,
+                Ok(Err(e)) => Err(ServiceError::Internal(format!("drain task: {e}"))),
+                Err(_) => Ok(()),
+            };
+        }
+        _ = begun.wait_for(|b| *b) => {}
     }
-    served?;
-    match drained {
-        Ok(r) => r,
-        Err(e) => Err(ServiceError::Scene {
-            sensor: String::new(),
-            message: format!("drain task: {e}"),
-        }),
+    // Phase 2: drain, bounded. Clients that stop reading can hold their
+    // streams (and so tonic's graceful shutdown) open forever; past the
+    // deadline `run` returns and leaves them to the runtime's end.
+    let drain_timeout = config.drain_timeout;
+    let finished = tokio::time::timeout(drain_timeout, async {
+        let served = serve.await;
+        let drained = drainer.await;
+        // Every task holding a shutdown handle has ended once this returns.
+        let _ = done_rx.recv().await;
+        (served, drained)
+    })
+    .await;
+    if let Some(t) = metrics_task {
+        t.abort();
+    }
+    match finished {
+        Ok((served, drained)) => {
+            served?;
+            drained.map_err(|e| ServiceError::Internal(format!("drain task: {e}")))?
+        }
+        Err(_) => {
+            tracing::warn!(
+                ?drain_timeout,
+                "shutdown: clients still connected at the drain deadline"
+            );
+            Ok(())
+        }
     }
 }
 

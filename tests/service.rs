@@ -210,6 +210,23 @@ fn metric_in(body: &str, name: &str, labels: &[(&str, &str)]) -> Option<f64> {
     })
 }
 
+/// A subscriber connection with 16 KiB HTTP/2 windows (the client default is
+/// megabytes), so that not reading stalls the server's sends after a few reports.
+async fn small_window_subscribe(url: &str) -> tonic::Streaming<proto::ReportEvent> {
+    let channel = tonic::transport::Endpoint::from_shared(url.to_string())
+        .unwrap()
+        .initial_stream_window_size(16 * 1024)
+        .initial_connection_window_size(16 * 1024)
+        .connect()
+        .await
+        .unwrap();
+    let mut c = proto::reports_client::ReportsClient::new(channel);
+    c.subscribe(proto::SubscribeRequest::default())
+        .await
+        .unwrap()
+        .into_inner()
+}
+
 async fn collect_events(mut s: tonic::Streaming<proto::ReportEvent>) -> (Vec<String>, u64) {
     let (mut reports, mut skipped) = (Vec::new(), 0);
     while let Some(e) = s.message().await.expect("subscriber stream ends cleanly") {
@@ -659,9 +676,7 @@ async fn slow_subscriber_is_told_it_lagged_and_continues() {
     };
     let server = TestServer::start(config).await;
     let mut c = server.connect(None).await;
-    let slow = client::subscribe(&mut c.reports, Default::default())
-        .await
-        .unwrap();
+    let slow = small_window_subscribe(&server.url).await;
     let fs = frames("lag", 0..400, 9);
     // The subscriber reads nothing while all 400 frames are processed.
     let acks = push_batches(&mut c, fs.chunks(50).map(batch).collect())
@@ -675,7 +690,7 @@ async fn slow_subscriber_is_told_it_lagged_and_continues() {
     let (reports, skipped) = reader.await.unwrap();
     let expected = direct_reports(&Scene::default_scene(), &fs);
     assert_eq!(reports.len() as u64 + skipped, expected.len() as u64);
-    // HTTP/2 windows and buffers hold well under 400 reports of ~1 kB.
+    // The 16 KiB window and the server's buffers hold far fewer than 400 reports.
     if expected.len() >= 400 {
         assert!(skipped > 0, "no lag marker");
     }
@@ -731,7 +746,6 @@ async fn shutdown_drains_in_flight_frames() {
         }
     }
     stop.await.unwrap().unwrap();
-    eprintln!("accepted before shutdown: {accepted}");
     // Every acknowledged frame was processed, and its reports reached the
     // subscriber before its stream ended.
     let (reports, skipped) = collect_events(sub).await;
@@ -966,4 +980,28 @@ async fn sensors_past_the_limit_are_refused() {
         .unwrap_err();
     assert_eq!(e.code(), Code::ResourceExhausted);
     server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn shutdown_is_bounded_when_a_subscriber_never_reads() {
+    let config = ServerConfig {
+        subscriber_buffer: 8,
+        drain_timeout: Duration::from_secs(1),
+        ..Default::default()
+    };
+    let server = TestServer::start(config).await;
+    let mut c = server.connect(None).await;
+    // Subscribed, never read, kept open past shutdown.
+    let _stuck = client::subscribe(&mut c.reports, Default::default())
+        .await
+        .unwrap();
+    let fs = frames("stuck", 0..400, 17);
+    let acks = push_batches(&mut c, fs.chunks(50).map(batch).collect())
+        .await
+        .unwrap();
+    assert_eq!(acks.iter().map(|a| a.accepted).sum::<u64>(), 400);
+    let t = std::time::Instant::now();
+    server.shutdown().await.unwrap();
+    // The drain deadline (1 s) plus scheduling slack.
+    assert!(t.elapsed() < Duration::from_secs(5), "{:?}", t.elapsed());
 }

@@ -318,7 +318,7 @@ pub async fn run(
                 Err(_) => Ok(()),
             };
         }
-        _ = begun.wait_for(|b| *b) => {}
+        _ = async { let _ = begun.wait_for(|b| *b).await.is_ok(); } => {}
     }
     // Phase 2: drain, bounded. Clients that stop reading can hold their
     // streams (and so tonic's graceful shutdown) open forever; past the

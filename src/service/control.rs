@@ -94,7 +94,7 @@ impl proto::control_server::Control for ControlService {
         let scene = if sensor_id.is_empty() {
             self.shared.sessions.default_scene()
         } else {
-            self.session(&sensor_id)?.scene()
+            self.session(&sensor_id)?.scene().as_ref().clone()
         };
         Ok(Response::new(proto::SceneDocument {
             sensor_id,

@@ -106,6 +106,9 @@ pub(crate) fn check_against_scene(frame: &Frame, scene: &Scene) -> Result<(), Ed
     Ok(())
 }
 
+/// Batches queued but not yet acknowledged, per stream.
+const ACKS_IN_FLIGHT: usize = 2;
+
 /// What one stream has acknowledged so far.
 #[derive(Default)]
 struct StreamTotals {
@@ -137,7 +140,22 @@ impl proto::ingest_server::Ingest for IngestService {
                 return;
             }
             tracing::info!(?peer, "ingest stream opened");
-            let mut totals = StreamTotals::default();
+            // Acks are finished by a second task, so the next batch is decoded
+            // and queued while the pipeline works on this one. At most
+            // ACKS_IN_FLIGHT batches wait for their verdicts: backpressure holds.
+            let (pending_tx, mut pending_rx) = mpsc::channel::<PendingBatch>(ACKS_IN_FLIGHT);
+            let ack_out = tx.clone();
+            let acker = tokio::spawn(async move {
+                let mut totals = StreamTotals::default();
+                while let Some(batch) = pending_rx.recv().await {
+                    let ack = finish_batch(batch, &mut totals).await;
+                    if ack_out.send(Ok(ack)).await.is_err() {
+                        break;
+                    }
+                }
+                totals
+            });
+            let mut failure = None;
             loop {
                 let msg = tokio::select! {
                     biased;
@@ -146,19 +164,24 @@ impl proto::ingest_server::Ingest for IngestService {
                 };
                 match msg {
                     Ok(Some(batch)) => {
-                        let ack = handle_batch(&shared, batch, &mut totals).await;
-                        if tx.send(Ok(ack)).await.is_err() {
+                        let pending = start_batch(&shared, batch).await;
+                        if pending_tx.send(pending).await.is_err() {
                             break;
                         }
                     }
                     Ok(None) => break,
                     Err(status) => {
-                        let status = map_stream_error(status, limit);
-                        tracing::warn!(?peer, %status, "ingest stream failed");
-                        let _ = tx.send(Err(status)).await;
+                        failure = Some(map_stream_error(status, limit));
                         break;
                     }
                 }
+            }
+            // Acks of every batch taken in go out before the stream ends.
+            drop(pending_tx);
+            let totals = acker.await.unwrap_or_default();
+            if let Some(status) = failure {
+                tracing::warn!(?peer, %status, "ingest stream failed");
+                let _ = tx.send(Err(status)).await;
             }
             tracing::info!(
                 ?peer,
@@ -195,11 +218,16 @@ struct Pending {
     verdict: oneshot::Receiver<Result<(), crate::pipeline::FrameError>>,
 }
 
-async fn handle_batch(
-    shared: &Shared,
-    batch: proto::FrameBatch,
-    totals: &mut StreamTotals,
-) -> proto::IngestAck {
+/// A batch whose frames are queued: the ack so far (edge rejections, gaps)
+/// and the pipeline verdicts still to come.
+struct PendingBatch {
+    ack: proto::IngestAck,
+    pending: Vec<Pending>,
+}
+
+/// Decodes and checks a batch and queues its good frames (waiting while a
+/// sensor's queue is full).
+async fn start_batch(shared: &Shared, batch: proto::FrameBatch) -> PendingBatch {
     let mut ack = proto::IngestAck::default();
     let mut pending = Vec::with_capacity(batch.frames.len());
     for (index, msg) in batch.frames.iter().enumerate() {
@@ -290,6 +318,12 @@ async fn handle_batch(
             ),
         }
     }
+    PendingBatch { ack, pending }
+}
+
+/// Waits for the pipeline's verdicts and completes the ack.
+async fn finish_batch(batch: PendingBatch, totals: &mut StreamTotals) -> proto::IngestAck {
+    let PendingBatch { mut ack, pending } = batch;
     for p in pending {
         match p.verdict.await {
             Ok(Ok(())) => ack.accepted += 1,

@@ -262,7 +262,12 @@ pub async fn run(
 
     let mut builder = Server::builder()
         .max_concurrent_streams(config.max_streams_per_connection)
-        .http2_keepalive_interval(Some(std::time::Duration::from_secs(30)));
+        .http2_keepalive_interval(Some(std::time::Duration::from_secs(30)))
+        // Batches are hundreds of kB: h2's 64 KiB default window would cost a
+        // round trip per 64 KiB. 2 MiB per stream still bounds what a client
+        // can push ahead of the pipeline (backpressure).
+        .initial_stream_window_size(2 * 1024 * 1024)
+        .initial_connection_window_size(4 * 1024 * 1024);
     if let Some(tls) = &config.tls {
         builder = builder.tls_config(
             ServerTlsConfig::new().identity(Identity::from_pem(&tls.cert_pem, &tls.key_pem)),

@@ -74,7 +74,7 @@ pub struct Session {
     tx: Mutex<Option<mpsc::Sender<Job>>>,
     /// Scene the edge validates against and `GetScene` shows (the one the worker
     /// runs, or is about to run once queued frames ahead of it are done).
-    scene: Mutex<Scene>,
+    scene: Mutex<Arc<Scene>>,
     /// Counters.
     pub stats: Stats,
     /// Latest noise model (from the pipeline, or reloaded from the state dir).
@@ -106,7 +106,7 @@ pub enum QueueError {
 
 impl Session {
     /// Current scene.
-    pub fn scene(&self) -> Scene {
+    pub fn scene(&self) -> Arc<Scene> {
         self.scene.lock().unwrap().clone()
     }
 
@@ -176,7 +176,7 @@ impl Session {
         .await
         .map_err(|_| QueueError::Closed.to_string())?;
         rx.await.map_err(|_| QueueError::Closed.to_string())??;
-        *self.scene.lock().unwrap() = scene;
+        *self.scene.lock().unwrap() = Arc::new(scene);
         Ok(())
     }
 }
@@ -324,7 +324,7 @@ impl Sessions {
         let session = Arc::new(Session {
             sensor: sensor.to_string(),
             tx: Mutex::new(Some(tx)),
-            scene: Mutex::new(scene),
+            scene: Mutex::new(Arc::new(scene)),
             stats: Stats::default(),
             noise: Mutex::new(None),
             last_seq: Mutex::new(None),

@@ -1,11 +1,18 @@
 //! gRPC services and the wire contract. Only this module knows prost/tonic types.
 //!
-//! Reading order: [`run`] wires everything; [`session`] holds one sensor's
-//! pipeline on its own worker thread behind a bounded queue; [`ingest`] turns
-//! frame batches into queued frames and acknowledgements; [`fanout`] spreads
-//! reports to subscribers ([`subscribe`]); [`control`] reads and changes sensor
-//! state; [`auth`] checks bearer tokens; [`client`] is the library side used by
-//! `tofwave replay` and `tofwave subscribe` ([`cli`]).
+//! Reading order (paths are absolute because `lib.rs` documents this module too):
+//! - [`run`](crate::service::run) wires everything and owns shutdown;
+//! - [`session`](crate::service::session): one sensor's pipeline on its own
+//!   worker thread behind a bounded queue;
+//! - [`ingest`](crate::service::ingest): frame batches in, queued frames and
+//!   acknowledgements out;
+//! - [`fanout`](crate::service::fanout) spreads reports to subscribers
+//!   ([`subscribe`](crate::service::subscribe));
+//! - [`control`](crate::service::control) reads and changes sensor state;
+//! - [`auth`](crate::service::auth) checks bearer tokens;
+//! - [`state`](crate::service::state) persists scenes and noise models;
+//! - [`client`](crate::service::client) is the library side of `tofwave replay`
+//!   and `tofwave subscribe` ([`cli`](crate::service::cli)).
 
 /// Generated wire-contract types (`proto/tofwave/v1/*.proto`).
 #[allow(missing_docs, clippy::all)]

@@ -1005,3 +1005,42 @@ async fn shutdown_is_bounded_when_a_subscriber_never_reads() {
     // The drain deadline (1 s) plus scheduling slack.
     assert!(t.elapsed() < Duration::from_secs(5), "{:?}", t.elapsed());
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn concurrent_streams_per_connection_are_limited() {
+    let config = ServerConfig {
+        max_streams_per_connection: 2,
+        ..Default::default()
+    };
+    let server = TestServer::start(config).await;
+    let mut c = server.connect(None).await;
+    let first = client::subscribe(&mut c.reports, Default::default())
+        .await
+        .unwrap();
+    let _second = client::subscribe(&mut c.reports, Default::default())
+        .await
+        .unwrap();
+    // A third stream on the same connection waits for a free slot.
+    let mut third = c.reports.clone();
+    let waiting =
+        tokio::spawn(async move { client::subscribe(&mut third, Default::default()).await });
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    assert!(
+        !waiting.is_finished(),
+        "a third concurrent stream was opened"
+    );
+    drop(first);
+    let third = tokio::time::timeout(Duration::from_secs(5), waiting)
+        .await
+        .unwrap()
+        .unwrap();
+    assert!(third.is_ok(), "{third:?}");
+    // Another connection has its own allowance.
+    let mut other = server.connect(None).await;
+    assert!(
+        client::subscribe(&mut other.reports, Default::default())
+            .await
+            .is_ok()
+    );
+    server.shutdown().await.unwrap();
+}

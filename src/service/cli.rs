@@ -271,6 +271,8 @@ pub async fn run_replay(args: ReplayArgs) -> anyhow::Result<()> {
             )
             .expect("valid template"),
         );
+        // Keeps the rate and spinner moving between acks (paced replays).
+        bar.enable_steady_tick(std::time::Duration::from_millis(200));
         bar
     };
     let limits = BatchLimits {

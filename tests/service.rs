@@ -180,7 +180,8 @@ async fn push_batches(
     client::push(&mut c.ingest, tokio_stream::iter(batches), |a| {
         acks.push(a.clone())
     })
-    .await?;
+    .await
+    .map_err(|e| e.status)?;
     Ok(acks)
 }
 

@@ -34,6 +34,9 @@ pub enum ClientError {
     /// The server answered with an error status.
     #[error("server: {} ({:?})", .0.message(), .0.code())]
     Status(#[from] Status),
+    /// The server ended a push stream with an error.
+    #[error("push: {0}")]
+    Push(#[from] PushFailed),
     /// A capture could not be read.
     #[error("reading captures: {0}")]
     Capture(String),
@@ -182,23 +185,42 @@ impl Display for PushSummary {
     }
 }
 
+/// A push stream the server ended with an error, and what it had acknowledged.
+#[derive(Debug, thiserror::Error)]
+#[error("{} ({:?}) after {summary}", .status.message(), .status.code())]
+pub struct PushFailed {
+    /// Acknowledged before the failure.
+    pub summary: PushSummary,
+    /// The server's status.
+    pub status: Status,
+}
+
 /// Streams `batches` and collects the acks; `on_ack` sees each one as it arrives.
-/// Ends when the server has acknowledged everything sent (or fails with its status).
+/// Ends when the server has acknowledged everything sent, or fails with its
+/// status and what had been acknowledged until then.
 pub async fn push<S>(
     client: &mut IngestClient,
     batches: S,
     mut on_ack: impl FnMut(&proto::IngestAck),
-) -> Result<PushSummary, Status>
+) -> Result<PushSummary, PushFailed>
 where
     S: tokio_stream::Stream<Item = proto::FrameBatch> + Send + 'static,
 {
-    let mut acks = client.push(batches).await?.into_inner();
     let mut summary = PushSummary::default();
-    while let Some(ack) = acks.message().await? {
-        on_ack(&ack);
-        summary.add(&ack);
+    let mut acks = match client.push(batches).await {
+        Ok(r) => r.into_inner(),
+        Err(status) => return Err(PushFailed { summary, status }),
+    };
+    loop {
+        match acks.message().await {
+            Ok(Some(ack)) => {
+                on_ack(&ack);
+                summary.add(&ack);
+            }
+            Ok(None) => return Ok(summary),
+            Err(status) => return Err(PushFailed { summary, status }),
+        }
     }
-    Ok(summary)
 }
 
 /// Replay pace.

@@ -289,6 +289,9 @@ pub async fn run(
         .add_service(control);
 
     tracing::info!(addr = ?local, tls = config.tls.is_some(), "serving");
+    if config.write_token.as_deref().is_none_or(str::is_empty) {
+        tracing::warn!("no write token: anyone who can connect may ingest and change scenes");
+    }
     // The drainer runs once shutdown begins, concurrently with tonic's graceful
     // shutdown, which waits for the streams the drainer ends.
     let drain_shared = shared.clone();

@@ -15,7 +15,7 @@ pub const FRAMES_RECEIVED: &str = "tofwave_frames_received_total";
 /// Frames the pipeline processed without error, per sensor.
 pub const FRAMES_PROCESSED: &str = "tofwave_frames_processed_total";
 /// Frames refused, per sensor and `reason` (`invalid_frame`, `sample_rate`,
-/// `samples_per_frame`, `missing_stop`, `pipeline`, `oversize`, `sensor_limit`, `shutdown`).
+/// `samples_per_frame`, `missing_stop`, `pipeline`, `panic`, `oversize`, `sensor_limit`, `shutdown`).
 pub const FRAMES_REJECTED: &str = "tofwave_frames_rejected_total";
 /// Reports produced, per sensor.
 pub const REPORTS: &str = "tofwave_reports_total";

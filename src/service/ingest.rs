@@ -9,7 +9,7 @@
 //! its queue in order.
 
 use super::convert::{self, ConvertError};
-use super::session::{Session, StartError};
+use super::session::{Session, StartError, Verdict};
 use super::{Shared, proto};
 use crate::frame::{ChannelRole, Frame, channel_key};
 use crate::scene::Scene;
@@ -215,7 +215,7 @@ struct Pending {
     sensor: String,
     sequence: u64,
     session: Arc<Session>,
-    verdict: oneshot::Receiver<Result<(), crate::pipeline::FrameError>>,
+    verdict: oneshot::Receiver<Verdict>,
 }
 
 /// A batch whose frames are queued: the ack so far (edge rejections, gaps)
@@ -308,14 +308,19 @@ async fn start_batch(shared: &Shared, batch: proto::FrameBatch) -> PendingBatch 
                 session,
                 verdict,
             }),
-            Err(e) => reject(
-                EdgeRejection {
-                    reason: "shutdown",
-                    field: "sensor_id".into(),
-                    message: e.to_string(),
-                },
-                Some(&session),
-            ),
+            Err(e) => {
+                reject(
+                    EdgeRejection {
+                        reason: "shutdown",
+                        field: "sensor_id".into(),
+                        message: e.to_string(),
+                    },
+                    Some(&session),
+                );
+                if let Some(r) = ack.rejections.last_mut() {
+                    r.code = "UNAVAILABLE".into();
+                }
+            }
         }
     }
     PendingBatch { ack, pending }
@@ -325,27 +330,35 @@ async fn start_batch(shared: &Shared, batch: proto::FrameBatch) -> PendingBatch 
 async fn finish_batch(batch: PendingBatch, totals: &mut StreamTotals) -> proto::IngestAck {
     let PendingBatch { mut ack, pending } = batch;
     for p in pending {
+        let internal = |message: String| proto::Rejection {
+            sensor_id: p.sensor.clone(),
+            sequence: p.sequence,
+            code: "INTERNAL".into(),
+            message,
+        };
         match p.verdict.await {
-            Ok(Ok(())) => ack.accepted += 1,
-            Ok(Err(e)) => ack.rejections.push(proto::Rejection {
-                sensor_id: p.sensor,
+            Ok(Verdict::Processed) => ack.accepted += 1,
+            Ok(Verdict::Refused(e)) => ack.rejections.push(proto::Rejection {
+                sensor_id: p.sensor.clone(),
                 sequence: p.sequence,
                 code: "INVALID_ARGUMENT".into(),
                 message: format!("frames[{}].{}: {}", p.index, e.field, e.message),
             }),
-            // The worker ended without answering (it panicked): not processed.
+            Ok(Verdict::Panicked(m)) => ack.rejections.push(internal(format!(
+                "frames[{}]: the pipeline failed on this frame ({m}); it was rebuilt",
+                p.index
+            ))),
+            // The worker is gone (it cannot answer): not processed.
             Err(_) => {
                 telemetry::frames_rejected(&p.sensor, "pipeline", 1);
                 p.session
                     .stats
                     .frames_rejected
                     .fetch_add(1, Ordering::Relaxed);
-                ack.rejections.push(proto::Rejection {
-                    sensor_id: p.sensor,
-                    sequence: p.sequence,
-                    code: "INTERNAL".into(),
-                    message: format!("frames[{}]: the sensor's pipeline stopped", p.index),
-                });
+                ack.rejections.push(internal(format!(
+                    "frames[{}]: the sensor's pipeline stopped",
+                    p.index
+                )));
             }
         }
     }

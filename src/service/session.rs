@@ -36,7 +36,7 @@ enum Job {
         /// When it entered the queue (for the latency histogram).
         enqueued: Instant,
         /// Receives the pipeline's verdict.
-        done: oneshot::Sender<Result<(), FrameError>>,
+        done: oneshot::Sender<Verdict>,
     },
     /// Replace the pipeline (after flushing the old one).
     SetScene {
@@ -45,6 +45,18 @@ enum Job {
         /// Receives the outcome of building the new pipeline.
         done: oneshot::Sender<Result<(), String>>,
     },
+}
+
+/// What became of a queued frame.
+#[derive(Debug)]
+pub enum Verdict {
+    /// The pipeline processed it.
+    Processed,
+    /// The pipeline refused it (bad content the edge could not see).
+    Refused(FrameError),
+    /// The pipeline panicked on it (a bug); the sensor's pipeline was rebuilt
+    /// from its scene, losing its running state (averages, noise history).
+    Panicked(String),
 }
 
 /// Counters of one sensor (monotonic; read by `GetStatus`).
@@ -148,10 +160,7 @@ impl Session {
 
     /// Queues a frame, waiting while the queue is full (backpressure). The
     /// returned receiver yields the pipeline's verdict.
-    pub async fn enqueue(
-        &self,
-        frame: Frame,
-    ) -> Result<oneshot::Receiver<Result<(), FrameError>>, QueueError> {
+    pub async fn enqueue(&self, frame: Frame) -> Result<oneshot::Receiver<Verdict>, QueueError> {
         let tx = self.sender()?;
         let (done, rx) = oneshot::channel();
         tx.send(Job::Frame {
@@ -429,16 +438,16 @@ impl Worker {
                             }
                         }
                     }
-                    let result = self.pipeline.push(frame, &mut reports);
-                    match &result {
-                        Ok(()) => {
+                    let verdict = self.process(frame, &mut reports);
+                    match &verdict {
+                        Verdict::Processed => {
                             self.session
                                 .stats
                                 .frames_processed
                                 .fetch_add(1, Ordering::Relaxed);
                             telemetry::frame_processed(&sensor, enqueued.elapsed());
                         }
-                        Err(e) => {
+                        Verdict::Refused(e) => {
                             self.session
                                 .stats
                                 .frames_rejected
@@ -446,10 +455,18 @@ impl Worker {
                             telemetry::frames_rejected(&sensor, "pipeline", 1);
                             tracing::debug!(sensor = %sensor, error = %e, "pipeline refused frame");
                         }
+                        Verdict::Panicked(m) => {
+                            self.session
+                                .stats
+                                .frames_rejected
+                                .fetch_add(1, Ordering::Relaxed);
+                            telemetry::frames_rejected(&sensor, "panic", 1);
+                            tracing::error!(sensor = %sensor, message = %m, "pipeline panicked; rebuilt");
+                        }
                     }
                     self.publish(&mut reports);
                     telemetry::queue_depth(&sensor, rx.len());
-                    let _ = done.send(result);
+                    let _ = done.send(verdict);
                 }
                 Job::SetScene { scene, done } => {
                     let result = build_pipeline(&scene, &sensor).map(|p| {
@@ -470,6 +487,36 @@ impl Worker {
             tracing::error!(sensor = %sensor, error = %e, "recording not finished");
         }
         tracing::info!(sensor = %sensor, "session drained");
+    }
+
+    /// Runs one frame; a panic in the pipeline costs this frame and the
+    /// pipeline's running state, not the session (the stream and the other
+    /// frames carry on).
+    fn process(&mut self, frame: Frame, reports: &mut Vec<Report>) -> Verdict {
+        let pipeline = &mut self.pipeline;
+        let run = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            pipeline.push(frame, reports)
+        }));
+        match run {
+            Ok(Ok(())) => Verdict::Processed,
+            Ok(Err(e)) => Verdict::Refused(e),
+            Err(panic) => {
+                reports.clear();
+                let message = panic
+                    .downcast_ref::<&str>()
+                    .map(|s| s.to_string())
+                    .or_else(|| panic.downcast_ref::<String>().cloned())
+                    .unwrap_or_else(|| "unknown panic".into());
+                let scene = self.pipeline.scene().clone();
+                match build_pipeline(&scene, &self.session.sensor) {
+                    Ok(p) => self.pipeline = p,
+                    Err(e) => {
+                        tracing::error!(error = %e, "rebuilding the pipeline failed; keeping the old one")
+                    }
+                }
+                Verdict::Panicked(message)
+            }
+        }
     }
 
     fn publish(&mut self, reports: &mut Vec<Report>) {

@@ -186,7 +186,7 @@ pub(crate) struct Shared {
 /// `listener` until `shutdown` resolves, then drains: ingest streams finish the
 /// batch in hand and end, every queued frame is processed (partial averages
 /// flushed), their reports reach subscribers, subscriber streams end cleanly,
-/// and scenes and noise models are saved to the state directory.
+/// and noise models are saved to the state directory (scenes are saved when set).
 pub async fn run(
     listener: TcpListener,
     config: ServerConfig,

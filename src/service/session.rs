@@ -240,6 +240,11 @@ impl Sessions {
         if let Some(st) = &state {
             let loaded = st.load()?;
             if let Some(s) = loaded.default_scene {
+                // A default set at run time (SetScene with no sensor id) is the
+                // operator's latest word; it outlives the --scene of the start.
+                if s != default_scene {
+                    tracing::warn!(scene = %s.name, "using the default scene saved in the state directory, not the configured one");
+                }
                 default_scene = s;
             }
             saved = loaded.sensors;
@@ -368,7 +373,7 @@ impl Sessions {
     }
 
     /// Closes every queue, lets the workers finish what is queued and flush,
-    /// and saves scenes and noise models.
+    /// and saves noise models.
     pub async fn close_all(&self) -> Result<(), ServiceError> {
         let sessions = self.all();
         for s in &sessions {
@@ -380,9 +385,10 @@ impl Sessions {
                 let _ = tokio::task::spawn_blocking(move || h.join()).await;
             }
         }
+        // Scenes were saved when set; a sensor on the default scene keeps
+        // following the default (a new --scene applies to it after a restart).
         if let Some(st) = &self.state {
             for s in &sessions {
-                st.save_scene(Some(&s.sensor), &s.scene())?;
                 if let Some(n) = s.noise() {
                     st.save_noise(&s.sensor, &n)?;
                 }

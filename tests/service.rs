@@ -791,15 +791,19 @@ async fn recording_is_lossless_and_state_reloads() {
     let fs = frames("rec/1", 0..6, 11);
     let mut sent = batch(&fs);
     sent.frames[3].sample_interval_s = -1.0; // refused: not recorded
-    let acks = push_batches(&mut c, vec![sent]).await.unwrap();
-    assert_eq!(acks[0].accepted, 5);
+    // A sensor on the default scene: recorded, but its scene is not pinned.
+    let plain = batch(&frames("plain", 0..2, 18));
+    let acks = push_batches(&mut c, vec![sent, plain]).await.unwrap();
+    assert_eq!((acks[0].accepted, acks[1].accepted), (5, 2));
     server.shutdown().await.unwrap();
 
-    let recorded: Vec<Frame> =
+    let all: Vec<Frame> =
         tofwave::capture::frames(&[record.path().to_path_buf()], &Default::default())
             .unwrap()
             .collect::<Result<_, _>>()
             .unwrap();
+    assert_eq!(all.iter().filter(|f| f.sensor_id == "plain").count(), 2);
+    let recorded: Vec<Frame> = all.into_iter().filter(|f| f.sensor_id == "rec/1").collect();
     let expected: Vec<Frame> = fs
         .iter()
         .enumerate()

@@ -367,3 +367,18 @@ pub async fn subscribe(
 ) -> Result<tonic::Streaming<proto::ReportEvent>, Status> {
     Ok(client.subscribe(request).await?.into_inner())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rates_parse() {
+        assert_eq!("realtime".parse(), Ok(Rate::Realtime));
+        assert_eq!("max".parse(), Ok(Rate::Max));
+        assert_eq!("2.5".parse(), Ok(Rate::Factor(2.5)));
+        for bad in ["0", "-1", "nan", "inf", "fast", ""] {
+            assert!(bad.parse::<Rate>().is_err(), "{bad}");
+        }
+    }
+}

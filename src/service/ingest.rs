@@ -371,3 +371,64 @@ async fn finish_batch(batch: PendingBatch, totals: &mut StreamTotals) -> proto::
     ack.total_rejected = totals.rejected;
     ack
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frame::{Channel, Samples};
+
+    fn frame(names: &[(&str, ChannelRole)], n: usize, dt: f64) -> Frame {
+        Frame {
+            sensor_id: "s".into(),
+            sequence: 0,
+            trigger_time_s: 0.0,
+            sample_interval_s: dt,
+            first_sample_offset_s: 0.0,
+            channels: names
+                .iter()
+                .map(|(name, role)| Channel {
+                    name: name.to_string(),
+                    role: *role,
+                    samples: Samples::I16(vec![0; n]),
+                    volts_per_code: 1e-3,
+                    offset_v: 0.0,
+                })
+                .collect(),
+            laser_off: false,
+        }
+    }
+
+    #[test]
+    fn scene_checks_name_the_field() {
+        let mut scene = Scene::default_scene();
+        scene.digitiser.sample_interval_s = 1e-9;
+        scene.digitiser.samples_per_frame = 100;
+        let u = ChannelRole::Unspecified;
+        let ok = frame(&[("CH1", u), ("C2", u)], 100, 1e-9);
+        assert!(
+            check_against_scene(&ok, &scene).is_ok(),
+            "vendor spelling C2 is CH2"
+        );
+        // Within the 1e-6 relative tolerance.
+        assert!(
+            check_against_scene(&frame(&[("CH2", u)], 100, 1e-9 * (1.0 + 5e-7)), &scene).is_ok()
+        );
+        let r = check_against_scene(&frame(&[("CH2", u)], 100, 1.001e-9), &scene).unwrap_err();
+        assert_eq!(
+            (r.reason, r.field.as_str()),
+            ("sample_rate", "sample_interval_s")
+        );
+        let r = check_against_scene(&frame(&[("CH2", u)], 99, 1e-9), &scene).unwrap_err();
+        assert_eq!(
+            (r.reason, r.field.as_str()),
+            ("samples_per_frame", "channels[0].samples")
+        );
+        let r =
+            check_against_scene(&frame(&[("CH1", u), ("CH3", u)], 100, 1e-9), &scene).unwrap_err();
+        assert_eq!((r.reason, r.field.as_str()), ("missing_stop", "channels"));
+        // A STOP role or a single channel is a stop channel whatever its name.
+        let roles = frame(&[("CH1", u), ("rx", ChannelRole::Stop)], 100, 1e-9);
+        assert!(check_against_scene(&roles, &scene).is_ok());
+        assert!(check_against_scene(&frame(&[("rx", u)], 100, 1e-9), &scene).is_ok());
+    }
+}

@@ -1,4 +1,18 @@
 //! gRPC services and the wire contract. Only this module knows prost/tonic types.
+//!
+//! Reading order (paths are absolute because `lib.rs` documents this module too):
+//! - [`run`](crate::service::run) wires everything and owns shutdown;
+//! - [`session`](crate::service::session): one sensor's pipeline on its own
+//!   worker thread behind a bounded queue;
+//! - [`ingest`](crate::service::ingest): frame batches in, queued frames and
+//!   acknowledgements out;
+//! - [`fanout`](crate::service::fanout) spreads reports to subscribers
+//!   ([`subscribe`](crate::service::subscribe));
+//! - [`control`](crate::service::control) reads and changes sensor state;
+//! - [`auth`](crate::service::auth) checks bearer tokens;
+//! - [`state`](crate::service::state) persists scenes and noise models;
+//! - [`client`](crate::service::client) is the library side of `tofwave replay`
+//!   and `tofwave subscribe` ([`cli`](crate::service::cli)).
 
 /// Conversion between the wire `Frame` and the domain `Frame`, with validation that names the field.
 pub mod convert;
@@ -11,4 +25,357 @@ pub mod proto {
     /// Encoded file descriptor set, for gRPC reflection.
     pub const FILE_DESCRIPTOR_SET: &[u8] =
         tonic::include_file_descriptor_set!("tofwave_descriptor");
+}
+
+pub mod auth;
+pub mod cli;
+pub mod client;
+pub mod control;
+pub mod convert;
+pub mod fanout;
+pub mod ingest;
+mod metrics_http;
+pub mod session;
+pub mod state;
+pub mod subscribe;
+
+use crate::scene::Scene;
+use std::future::Future;
+use std::path::PathBuf;
+use std::sync::Arc;
+use tokio::net::TcpListener;
+use tokio::sync::{mpsc, watch};
+use tokio_stream::wrappers::TcpListenerStream;
+use tonic::transport::{Identity, Server, ServerTlsConfig};
+
+/// Everything `run` needs besides the listener. [`ServerConfig::default`] is a
+/// usable open server on the embedded default scene.
+pub struct ServerConfig {
+    /// Scene for sensors that have none of their own (new sensors, and `SetScene`
+    /// with an empty sensor id changes it).
+    pub scene: Scene,
+    /// Bearer token for ingest and control; `None` leaves them open.
+    pub write_token: Option<String>,
+    /// Read-only bearer token: subscribe only. When either token is set,
+    /// subscribing needs one of them.
+    pub read_token: Option<String>,
+    /// PEM certificate chain and private key: serve gRPC over TLS.
+    pub tls: Option<TlsPem>,
+    /// Largest gRPC message accepted, bytes. Bigger ingest messages end that
+    /// stream with `INVALID_ARGUMENT` (the server and other streams stay up).
+    pub max_message_bytes: usize,
+    /// Concurrent HTTP/2 streams allowed per client connection.
+    pub max_streams_per_connection: u32,
+    /// Frames queued per sensor before ingest waits (backpressure), frames.
+    pub queue_frames: usize,
+    /// Sensors served at most; frames of further sensor ids are refused
+    /// (`RESOURCE_EXHAUSTED`), since each sensor holds a thread and a pipeline.
+    pub max_sensors: usize,
+    /// Reports retained per sensor for `resume_from_sequence`, reports.
+    pub history_reports: usize,
+    /// Reports buffered for subscribers before a slow one is told it lagged, reports.
+    pub subscriber_buffer: usize,
+    /// Serve Prometheus text on `GET /metrics` here.
+    pub metrics_listener: Option<TcpListener>,
+    /// Persist per-sensor scenes and noise models here and reload them at start.
+    pub state_dir: Option<PathBuf>,
+    /// Write every accepted frame losslessly to one recording per sensor here.
+    pub record_dir: Option<PathBuf>,
+    /// Longest wait, after shutdown begins, for clients to take their last
+    /// acks and reports before `run` returns anyway.
+    pub drain_timeout: std::time::Duration,
+}
+
+/// TLS identity in PEM.
+#[derive(Clone)]
+pub struct TlsPem {
+    /// Certificate chain, PEM.
+    pub cert_pem: Vec<u8>,
+    /// Private key, PEM.
+    pub key_pem: Vec<u8>,
+}
+
+impl Default for ServerConfig {
+    fn default() -> Self {
+        ServerConfig {
+            scene: Scene::default_scene(),
+            write_token: None,
+            read_token: None,
+            tls: None,
+            max_message_bytes: DEFAULT_MAX_MESSAGE_BYTES,
+            max_streams_per_connection: 64,
+            queue_frames: 64,
+            max_sensors: 256,
+            history_reports: 1024,
+            subscriber_buffer: 1024,
+            metrics_listener: None,
+            state_dir: None,
+            record_dir: None,
+            drain_timeout: std::time::Duration::from_secs(20),
+        }
+    }
+}
+
+/// Default message limit: 16 MiB holds ~1600 frames of two 2500-sample i16 channels.
+pub const DEFAULT_MAX_MESSAGE_BYTES: usize = 16 * 1024 * 1024;
+
+/// Errors that stop the server (bad set-up); data-path errors never do.
+#[derive(Debug, thiserror::Error)]
+pub enum ServiceError {
+    /// The gRPC transport failed (TLS set-up, listener).
+    #[error("gRPC transport: {0}")]
+    Transport(#[from] tonic::transport::Error),
+    /// The state directory could not be read or written.
+    #[error("state directory: {0}")]
+    State(#[from] state::StateError),
+    /// A recording could not be created.
+    #[error("recording {path}: {message}")]
+    Record {
+        /// File.
+        path: String,
+        /// Cause.
+        message: String,
+    },
+    /// A server task failed unexpectedly (a panic).
+    #[error("internal: {0}")]
+    Internal(String),
+    /// The reflection service could not be built from the descriptors.
+    #[error("gRPC reflection: {0}")]
+    Reflection(#[from] tonic_reflection::server::Error),
+    /// A scene could not be applied (pipeline construction failed).
+    #[error("sensor {sensor}: {message}")]
+    Scene {
+        /// Sensor id.
+        sensor: String,
+        /// Cause.
+        message: String,
+    },
+}
+
+/// Tells long-lived tasks that shutdown began, and lets `run` wait for them:
+/// every task holds a clone of `_done`; when all are dropped the receiver ends
+/// (the mini-redis pattern).
+#[derive(Clone)]
+pub(crate) struct ShutdownSignal {
+    /// Flips to `true` once when shutdown begins.
+    rx: watch::Receiver<bool>,
+    /// Dropped when the holding task ends.
+    _done: mpsc::Sender<()>,
+}
+
+impl ShutdownSignal {
+    /// True once shutdown has begun.
+    pub(crate) fn is_shutdown(&self) -> bool {
+        *self.rx.borrow()
+    }
+
+    /// Resolves when shutdown begins (at once if it already has).
+    pub(crate) async fn recv(&mut self) {
+        let _ = self.rx.wait_for(|s| *s).await;
+    }
+}
+
+/// Shared state of one server: sessions, fan-out and configuration.
+pub(crate) struct Shared {
+    /// Per-sensor sessions.
+    pub(crate) sessions: session::Sessions,
+    /// Report fan-out and history.
+    pub(crate) hub: Arc<fanout::Hub>,
+    /// Template for task shutdown handles.
+    pub(crate) shutdown: ShutdownSignal,
+}
+
+/// Serves Ingest, Reports and Control (plus health and reflection) on
+/// `listener` until `shutdown` resolves, then drains: ingest streams finish the
+/// batch in hand and end, every queued frame is processed (partial averages
+/// flushed), their reports reach subscribers, subscriber streams end cleanly,
+/// and noise models are saved to the state directory (scenes are saved when set).
+pub async fn run(
+    listener: TcpListener,
+    config: ServerConfig,
+    shutdown: impl Future,
+) -> Result<(), ServiceError> {
+    let local = listener.local_addr().ok();
+    let (notify_tx, notify_rx) = watch::channel(false);
+    let (done_tx, mut done_rx) = mpsc::channel::<()>(1);
+    let signal = ShutdownSignal {
+        rx: notify_rx,
+        _done: done_tx,
+    };
+
+    let hub = Arc::new(fanout::Hub::new(
+        config.subscriber_buffer,
+        config.history_reports,
+    ));
+    let state_dir = config.state_dir.clone().map(state::StateDir::new);
+    let sessions = session::Sessions::new(
+        config.scene.clone(),
+        config.queue_frames,
+        config.max_sensors,
+        hub.clone(),
+        state_dir,
+        config.record_dir.clone(),
+    )?;
+    let shared = Arc::new(Shared {
+        sessions,
+        hub: hub.clone(),
+        shutdown: signal.clone(),
+    });
+
+    let auth = auth::Tokens::new(config.write_token.clone(), config.read_token.clone());
+    let limit = config.max_message_bytes;
+    use tonic::service::interceptor::InterceptedService;
+    let ingest = InterceptedService::new(
+        proto::ingest_server::IngestServer::new(ingest::IngestService::new(shared.clone(), limit))
+            .max_decoding_message_size(limit),
+        auth.interceptor(auth::Access::Write),
+    );
+    let reports = InterceptedService::new(
+        proto::reports_server::ReportsServer::new(subscribe::ReportsService::new(shared.clone()))
+            .max_decoding_message_size(limit),
+        auth.interceptor(auth::Access::Read),
+    );
+    let control = InterceptedService::new(
+        proto::control_server::ControlServer::new(control::ControlService::new(shared.clone()))
+            .max_decoding_message_size(limit),
+        auth.interceptor(auth::Access::Write),
+    );
+
+    let (health, health_svc) = tonic_health::server::health_reporter();
+    health
+        .set_serving::<proto::ingest_server::IngestServer<ingest::IngestService>>()
+        .await;
+    health
+        .set_serving::<proto::reports_server::ReportsServer<subscribe::ReportsService>>()
+        .await;
+    health
+        .set_serving::<proto::control_server::ControlServer<control::ControlService>>()
+        .await;
+    // v1 for current grpcurl/grpcui, v1alpha for older tools.
+    let reflection = || {
+        tonic_reflection::server::Builder::configure()
+            .register_encoded_file_descriptor_set(proto::FILE_DESCRIPTOR_SET)
+            .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+    };
+    let reflection_v1 = reflection().build_v1().map_err(ServiceError::Reflection)?;
+    let reflection_v1alpha = reflection()
+        .build_v1alpha()
+        .map_err(ServiceError::Reflection)?;
+
+    let metrics_task = config.metrics_listener.map(|l| {
+        let handle = crate::telemetry::prometheus_handle();
+        let sig = signal.clone();
+        tokio::spawn(metrics_http::serve(l, handle, sig))
+    });
+    // Make sure the recorder exists even without an endpoint, so counters count.
+    let _ = crate::telemetry::prometheus_handle();
+
+    let mut builder = Server::builder()
+        .max_concurrent_streams(config.max_streams_per_connection)
+        .http2_keepalive_interval(Some(std::time::Duration::from_secs(30)))
+        // Batches are hundreds of kB: h2's 64 KiB default window would cost a
+        // round trip per 64 KiB. 2 MiB per stream still bounds what a client
+        // can push ahead of the pipeline (backpressure).
+        .initial_stream_window_size(2 * 1024 * 1024)
+        .initial_connection_window_size(4 * 1024 * 1024);
+    if let Some(tls) = &config.tls {
+        builder = builder.tls_config(
+            ServerTlsConfig::new().identity(Identity::from_pem(&tls.cert_pem, &tls.key_pem)),
+        )?;
+    }
+    let router = builder
+        .add_service(health_svc)
+        .add_service(reflection_v1)
+        .add_service(reflection_v1alpha)
+        .add_service(ingest)
+        .add_service(reports)
+        .add_service(control);
+
+    tracing::info!(addr = ?local, tls = config.tls.is_some(), "serving");
+    if config.write_token.as_deref().is_none_or(str::is_empty) {
+        tracing::warn!("no write token: anyone who can connect may ingest and change scenes");
+    }
+    // The drainer runs once shutdown begins, concurrently with tonic's graceful
+    // shutdown, which waits for the streams the drainer ends.
+    let drain_shared = shared.clone();
+    let mut drain_signal = signal.clone();
+    drop(signal);
+    let drainer = tokio::spawn(async move {
+        drain_signal.recv().await;
+        drop(drain_signal);
+        drain(drain_shared).await
+    });
+    // `shared` holds a ShutdownSignal too; the drainer's copy keeps it alive.
+    drop(shared);
+
+    let mut begun = notify_tx.subscribe();
+    let begun_tx = notify_tx.clone();
+    let serve = router.serve_with_incoming_shutdown(TcpListenerStream::new(listener), async move {
+        shutdown.await;
+        tracing::info!("shutdown: draining");
+        // Load balancers stop sending new work while the drain runs.
+        health
+            .set_not_serving::<proto::ingest_server::IngestServer<ingest::IngestService>>()
+            .await;
+        health
+            .set_not_serving::<proto::control_server::ControlServer<control::ControlService>>()
+            .await;
+        let _ = notify_tx.send(true);
+    });
+    tokio::pin!(serve);
+    // Phase 1: serve until shutdown begins (or the transport fails).
+    tokio::select! {
+        served = &mut serve => {
+            // The transport ended by itself: still drain what was accepted.
+            let _ = begun_tx.send(true);
+            let drained = tokio::time::timeout(config.drain_timeout, drainer).await;
+            served?;
+            return match drained {
+                Ok(Ok(r)) => r,
+                Ok(Err(e)) => Err(ServiceError::Internal(format!("drain task: {e}"))),
+                Err(_) => Ok(()),
+            };
+        }
+        _ = async { let _ = begun.wait_for(|b| *b).await.is_ok(); } => {}
+    }
+    // Phase 2: drain, bounded. Clients that stop reading can hold their
+    // streams (and so tonic's graceful shutdown) open forever; past the
+    // deadline `run` returns and leaves them to the runtime's end.
+    let drain_timeout = config.drain_timeout;
+    let finished = tokio::time::timeout(drain_timeout, async {
+        let served = serve.await;
+        let drained = drainer.await;
+        // Every task holding a shutdown handle has ended once this returns.
+        let _ = done_rx.recv().await;
+        (served, drained)
+    })
+    .await;
+    if let Some(t) = metrics_task {
+        t.abort();
+    }
+    match finished {
+        Ok((served, drained)) => {
+            served?;
+            drained.map_err(|e| ServiceError::Internal(format!("drain task: {e}")))?
+        }
+        Err(_) => {
+            tracing::warn!(
+                ?drain_timeout,
+                "shutdown: clients still connected at the drain deadline"
+            );
+            Ok(())
+        }
+    }
+}
+
+/// Shutdown order: ingest streams finish their batch and end (they hold
+/// shutdown handles, counted by `sessions.wait_ingest`), then sessions close their
+/// queues and their workers process what is queued and flush, then the hub
+/// closes so subscribers receive the last reports and see their streams end.
+async fn drain(shared: Arc<Shared>) -> Result<(), ServiceError> {
+    shared.sessions.wait_ingest_idle().await;
+    let result = shared.sessions.close_all().await;
+    shared.hub.close();
+    tracing::info!("shutdown: drained");
+    result
 }

@@ -1,0 +1,207 @@
+//! Report fan-out: one bounded broadcast channel for live reports, plus a
+//! bounded per-sensor history for subscribers that resume from a sequence number.
+//!
+//! A subscriber that falls behind by more than the broadcast capacity loses
+//! the oldest reports and is told how many ([`proto::Lagged`]); publishing
+//! never waits for subscribers, so a slow one cannot slow ingestion or others.
+
+use super::proto;
+use crate::frame::{NoiseSummary, Report};
+use crate::pipeline::report_json;
+use std::collections::{HashMap, VecDeque};
+use std::sync::{Arc, Mutex};
+use tokio::sync::broadcast;
+
+/// A report as published: the domain report and its JSON line.
+#[derive(Debug)]
+pub struct Published {
+    /// The report (re-rendered when a subscriber filters returns by SNR).
+    pub report: Report,
+    /// `pipeline::report_json(&report)`.
+    pub json: String,
+}
+
+impl Published {
+    /// The wire event for a subscriber keeping returns with SNR >= `min_snr_db`.
+    pub fn event(&self, min_snr_db: Option<f64>) -> proto::ReportEvent {
+        // A NaN SNR never passes a threshold.
+        let keep = |snr_db: f64, min: f64| snr_db >= min;
+        let msg = match min_snr_db {
+            Some(min) if self.report.returns.iter().any(|r| !keep(r.snr_db, min)) => {
+                let mut r = self.report.clone();
+                r.returns.retain(|x| keep(x.snr_db, min));
+                let json = report_json(&r);
+                report_to_proto(&r, json)
+            }
+            _ => report_to_proto(&self.report, self.json.clone()),
+        };
+        proto::ReportEvent {
+            event: Some(proto::report_event::Event::Report(msg)),
+        }
+    }
+}
+
+/// Fan-out and history.
+pub struct Hub {
+    inner: Mutex<HubInner>,
+}
+
+struct HubInner {
+    /// Live reports; `None` once closed (subscribers then drain and end).
+    tx: Option<broadcast::Sender<Arc<Published>>>,
+    /// Recent reports per sensor, oldest first.
+    history: HashMap<String, VecDeque<Arc<Published>>>,
+    /// Reports retained per sensor.
+    history_cap: usize,
+}
+
+/// A new subscription: live receiver plus the retained reports to send first.
+pub struct Subscription {
+    /// Live reports published after the backlog.
+    pub live: broadcast::Receiver<Arc<Published>>,
+    /// Retained reports matching the resume point, in publication order per sensor.
+    pub backlog: Vec<Arc<Published>>,
+}
+
+impl Hub {
+    /// `buffer`: reports a subscriber may fall behind before it lags;
+    /// `history`: reports retained per sensor.
+    pub fn new(buffer: usize, history: usize) -> Hub {
+        let (tx, _) = broadcast::channel(buffer.max(1));
+        Hub {
+            inner: Mutex::new(HubInner {
+                tx: Some(tx),
+                history: HashMap::new(),
+                history_cap: history,
+            }),
+        }
+    }
+
+    /// Publishes a report to live subscribers and the history.
+    pub fn publish(&self, report: Report) {
+        let json = report_json(&report);
+        let p = Arc::new(Published { report, json });
+        let mut g = self.inner.lock().unwrap();
+        let cap = g.history_cap;
+        if cap > 0 {
+            let h = g.history.entry(p.report.sensor.clone()).or_default();
+            if h.len() == cap {
+                h.pop_front();
+            }
+            h.push_back(p.clone());
+        }
+        if let Some(tx) = &g.tx {
+            // No receivers is fine: reports are still retained.
+            let _ = tx.send(p);
+        }
+    }
+
+    /// Subscribes; with `resume_from`, retained reports whose `seq_first` is at
+    /// least that number (of the sensors `wanted` accepts) come first. Taking
+    /// the backlog and the live receiver under one lock means no report is
+    /// missed or sent twice. `None` once the hub is closed.
+    pub fn subscribe(
+        &self,
+        resume_from: Option<u64>,
+        wanted: impl Fn(&str) -> bool,
+    ) -> Option<Subscription> {
+        let g = self.inner.lock().unwrap();
+        let live = g.tx.as_ref()?.subscribe();
+        let mut backlog = Vec::new();
+        if let Some(from) = resume_from {
+            let mut sensors: Vec<_> = g.history.keys().filter(|s| wanted(s)).collect();
+            sensors.sort();
+            for s in sensors {
+                backlog.extend(
+                    g.history[s]
+                        .iter()
+                        .filter(|p| p.report.seq_first >= from)
+                        .cloned(),
+                );
+            }
+        }
+        Some(Subscription { live, backlog })
+    }
+
+    /// Stops publishing: subscribers receive what is buffered, then their streams end.
+    pub fn close(&self) {
+        self.inner.lock().unwrap().tx.take();
+    }
+}
+
+/// Noise model on the wire.
+pub fn noise_to_proto(n: &NoiseSummary) -> proto::NoiseModel {
+    proto::NoiseModel {
+        mean_v: n.mean_v,
+        sigma_v: n.sigma_v,
+        skewness: n.skewness,
+        excess_kurtosis: n.excess_kurtosis,
+        gaussian: n.gaussian,
+        normality_p_value: n.normality_p_value,
+        robust_sigma_v: n.robust_sigma_v,
+        samples: n.samples,
+        contaminated: n.contaminated,
+    }
+}
+
+/// Noise model from the wire (state-dir reload).
+pub fn noise_from_proto(n: &proto::NoiseModel) -> NoiseSummary {
+    NoiseSummary {
+        mean_v: n.mean_v,
+        sigma_v: n.sigma_v,
+        skewness: n.skewness,
+        excess_kurtosis: n.excess_kurtosis,
+        gaussian: n.gaussian,
+        normality_p_value: n.normality_p_value,
+        robust_sigma_v: n.robust_sigma_v,
+        samples: n.samples,
+        contaminated: n.contaminated,
+    }
+}
+
+/// A report on the wire; `json` is its JSON line (`pipeline::report_json`).
+pub fn report_to_proto(r: &Report, json: String) -> proto::Report {
+    proto::Report {
+        sensor: r.sensor.clone(),
+        seq_first: r.seq_first,
+        seq_last: r.seq_last,
+        frames_averaged: r.frames_averaged,
+        time_s: r.time_s,
+        stages: r.stages.clone(),
+        noise: Some(noise_to_proto(&r.noise)),
+        detector: Some(proto::Detector {
+            kind: r.detector.kind.clone(),
+            pfa_design: r.detector.pfa_design,
+            threshold: r.detector.threshold,
+            pfa_cell: r.detector.pfa_cell,
+            cells_effective: r.detector.cells_effective,
+        }),
+        false_alarm: Some(proto::FalseAlarmStats {
+            expected_per_frame: r.false_alarm.expected_per_frame,
+            observed: r.false_alarm.observed,
+            cells: r.false_alarm.cells,
+            rate: r.false_alarm.rate,
+            ci95_low: r.false_alarm.ci95[0],
+            ci95_high: r.false_alarm.ci95[1],
+            excess: r.false_alarm.excess,
+        }),
+        returns: r
+            .returns
+            .iter()
+            .map(|x| proto::Return {
+                range_m: x.range_m,
+                range_sigma_m: x.range_sigma_m,
+                tof_s: x.tof_s,
+                amplitude_v: x.amplitude_v,
+                snr_db: x.snr_db,
+                score: x.score,
+                pd: x.pd,
+                t_stop_s: x.t_stop_s,
+                flags: x.flags.clone(),
+            })
+            .collect(),
+        t_start_s: r.t_start_s,
+        flags: r.flags.clone(),
+        json,
+    }
+}

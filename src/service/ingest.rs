@@ -1,0 +1,434 @@
+//! `Ingest.Push`: frame batches in, one acknowledgement per batch out.
+//!
+//! Each frame is decoded and checked against its sensor's scene at the edge;
+//! a bad frame becomes a [`proto::Rejection`] naming the field and the stream
+//! carries on. Good frames go to their sensor's queue (waiting while it is
+//! full: backpressure), and the batch is acknowledged once the pipeline has
+//! processed them, so the counts in an ack are final. Frames of one sensor
+//! keep their order: one stream queues them in order, and the worker processes
+//! its queue in order.
+
+use super::convert::{self, ConvertError};
+use super::session::{Session, StartError, Verdict};
+use super::{Shared, proto};
+use crate::frame::{ChannelRole, Frame, channel_key};
+use crate::scene::Scene;
+use crate::telemetry;
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+use tokio::sync::{mpsc, oneshot};
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::{Request, Response, Status, Streaming};
+
+/// Relative tolerance of the sample-interval check against the scene.
+const SAMPLE_INTERVAL_TOLERANCE: f64 = 1e-6;
+
+/// The Ingest service.
+pub struct IngestService {
+    shared: Arc<Shared>,
+    /// The decoding limit, quoted in oversize errors.
+    max_message_bytes: usize,
+}
+
+impl IngestService {
+    pub(crate) fn new(shared: Arc<Shared>, max_message_bytes: usize) -> Self {
+        IngestService {
+            shared,
+            max_message_bytes,
+        }
+    }
+}
+
+/// Why a frame was refused at the edge: metric label and message.
+#[derive(Debug)]
+pub(crate) struct EdgeRejection {
+    /// Metric `reason` label.
+    reason: &'static str,
+    /// Field at fault (relative to the frame).
+    field: String,
+    /// What was wrong.
+    message: String,
+}
+
+impl From<ConvertError> for EdgeRejection {
+    fn from(e: ConvertError) -> Self {
+        EdgeRejection {
+            reason: "invalid_frame",
+            field: e.field,
+            message: e.message,
+        }
+    }
+}
+
+/// Checks a decoded frame against the scene its sensor runs: sample interval,
+/// samples per frame and the presence of a stop channel.
+pub(crate) fn check_against_scene(frame: &Frame, scene: &Scene) -> Result<(), EdgeRejection> {
+    let want = scene.digitiser.sample_interval_s;
+    if want > 0.0 && ((frame.sample_interval_s - want) / want).abs() > SAMPLE_INTERVAL_TOLERANCE {
+        return Err(EdgeRejection {
+            reason: "sample_rate",
+            field: "sample_interval_s".into(),
+            message: format!(
+                "{} s does not match the scene's digitiser.sample_interval_s = {want} s",
+                frame.sample_interval_s
+            ),
+        });
+    }
+    let n = scene.digitiser.samples_per_frame;
+    if n > 0 && frame.len() != n {
+        return Err(EdgeRejection {
+            reason: "samples_per_frame",
+            field: "channels[0].samples".into(),
+            message: format!(
+                "{} samples; the scene's digitiser.samples_per_frame is {n}",
+                frame.len()
+            ),
+        });
+    }
+    // A stop channel: named as the scene says, marked STOP, or the only channel.
+    let stop = channel_key(&scene.channels.stop);
+    let has_stop = frame.channels.len() == 1
+        || frame
+            .channels
+            .iter()
+            .any(|c| c.role == ChannelRole::Stop || channel_key(&c.name) == stop);
+    if !has_stop {
+        return Err(EdgeRejection {
+            reason: "missing_stop",
+            field: "channels".into(),
+            message: format!(
+                "no stop channel: the scene's channels.stop is {:?} and no channel has role STOP; channels are {:?}",
+                scene.channels.stop,
+                frame.channel_names()
+            ),
+        });
+    }
+    Ok(())
+}
+
+/// Batches queued but not yet acknowledged, per stream.
+const ACKS_IN_FLIGHT: usize = 2;
+
+/// What one stream has acknowledged so far.
+#[derive(Default)]
+struct StreamTotals {
+    batches: u64,
+    accepted: u64,
+    rejected: u64,
+}
+
+#[tonic::async_trait]
+impl proto::ingest_server::Ingest for IngestService {
+    type PushStream = ReceiverStream<Result<proto::IngestAck, Status>>;
+
+    async fn push(
+        &self,
+        request: Request<Streaming<proto::FrameBatch>>,
+    ) -> Result<Response<Self::PushStream>, Status> {
+        let peer = request.remote_addr();
+        let mut incoming = request.into_inner();
+        let shared = self.shared.clone();
+        let limit = self.max_message_bytes;
+        let (tx, rx) = mpsc::channel(4);
+        tokio::spawn(async move {
+            let mut shutdown = shared.shutdown.clone();
+            let _guard = shared.sessions.ingest_guard();
+            if shutdown.is_shutdown() {
+                let _ = tx
+                    .send(Err(Status::unavailable("server is shutting down")))
+                    .await;
+                return;
+            }
+            tracing::info!(?peer, "ingest stream opened");
+            // Acks are finished by a second task, so the next batch is decoded
+            // and queued while the pipeline works on this one. At most
+            // ACKS_IN_FLIGHT batches wait for their verdicts: backpressure holds.
+            let (pending_tx, mut pending_rx) = mpsc::channel::<PendingBatch>(ACKS_IN_FLIGHT);
+            let ack_out = tx.clone();
+            let acker = tokio::spawn(async move {
+                let mut totals = StreamTotals::default();
+                while let Some(batch) = pending_rx.recv().await {
+                    let ack = finish_batch(batch, &mut totals).await;
+                    if ack_out.send(Ok(ack)).await.is_err() {
+                        break;
+                    }
+                }
+                totals
+            });
+            let mut failure = None;
+            loop {
+                let msg = tokio::select! {
+                    biased;
+                    _ = shutdown.recv() => break,
+                    m = incoming.message() => m,
+                };
+                match msg {
+                    Ok(Some(batch)) => {
+                        let pending = start_batch(&shared, batch).await;
+                        if pending_tx.send(pending).await.is_err() {
+                            break;
+                        }
+                    }
+                    Ok(None) => break,
+                    Err(status) => {
+                        failure = Some(map_stream_error(status, limit));
+                        break;
+                    }
+                }
+            }
+            // Acks of every batch taken in go out before the stream ends.
+            drop(pending_tx);
+            let totals = acker.await.unwrap_or_default();
+            if let Some(status) = failure {
+                tracing::warn!(?peer, %status, "ingest stream failed");
+                let _ = tx.send(Err(status)).await;
+            }
+            tracing::info!(
+                ?peer,
+                batches = totals.batches,
+                accepted = totals.accepted,
+                rejected = totals.rejected,
+                "ingest stream closed"
+            );
+        });
+        Ok(Response::new(ReceiverStream::new(rx)))
+    }
+}
+
+/// An over-limit message fails in tonic's decoder (OUT_OF_RANGE); say it as
+/// the bad-input error it is, naming the limit. Other errors pass through.
+fn map_stream_error(status: Status, limit: usize) -> Status {
+    if status.code() == tonic::Code::OutOfRange && status.message().contains("too large") {
+        telemetry::frames_rejected("", "oversize", 1);
+        Status::invalid_argument(format!(
+            "FrameBatch: message exceeds the server's limit of {limit} bytes ({}); send smaller batches",
+            status.message()
+        ))
+    } else {
+        status
+    }
+}
+
+/// A frame in flight: where it came from and the pipeline's verdict to come.
+struct Pending {
+    index: usize,
+    sensor: String,
+    sequence: u64,
+    session: Arc<Session>,
+    verdict: oneshot::Receiver<Verdict>,
+}
+
+/// A batch whose frames are queued: the ack so far (edge rejections, gaps)
+/// and the pipeline verdicts still to come.
+struct PendingBatch {
+    ack: proto::IngestAck,
+    pending: Vec<Pending>,
+}
+
+/// Decodes and checks a batch and queues its good frames (waiting while a
+/// sensor's queue is full).
+async fn start_batch(shared: &Shared, batch: proto::FrameBatch) -> PendingBatch {
+    let mut ack = proto::IngestAck::default();
+    let mut pending = Vec::with_capacity(batch.frames.len());
+    for (index, msg) in batch.frames.iter().enumerate() {
+        let sensor = msg.sensor_id.clone();
+        let sequence = msg.sequence;
+        let mut reject = |r: EdgeRejection, session: Option<&Session>| {
+            telemetry::frames_rejected(&sensor, r.reason, 1);
+            if let Some(s) = session {
+                s.stats.frames_rejected.fetch_add(1, Ordering::Relaxed);
+            }
+            ack.rejections.push(proto::Rejection {
+                sensor_id: sensor.clone(),
+                sequence,
+                code: "INVALID_ARGUMENT".into(),
+                message: format!("frames[{index}].{}: {}", r.field, r.message),
+            });
+        };
+        if sensor.is_empty() {
+            reject(
+                EdgeRejection {
+                    reason: "invalid_frame",
+                    field: "sensor_id".into(),
+                    message: "empty; every frame names its sensor".into(),
+                },
+                None,
+            );
+            continue;
+        }
+        telemetry::frame_received(&sensor);
+        let session = match shared.sessions.get_or_start(&sensor) {
+            Ok(s) => s,
+            Err(e) => {
+                let (reason, code) = match e {
+                    StartError::Limit(_) => ("sensor_limit", "RESOURCE_EXHAUSTED"),
+                    StartError::Build(_) => ("pipeline", "INTERNAL"),
+                };
+                let message = e.to_string();
+                reject(
+                    EdgeRejection {
+                        reason,
+                        field: "sensor_id".into(),
+                        message,
+                    },
+                    None,
+                );
+                if let Some(r) = ack.rejections.last_mut() {
+                    r.code = code.into();
+                }
+                continue;
+            }
+        };
+        session
+            .stats
+            .frames_received
+            .fetch_add(1, Ordering::Relaxed);
+        if let Some((first_missing, count)) = session.observe_sequence(sequence) {
+            ack.gaps.push(proto::SequenceGap {
+                sensor_id: sensor.clone(),
+                first_missing,
+                count,
+            });
+        }
+        let frame = match convert::frame_from_proto(msg)
+            .map_err(EdgeRejection::from)
+            .and_then(|f| check_against_scene(&f, &session.scene()).map(|()| f))
+        {
+            Ok(f) => f,
+            Err(r) => {
+                reject(r, Some(&session));
+                continue;
+            }
+        };
+        match session.enqueue(frame).await {
+            Ok(verdict) => pending.push(Pending {
+                index,
+                sensor,
+                sequence,
+                session,
+                verdict,
+            }),
+            Err(e) => {
+                reject(
+                    EdgeRejection {
+                        reason: "shutdown",
+                        field: "sensor_id".into(),
+                        message: e.to_string(),
+                    },
+                    Some(&session),
+                );
+                if let Some(r) = ack.rejections.last_mut() {
+                    r.code = "UNAVAILABLE".into();
+                }
+            }
+        }
+    }
+    PendingBatch { ack, pending }
+}
+
+/// Waits for the pipeline's verdicts and completes the ack.
+async fn finish_batch(batch: PendingBatch, totals: &mut StreamTotals) -> proto::IngestAck {
+    let PendingBatch { mut ack, pending } = batch;
+    for p in pending {
+        let internal = |message: String| proto::Rejection {
+            sensor_id: p.sensor.clone(),
+            sequence: p.sequence,
+            code: "INTERNAL".into(),
+            message,
+        };
+        match p.verdict.await {
+            Ok(Verdict::Processed) => ack.accepted += 1,
+            Ok(Verdict::Refused(e)) => ack.rejections.push(proto::Rejection {
+                sensor_id: p.sensor.clone(),
+                sequence: p.sequence,
+                code: "INVALID_ARGUMENT".into(),
+                message: format!("frames[{}].{}: {}", p.index, e.field, e.message),
+            }),
+            Ok(Verdict::Panicked(m)) => ack.rejections.push(internal(format!(
+                "frames[{}]: the pipeline failed on this frame ({m}); it was rebuilt",
+                p.index
+            ))),
+            // The worker is gone (it cannot answer): not processed.
+            Err(_) => {
+                telemetry::frames_rejected(&p.sensor, "pipeline", 1);
+                p.session
+                    .stats
+                    .frames_rejected
+                    .fetch_add(1, Ordering::Relaxed);
+                ack.rejections.push(internal(format!(
+                    "frames[{}]: the sensor's pipeline stopped",
+                    p.index
+                )));
+            }
+        }
+    }
+    ack.rejected = ack.rejections.len() as u64;
+    totals.batches += 1;
+    totals.accepted += ack.accepted;
+    totals.rejected += ack.rejected;
+    ack.batch = totals.batches;
+    ack.total_accepted = totals.accepted;
+    ack.total_rejected = totals.rejected;
+    ack
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frame::{Channel, Samples};
+
+    fn frame(names: &[(&str, ChannelRole)], n: usize, dt: f64) -> Frame {
+        Frame {
+            sensor_id: "s".into(),
+            sequence: 0,
+            trigger_time_s: 0.0,
+            sample_interval_s: dt,
+            first_sample_offset_s: 0.0,
+            channels: names
+                .iter()
+                .map(|(name, role)| Channel {
+                    name: name.to_string(),
+                    role: *role,
+                    samples: Samples::I16(vec![0; n]),
+                    volts_per_code: 1e-3,
+                    offset_v: 0.0,
+                })
+                .collect(),
+            laser_off: false,
+        }
+    }
+
+    #[test]
+    fn scene_checks_name_the_field() {
+        let mut scene = Scene::default_scene();
+        scene.digitiser.sample_interval_s = 1e-9;
+        scene.digitiser.samples_per_frame = 100;
+        let u = ChannelRole::Unspecified;
+        let ok = frame(&[("CH1", u), ("C2", u)], 100, 1e-9);
+        assert!(
+            check_against_scene(&ok, &scene).is_ok(),
+            "vendor spelling C2 is CH2"
+        );
+        // Within the 1e-6 relative tolerance.
+        assert!(
+            check_against_scene(&frame(&[("CH2", u)], 100, 1e-9 * (1.0 + 5e-7)), &scene).is_ok()
+        );
+        let r = check_against_scene(&frame(&[("CH2", u)], 100, 1.001e-9), &scene).unwrap_err();
+        assert_eq!(
+            (r.reason, r.field.as_str()),
+            ("sample_rate", "sample_interval_s")
+        );
+        let r = check_against_scene(&frame(&[("CH2", u)], 99, 1e-9), &scene).unwrap_err();
+        assert_eq!(
+            (r.reason, r.field.as_str()),
+            ("samples_per_frame", "channels[0].samples")
+        );
+        let r =
+            check_against_scene(&frame(&[("CH1", u), ("CH3", u)], 100, 1e-9), &scene).unwrap_err();
+        assert_eq!((r.reason, r.field.as_str()), ("missing_stop", "channels"));
+        // A STOP role or a single channel is a stop channel whatever its name.
+        let roles = frame(&[("CH1", u), ("rx", ChannelRole::Stop)], 100, 1e-9);
+        assert!(check_against_scene(&roles, &scene).is_ok());
+        assert!(check_against_scene(&frame(&[("rx", u)], 100, 1e-9), &scene).is_ok());
+    }
+}

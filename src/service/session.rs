@@ -1,0 +1,541 @@
+//! Per-sensor sessions: one pipeline per sensor on its own worker thread,
+//! fed through a bounded queue.
+//!
+//! The queue is what turns a slow pipeline into backpressure: when it is full,
+//! the ingest stream awaits space, stops reading from the connection, and HTTP/2
+//! flow control slows the digitiser. Nothing is dropped. Scene changes travel
+//! through the same queue, so they take effect between two frames, in order.
+
+use super::ServiceError;
+use super::fanout::Hub;
+use super::state::StateDir;
+use crate::capture::RecordingWriter;
+use crate::frame::{Frame, NoiseSummary, Report};
+use crate::pipeline::{FrameError, Pipeline};
+use crate::scene::Scene;
+use crate::telemetry;
+use std::collections::HashMap;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+use tokio::sync::{mpsc, oneshot, watch};
+
+/// Builds a sensor's pipeline. The one place that constructs `Pipeline`, so a
+/// fallible constructor is a one-line change here.
+pub fn build_pipeline(scene: &Scene, sensor: &str) -> Result<Pipeline, String> {
+    Ok(Pipeline::new(scene, sensor))
+}
+
+/// Work for a sensor's worker, in arrival order.
+enum Job {
+    /// Process one frame and say how it went.
+    Frame {
+        /// The validated frame.
+        frame: Frame,
+        /// When it entered the queue (for the latency histogram).
+        enqueued: Instant,
+        /// Receives the pipeline's verdict.
+        done: oneshot::Sender<Verdict>,
+    },
+    /// Replace the pipeline (after flushing the old one).
+    SetScene {
+        /// The validated scene.
+        scene: Scene,
+        /// Receives the outcome of building the new pipeline.
+        done: oneshot::Sender<Result<(), String>>,
+    },
+}
+
+/// What became of a queued frame.
+#[derive(Debug)]
+pub enum Verdict {
+    /// The pipeline processed it.
+    Processed,
+    /// The pipeline refused it (bad content the edge could not see).
+    Refused(FrameError),
+    /// The pipeline panicked on it (a bug); the sensor's pipeline was rebuilt
+    /// from its scene, losing its running state (averages, noise history).
+    Panicked(String),
+}
+
+/// Counters of one sensor (monotonic; read by `GetStatus`).
+#[derive(Default)]
+pub struct Stats {
+    /// Frames decoded from ingest messages.
+    pub frames_received: AtomicU64,
+    /// Frames processed without error.
+    pub frames_processed: AtomicU64,
+    /// Frames refused (at the edge or by the pipeline).
+    pub frames_rejected: AtomicU64,
+    /// Reports published.
+    pub reports: AtomicU64,
+    /// Returns in those reports.
+    pub returns: AtomicU64,
+    /// Highest sequence number seen.
+    pub last_sequence: AtomicU64,
+    /// Missing sequence numbers detected.
+    pub sequence_gaps: AtomicU64,
+}
+
+/// One sensor's session.
+pub struct Session {
+    /// Sensor id.
+    pub sensor: String,
+    /// Queue into the worker; `None` once the session is closed.
+    tx: Mutex<Option<mpsc::Sender<Job>>>,
+    /// Scene the edge validates against and `GetScene` shows (the one the worker
+    /// runs, or is about to run once queued frames ahead of it are done).
+    scene: Mutex<Arc<Scene>>,
+    /// Counters.
+    pub stats: Stats,
+    /// Latest noise model (from the pipeline, or reloaded from the state dir).
+    noise: Mutex<Option<NoiseSummary>>,
+    /// Last sequence number seen at the edge, for gap detection.
+    last_seq: Mutex<Option<u64>>,
+    /// The worker thread, joined at close.
+    worker: Mutex<Option<std::thread::JoinHandle<()>>>,
+}
+
+/// Why a session could not be started.
+#[derive(Debug, thiserror::Error)]
+pub enum StartError {
+    /// The server already runs its maximum number of sensors.
+    #[error("the server already serves its limit of {0} sensors")]
+    Limit(usize),
+    /// The pipeline could not be built from the scene, or the worker not started.
+    #[error("{0}")]
+    Build(String),
+}
+
+/// Why a frame could not be queued.
+#[derive(Debug, thiserror::Error)]
+pub enum QueueError {
+    /// The server is shutting down.
+    #[error("server is shutting down")]
+    Closed,
+}
+
+impl Session {
+    /// Current scene.
+    pub fn scene(&self) -> Arc<Scene> {
+        self.scene.lock().unwrap().clone()
+    }
+
+    /// Latest noise model.
+    pub fn noise(&self) -> Option<NoiseSummary> {
+        *self.noise.lock().unwrap()
+    }
+
+    /// Frames waiting in the queue.
+    pub fn queue_depth(&self) -> usize {
+        self.tx
+            .lock()
+            .unwrap()
+            .as_ref()
+            .map_or(0, |tx| tx.max_capacity() - tx.capacity())
+    }
+
+    /// Records sequence `seq` arriving; returns `(first_missing, count)` when
+    /// numbers were skipped. A sequence at or below the last one (a digitiser
+    /// restart) restarts the count without a gap.
+    pub fn observe_sequence(&self, seq: u64) -> Option<(u64, u64)> {
+        let mut last = self.last_seq.lock().unwrap();
+        let gap = match *last {
+            Some(l) if seq > l.saturating_add(1) => Some((l + 1, seq - l - 1)),
+            _ => None,
+        };
+        *last = Some(seq);
+        self.stats.last_sequence.store(seq, Ordering::Relaxed);
+        if let Some((_, n)) = gap {
+            self.stats.sequence_gaps.fetch_add(n, Ordering::Relaxed);
+            telemetry::sequence_gap(&self.sensor, n);
+        }
+        gap
+    }
+
+    fn sender(&self) -> Result<mpsc::Sender<Job>, QueueError> {
+        self.tx.lock().unwrap().clone().ok_or(QueueError::Closed)
+    }
+
+    /// Queues a frame, waiting while the queue is full (backpressure). The
+    /// returned receiver yields the pipeline's verdict.
+    pub async fn enqueue(&self, frame: Frame) -> Result<oneshot::Receiver<Verdict>, QueueError> {
+        let tx = self.sender()?;
+        let (done, rx) = oneshot::channel();
+        tx.send(Job::Frame {
+            frame,
+            enqueued: Instant::now(),
+            done,
+        })
+        .await
+        .map_err(|_| QueueError::Closed)?;
+        telemetry::queue_depth(&self.sensor, tx.max_capacity() - tx.capacity());
+        Ok(rx)
+    }
+
+    /// Applies `scene` between two frames; resolves once the new pipeline runs.
+    pub async fn set_scene(&self, scene: Scene) -> Result<(), String> {
+        let tx = self.sender().map_err(|e| e.to_string())?;
+        let (done, rx) = oneshot::channel();
+        tx.send(Job::SetScene {
+            scene: scene.clone(),
+            done,
+        })
+        .await
+        .map_err(|_| QueueError::Closed.to_string())?;
+        rx.await.map_err(|_| QueueError::Closed.to_string())??;
+        *self.scene.lock().unwrap() = Arc::new(scene);
+        Ok(())
+    }
+}
+
+/// All sessions of a server.
+pub struct Sessions {
+    /// Sessions by sensor id.
+    map: Mutex<HashMap<String, Arc<Session>>>,
+    /// Scene new sensors start with.
+    default_scene: Mutex<Scene>,
+    /// Queue length per sensor, frames.
+    queue_frames: usize,
+    /// Sessions allowed (each holds a thread and a pipeline).
+    max_sensors: usize,
+    /// Where reports go.
+    hub: Arc<Hub>,
+    /// Persistence.
+    state: Option<StateDir>,
+    /// Recording directory.
+    record_dir: Option<PathBuf>,
+    /// Open ingest streams (shutdown waits for zero).
+    ingest_streams: watch::Sender<usize>,
+}
+
+/// Counts an open ingest stream while alive.
+pub struct IngestGuard<'a>(&'a watch::Sender<usize>);
+
+impl Drop for IngestGuard<'_> {
+    fn drop(&mut self) {
+        self.0.send_modify(|n| *n -= 1);
+    }
+}
+
+impl Sessions {
+    /// Empty registry; reloads scenes and noise models from `state`.
+    pub fn new(
+        default_scene: Scene,
+        queue_frames: usize,
+        max_sensors: usize,
+        hub: Arc<Hub>,
+        state: Option<StateDir>,
+        record_dir: Option<PathBuf>,
+    ) -> Result<Sessions, ServiceError> {
+        if let Some(dir) = &record_dir {
+            std::fs::create_dir_all(dir).map_err(|e| ServiceError::Record {
+                path: dir.display().to_string(),
+                message: e.to_string(),
+            })?;
+        }
+        let mut default_scene = default_scene;
+        let mut saved = Vec::new();
+        if let Some(st) = &state {
+            let loaded = st.load()?;
+            if let Some(s) = loaded.default_scene {
+                // A default set at run time (SetScene with no sensor id) is the
+                // operator's latest word; it outlives the --scene of the start.
+                if s != default_scene {
+                    tracing::warn!(scene = %s.name, "using the default scene saved in the state directory, not the configured one");
+                }
+                default_scene = s;
+            }
+            saved = loaded.sensors;
+        }
+        let sessions = Sessions {
+            map: Mutex::new(HashMap::new()),
+            default_scene: Mutex::new(default_scene),
+            queue_frames: queue_frames.max(1),
+            max_sensors,
+            hub,
+            state,
+            record_dir,
+            ingest_streams: watch::Sender::new(0),
+        };
+        for s in saved {
+            let session = sessions
+                .start(
+                    &s.sensor,
+                    s.scene.unwrap_or_else(|| sessions.default_scene()),
+                    false,
+                )
+                .map_err(|e| ServiceError::Scene {
+                    sensor: s.sensor.clone(),
+                    message: e.to_string(),
+                })?;
+            *session.noise.lock().unwrap() = s.noise;
+            tracing::info!(sensor = %s.sensor, "reloaded sensor state");
+        }
+        Ok(sessions)
+    }
+
+    /// Scene new sensors start with.
+    pub fn default_scene(&self) -> Scene {
+        self.default_scene.lock().unwrap().clone()
+    }
+
+    /// Changes the scene new sensors start with (and persists it).
+    pub fn set_default_scene(&self, scene: Scene) -> Result<(), ServiceError> {
+        if let Some(st) = &self.state {
+            st.save_scene(None, &scene)?;
+        }
+        *self.default_scene.lock().unwrap() = scene;
+        Ok(())
+    }
+
+    /// Existing session of `sensor`.
+    pub fn get(&self, sensor: &str) -> Option<Arc<Session>> {
+        self.map.lock().unwrap().get(sensor).cloned()
+    }
+
+    /// All sessions, sorted by sensor id.
+    pub fn all(&self) -> Vec<Arc<Session>> {
+        let mut v: Vec<_> = self.map.lock().unwrap().values().cloned().collect();
+        v.sort_by(|a, b| a.sensor.cmp(&b.sensor));
+        v
+    }
+
+    /// Session of `sensor`, started on the default scene if new.
+    pub fn get_or_start(&self, sensor: &str) -> Result<Arc<Session>, StartError> {
+        if let Some(s) = self.get(sensor) {
+            return Ok(s);
+        }
+        self.start(sensor, self.default_scene(), true)
+    }
+
+    /// Persists `scene` for `sensor` (after it was applied).
+    pub fn persist_scene(&self, sensor: &str, scene: &Scene) -> Result<(), ServiceError> {
+        match &self.state {
+            Some(st) => Ok(st.save_scene(Some(sensor), scene)?),
+            None => Ok(()),
+        }
+    }
+
+    /// Starts a session; `limited`: refuse past `max_sensors`.
+    fn start(&self, sensor: &str, scene: Scene, limited: bool) -> Result<Arc<Session>, StartError> {
+        let mut map = self.map.lock().unwrap();
+        if let Some(s) = map.get(sensor) {
+            return Ok(s.clone());
+        }
+        // Saved sensors reload even past the limit: the limit guards against
+        // clients inventing ids, not against the operator's own state.
+        if limited && map.len() >= self.max_sensors {
+            return Err(StartError::Limit(self.max_sensors));
+        }
+        let pipeline = build_pipeline(&scene, sensor).map_err(StartError::Build)?;
+        let recorder = match &self.record_dir {
+            Some(dir) => Some(open_recording(dir, sensor).map_err(StartError::Build)?),
+            None => None,
+        };
+        let (tx, rx) = mpsc::channel(self.queue_frames);
+        let session = Arc::new(Session {
+            sensor: sensor.to_string(),
+            tx: Mutex::new(Some(tx)),
+            scene: Mutex::new(Arc::new(scene)),
+            stats: Stats::default(),
+            noise: Mutex::new(None),
+            last_seq: Mutex::new(None),
+            worker: Mutex::new(None),
+        });
+        let worker = Worker {
+            session: session.clone(),
+            pipeline,
+            hub: self.hub.clone(),
+            recorder,
+        };
+        let handle = std::thread::Builder::new()
+            .name(format!("tofwave-{sensor}"))
+            .spawn(move || worker.run(rx))
+            .map_err(|e| StartError::Build(format!("cannot start worker thread: {e}")))?;
+        *session.worker.lock().unwrap() = Some(handle);
+        map.insert(sensor.to_string(), session.clone());
+        tracing::info!(sensor, "session started");
+        Ok(session)
+    }
+
+    /// Registers an open ingest stream until the guard drops.
+    pub fn ingest_guard(&self) -> IngestGuard<'_> {
+        self.ingest_streams.send_modify(|n| *n += 1);
+        IngestGuard(&self.ingest_streams)
+    }
+
+    /// Resolves when no ingest stream is open.
+    pub async fn wait_ingest_idle(&self) {
+        let mut rx = self.ingest_streams.subscribe();
+        let _ = rx.wait_for(|n| *n == 0).await;
+    }
+
+    /// Closes every queue, lets the workers finish what is queued and flush,
+    /// and saves noise models.
+    pub async fn close_all(&self) -> Result<(), ServiceError> {
+        let sessions = self.all();
+        for s in &sessions {
+            s.tx.lock().unwrap().take();
+        }
+        for s in &sessions {
+            let handle = s.worker.lock().unwrap().take();
+            if let Some(h) = handle {
+                let _ = tokio::task::spawn_blocking(move || h.join()).await;
+            }
+        }
+        // Scenes were saved when set; a sensor on the default scene keeps
+        // following the default (a new --scene applies to it after a restart).
+        if let Some(st) = &self.state {
+            for s in &sessions {
+                if let Some(n) = s.noise() {
+                    st.save_noise(&s.sensor, &n)?;
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+fn open_recording(
+    dir: &std::path::Path,
+    sensor: &str,
+) -> Result<RecordingWriter<std::io::BufWriter<std::fs::File>>, String> {
+    let stamp = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis());
+    let path = dir.join(format!("{}-{stamp}.twr", super::state::file_stem(sensor)));
+    let file = std::fs::File::create(&path)
+        .map_err(|e| format!("cannot create recording {}: {e}", path.display()))?;
+    RecordingWriter::new(std::io::BufWriter::new(file))
+        .map_err(|e| format!("cannot start recording {}: {e}", path.display()))
+}
+
+/// The blocking side of a session.
+struct Worker {
+    /// Counters and noise model to update.
+    session: Arc<Session>,
+    /// The running pipeline.
+    pipeline: Pipeline,
+    /// Where reports go.
+    hub: Arc<Hub>,
+    /// Lossless copy of every accepted frame, when recording.
+    recorder: Option<RecordingWriter<std::io::BufWriter<std::fs::File>>>,
+}
+
+impl Worker {
+    fn run(mut self, mut rx: mpsc::Receiver<Job>) {
+        let sensor = self.session.sensor.clone();
+        let mut reports = Vec::new();
+        while let Some(job) = rx.blocking_recv() {
+            match job {
+                Job::Frame {
+                    frame,
+                    enqueued,
+                    done,
+                } => {
+                    if let Some(w) = &mut self.recorder {
+                        match w.write_frame(&frame) {
+                            Ok(()) => telemetry::frame_recorded(&sensor),
+                            Err(e) => {
+                                tracing::error!(sensor = %sensor, error = %e, "recording stopped");
+                                self.recorder = None;
+                            }
+                        }
+                    }
+                    let verdict = self.process(frame, &mut reports);
+                    match &verdict {
+                        Verdict::Processed => {
+                            self.session
+                                .stats
+                                .frames_processed
+                                .fetch_add(1, Ordering::Relaxed);
+                            telemetry::frame_processed(&sensor, enqueued.elapsed());
+                        }
+                        Verdict::Refused(e) => {
+                            self.session
+                                .stats
+                                .frames_rejected
+                                .fetch_add(1, Ordering::Relaxed);
+                            telemetry::frames_rejected(&sensor, "pipeline", 1);
+                            tracing::debug!(sensor = %sensor, error = %e, "pipeline refused frame");
+                        }
+                        Verdict::Panicked(m) => {
+                            self.session
+                                .stats
+                                .frames_rejected
+                                .fetch_add(1, Ordering::Relaxed);
+                            telemetry::frames_rejected(&sensor, "panic", 1);
+                            tracing::error!(sensor = %sensor, message = %m, "pipeline panicked; rebuilt");
+                        }
+                    }
+                    self.publish(&mut reports);
+                    telemetry::queue_depth(&sensor, rx.len());
+                    let _ = done.send(verdict);
+                }
+                Job::SetScene { scene, done } => {
+                    let result = build_pipeline(&scene, &sensor).map(|p| {
+                        self.pipeline.flush(&mut reports);
+                        self.publish(&mut reports);
+                        self.pipeline = p;
+                        tracing::info!(sensor = %sensor, scene = %scene.name, "scene applied");
+                    });
+                    let _ = done.send(result);
+                }
+            }
+        }
+        self.pipeline.flush(&mut reports);
+        self.publish(&mut reports);
+        if let Some(w) = self.recorder.take()
+            && let Err(e) = w.finish()
+        {
+            tracing::error!(sensor = %sensor, error = %e, "recording not finished");
+        }
+        tracing::info!(sensor = %sensor, "session drained");
+    }
+
+    /// Runs one frame; a panic in the pipeline costs this frame and the
+    /// pipeline's running state, not the session (the stream and the other
+    /// frames carry on).
+    fn process(&mut self, frame: Frame, reports: &mut Vec<Report>) -> Verdict {
+        let pipeline = &mut self.pipeline;
+        let run = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            pipeline.push(frame, reports)
+        }));
+        match run {
+            Ok(Ok(())) => Verdict::Processed,
+            Ok(Err(e)) => Verdict::Refused(e),
+            Err(panic) => {
+                reports.clear();
+                let message = panic
+                    .downcast_ref::<&str>()
+                    .map(|s| s.to_string())
+                    .or_else(|| panic.downcast_ref::<String>().cloned())
+                    .unwrap_or_else(|| "unknown panic".into());
+                let scene = self.pipeline.scene().clone();
+                match build_pipeline(&scene, &self.session.sensor) {
+                    Ok(p) => self.pipeline = p,
+                    Err(e) => {
+                        tracing::error!(error = %e, "rebuilding the pipeline failed; keeping the old one")
+                    }
+                }
+                Verdict::Panicked(message)
+            }
+        }
+    }
+
+    fn publish(&mut self, reports: &mut Vec<Report>) {
+        if let Some(n) = self.pipeline.noise_model() {
+            *self.session.noise.lock().unwrap() = Some(n);
+        }
+        for r in reports.drain(..) {
+            let st = &self.session.stats;
+            st.reports.fetch_add(1, Ordering::Relaxed);
+            st.returns
+                .fetch_add(r.returns.len() as u64, Ordering::Relaxed);
+            telemetry::report_published(&self.session.sensor, r.returns.len());
+            self.hub.publish(r);
+        }
+    }
+}

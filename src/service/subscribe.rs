@@ -1,0 +1,245 @@
+//! `Reports.Subscribe`: a filtered view of the fan-out per subscriber.
+
+use super::fanout::{Hub, Published};
+use super::{Shared, ShutdownSignal, proto};
+use crate::telemetry;
+use std::collections::HashSet;
+use std::sync::Arc;
+use tokio::sync::{broadcast, mpsc};
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::{Request, Response, Status};
+
+/// Events buffered per subscriber between its forwarding task and gRPC.
+const FORWARD_BUFFER: usize = 16;
+
+/// The Reports service.
+pub struct ReportsService {
+    shared: Arc<Shared>,
+}
+
+impl ReportsService {
+    pub(crate) fn new(shared: Arc<Shared>) -> Self {
+        ReportsService { shared }
+    }
+}
+
+/// Stream of events for one subscriber.
+pub type EventStream = ReceiverStream<Result<proto::ReportEvent, Status>>;
+
+#[tonic::async_trait]
+impl proto::reports_server::Reports for ReportsService {
+    type SubscribeStream = EventStream;
+
+    async fn subscribe(
+        &self,
+        request: Request<proto::SubscribeRequest>,
+    ) -> Result<Response<Self::SubscribeStream>, Status> {
+        let req = request.into_inner();
+        if let Some(m) = req.min_snr_db
+            && !m.is_finite()
+        {
+            return Err(Status::invalid_argument(format!(
+                "min_snr_db: {m} is not a finite number of dB"
+            )));
+        }
+        tracing::info!(sensors = ?req.sensor_ids, min_snr_db = ?req.min_snr_db,
+            resume = ?req.resume_from_sequence, "subscriber joined");
+        subscription_stream(&self.shared.hub, &req, self.shared.shutdown.clone())
+            .map(Response::new)
+            .ok_or_else(|| Status::unavailable("server is shutting down"))
+    }
+}
+
+/// Starts the forwarding task of one subscription. The stream ends (cleanly)
+/// when the hub closes at shutdown, after the last reports; `None` when the
+/// hub is already closed.
+pub(crate) fn subscription_stream(
+    hub: &Hub,
+    req: &proto::SubscribeRequest,
+    shutdown: ShutdownSignal,
+) -> Option<EventStream> {
+    let sensors: HashSet<String> = req.sensor_ids.iter().cloned().collect();
+    let wanted = move |s: &str| sensors.is_empty() || sensors.contains(s);
+    let sub = hub.subscribe(req.resume_from_sequence, &wanted)?;
+    let min_snr_db = req.min_snr_db;
+    let (tx, rx) = mpsc::channel(FORWARD_BUFFER);
+    tokio::spawn(async move {
+        // Held so that `run` waits for this task; the hub closing ends it.
+        let _shutdown = shutdown;
+        telemetry::subscribers_changed(1.0);
+        forward(sub.backlog, sub.live, &wanted, min_snr_db, &tx).await;
+        telemetry::subscribers_changed(-1.0);
+        tracing::info!("subscriber left");
+    });
+    Some(ReceiverStream::new(rx))
+}
+
+async fn forward(
+    backlog: Vec<Arc<Published>>,
+    mut live: broadcast::Receiver<Arc<Published>>,
+    wanted: &impl Fn(&str) -> bool,
+    min_snr_db: Option<f64>,
+    tx: &mpsc::Sender<Result<proto::ReportEvent, Status>>,
+) {
+    for p in backlog {
+        if tx.send(Ok(p.event(min_snr_db))).await.is_err() {
+            return;
+        }
+    }
+    loop {
+        let event = tokio::select! {
+            r = live.recv() => r,
+            // The client went away: stop at once rather than at the next report.
+            _ = tx.closed() => return,
+        };
+        let event = match event {
+            Ok(p) if wanted(&p.report.sensor) => p.event(min_snr_db),
+            Ok(_) => continue,
+            Err(broadcast::error::RecvError::Lagged(skipped)) => {
+                telemetry::subscriber_lagged(skipped);
+                tracing::warn!(skipped, "subscriber lagged");
+                proto::ReportEvent {
+                    event: Some(proto::report_event::Event::Lagged(proto::Lagged {
+                        skipped,
+                    })),
+                }
+            }
+            Err(broadcast::error::RecvError::Closed) => return,
+        };
+        if tx.send(Ok(event)).await.is_err() {
+            return;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frame::{Report, Return};
+    use tokio::sync::watch;
+    use tokio_stream::StreamExt;
+
+    fn report(sensor: &str, seq: u64, snrs: &[f64]) -> Report {
+        Report {
+            sensor: sensor.into(),
+            seq_first: seq,
+            seq_last: seq,
+            frames_averaged: 1,
+            returns: snrs
+                .iter()
+                .map(|&s| Return {
+                    snr_db: s,
+                    range_m: s,
+                    ..Default::default()
+                })
+                .collect(),
+            ..Default::default()
+        }
+    }
+
+    fn signal() -> (watch::Sender<bool>, ShutdownSignal) {
+        let (tx, rx) = watch::channel(false);
+        let (done, _) = mpsc::channel(1);
+        (tx, ShutdownSignal { rx, _done: done })
+    }
+
+    fn req(sensors: &[&str], min: Option<f64>, resume: Option<u64>) -> proto::SubscribeRequest {
+        proto::SubscribeRequest {
+            sensor_ids: sensors.iter().map(|s| s.to_string()).collect(),
+            min_snr_db: min,
+            resume_from_sequence: resume,
+        }
+    }
+
+    async fn collect(mut s: EventStream) -> Vec<proto::report_event::Event> {
+        let mut v = Vec::new();
+        while let Some(e) = s.next().await {
+            v.push(e.unwrap().event.unwrap());
+        }
+        v
+    }
+
+    fn seqs(events: &[proto::report_event::Event]) -> Vec<(String, u64)> {
+        events
+            .iter()
+            .filter_map(|e| match e {
+                proto::report_event::Event::Report(r) => Some((r.sensor.clone(), r.seq_first)),
+                _ => None,
+            })
+            .collect()
+    }
+
+    #[tokio::test]
+    async fn slow_subscriber_gets_lag_marker_then_continues() {
+        let hub = Hub::new(4, 0);
+        let (_tx, sig) = signal();
+        let stream = subscription_stream(&hub, &req(&[], None, None), sig).unwrap();
+        // The forwarder parks on a full 16-event buffer; the broadcast keeps 4.
+        // 100 reports overflow both, whatever the task interleaving.
+        for i in 0..100 {
+            hub.publish(report("a", i, &[]));
+            tokio::task::yield_now().await;
+        }
+        hub.close();
+        let events = collect(stream).await;
+        let skipped: u64 = events
+            .iter()
+            .map(|e| match e {
+                proto::report_event::Event::Lagged(l) => l.skipped,
+                _ => 0,
+            })
+            .sum();
+        let got = seqs(&events);
+        assert!(skipped > 0, "no lag marker in {events:?}");
+        assert_eq!(
+            got.len() as u64 + skipped,
+            100,
+            "every report is delivered or counted as skipped"
+        );
+        // Delivered reports keep their order and the last ones arrive after the marker.
+        assert!(got.windows(2).all(|w| w[0].1 < w[1].1));
+        assert_eq!(got.last().unwrap().1, 99);
+    }
+
+    #[tokio::test]
+    async fn filters_by_sensor_and_snr() {
+        let hub = Hub::new(64, 0);
+        let (_tx, sig) = signal();
+        let stream = subscription_stream(&hub, &req(&["b"], Some(10.0), None), sig).unwrap();
+        hub.publish(report("a", 0, &[20.0]));
+        hub.publish(report("b", 1, &[5.0, 12.0]));
+        hub.close();
+        let events = collect(stream).await;
+        assert_eq!(events.len(), 1);
+        let proto::report_event::Event::Report(r) = &events[0] else {
+            panic!("{events:?}")
+        };
+        assert_eq!(r.sensor, "b");
+        assert_eq!(r.returns.len(), 1);
+        assert_eq!(r.returns[0].snr_db, 12.0);
+        let json: serde_json::Value = serde_json::from_str(&r.json).unwrap();
+        assert_eq!(
+            json["returns"].as_array().unwrap().len(),
+            1,
+            "JSON is filtered too"
+        );
+    }
+
+    #[tokio::test]
+    async fn resume_replays_history_without_duplicates() {
+        let hub = Hub::new(64, 3);
+        for i in 0..5 {
+            hub.publish(report("a", i, &[]));
+        }
+        let (_tx, sig) = signal();
+        let stream = subscription_stream(&hub, &req(&[], None, Some(3)), sig).unwrap();
+        hub.publish(report("a", 5, &[]));
+        hub.close();
+        let got: Vec<u64> = seqs(&collect(stream).await)
+            .into_iter()
+            .map(|x| x.1)
+            .collect();
+        // History holds 2, 3, 4 (cap 3); resume from 3 gives 3, 4, then live 5.
+        assert_eq!(got, vec![3, 4, 5]);
+    }
+}

@@ -24,6 +24,14 @@ struct Cli {
 
 #[derive(Subcommand, Debug)]
 enum Command {
+    /// Run the gRPC server: digitisers push frames, dashboards subscribe to reports.
+    Serve(tofwave::service::cli::ServeArgs),
+    /// Stream capture files to a running server (recorded pace, a multiple of it, or as fast as possible).
+    Replay(tofwave::service::cli::ReplayArgs),
+    /// Print a server's report stream as JSON lines (the same shape as `process`).
+    Subscribe(tofwave::service::cli::SubscribeArgs),
+    /// Simulate frames with ground truth from a scene's [simulation] section.
+    Simulate(SimulateArgs),
     /// Process capture files offline; prints one JSON report per frame (or averaged group).
     Process(ProcessArgs),
     /// Measure the fixed start-to-stop system delay from captures of a target at a known range.
@@ -93,6 +101,28 @@ struct CalibrateArgs {
 }
 
 #[derive(Args, Debug)]
+struct SimulateArgs {
+    /// Scene with a [simulation] section (e.g. replay-data/scenes/weak-32m.toml).
+    /// The embedded default has none: pass one.
+    #[arg(long, value_name = "FILE")]
+    scene: Option<PathBuf>,
+    /// Frames to simulate.
+    #[arg(long, value_name = "N")]
+    frames: u64,
+    /// Random seed; the same seed gives the same frames, whatever the thread count.
+    #[arg(long, default_value_t = 1, value_name = "S")]
+    seed: u64,
+    /// Output file: `.twr` writes tofwave's lossless recording, `.trc` a LeCroy
+    /// sequence file (stop channel only), `.csv` one generic CSV per frame into the
+    /// directory of that name.
+    #[arg(long, value_name = "PATH")]
+    out: PathBuf,
+    /// Ground truth, one JSON line per frame (true times of flight, amplitudes, samples holding signal).
+    #[arg(long, value_name = "FILE")]
+    truth: Option<PathBuf>,
+}
+
+#[derive(Args, Debug)]
 struct TemplateArgs {
     #[command(flatten)]
     common: SceneInput,
@@ -143,6 +173,10 @@ fn main() {
     tofwave::telemetry::init_tracing();
     let cli = Cli::parse();
     let result = match cli.command {
+        Command::Serve(a) => block_on(tofwave::service::cli::run_serve(a)),
+        Command::Replay(a) => block_on(tofwave::service::cli::run_replay(a)),
+        Command::Subscribe(a) => block_on(tofwave::service::cli::run_subscribe(a)),
+        Command::Simulate(a) => simulate(a),
         Command::Process(a) => process(a),
         Command::Calibrate(a) => calibrate(a),
         Command::Scene(a) => scene(a),
@@ -155,6 +189,68 @@ fn main() {
             std::process::exit(2);
         }
     }
+}
+
+fn block_on(f: impl std::future::Future<Output = Result<()>>) -> Result<i32> {
+    let rt = tokio::runtime::Runtime::new().context("cannot start the async runtime")?;
+    rt.block_on(f)?;
+    Ok(0)
+}
+
+fn simulate(a: SimulateArgs) -> Result<i32> {
+    use tofwave::physics::Simulator;
+    let scene = match &a.scene {
+        Some(p) => Scene::load(p)?,
+        None => Scene::default_scene(),
+    };
+    let sim = Simulator::new(&scene)?;
+    let bar = indicatif::ProgressBar::new(a.frames).with_style(
+        indicatif::ProgressStyle::with_template("{bar:40} {pos}/{len} frames {per_sec} eta {eta}")
+            .expect("static template"),
+    );
+    let mut truth_out = match &a.truth {
+        Some(p) => Some(std::io::BufWriter::new(
+            std::fs::File::create(p).with_context(|| format!("cannot create {}", p.display()))?,
+        )),
+        None => None,
+    };
+    let ext = a.out.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
+    let mut frames = Vec::new();
+    let mut writer = if ext == "twr" {
+        let f = std::fs::File::create(&a.out).with_context(|| format!("cannot create {}", a.out.display()))?;
+        Some(capture::RecordingWriter::new(std::io::BufWriter::new(f))?)
+    } else {
+        None
+    };
+    if ext == "csv" {
+        std::fs::create_dir_all(&a.out).with_context(|| format!("cannot create {}", a.out.display()))?;
+    } else if ext != "twr" && ext != "trc" {
+        bail!("--out {}: the extension must be .twr, .trc or .csv", a.out.display());
+    }
+    for i in 0..a.frames {
+        let (frame, truth) = sim.frame(a.seed, i);
+        if let Some(t) = &mut truth_out {
+            writeln!(t, "{}", serde_json::to_string(&truth)?)?;
+        }
+        match ext.as_str() {
+            "twr" => writer.as_mut().expect("opened").write_frame(&frame)?,
+            "csv" => capture::write_csv(&a.out.join(format!("frame-{i:08}.csv")), &frame, Format::GenericCsv)?,
+            _ => frames.push(frame),
+        }
+        bar.inc(1);
+    }
+    if let Some(w) = writer {
+        w.finish()?.flush()?;
+    }
+    if ext == "trc" {
+        capture::write_trc(&a.out, &frames, &scene.channels.stop)?;
+    }
+    if let Some(mut t) = truth_out {
+        t.flush()?;
+    }
+    bar.finish_and_clear();
+    eprintln!("tofwave simulate: {} frames -> {}", a.frames, a.out.display());
+    Ok(0)
 }
 
 /// The scene with command-line overrides applied and validated again.

@@ -31,7 +31,6 @@ pub mod auth;
 pub mod cli;
 pub mod client;
 pub mod control;
-pub mod convert;
 pub mod fanout;
 pub mod ingest;
 mod metrics_http;

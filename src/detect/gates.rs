@@ -34,6 +34,10 @@ pub struct GateInputs {
     pub pre: bool,
     /// Use samples beyond the range gate.
     pub beyond: bool,
+    /// The search widens the range gate by this many samples at each end: a
+    /// pulse whose shape differs from the scene's may peak off the predicted
+    /// place, and a return right at the gate's edge must not be lost.
+    pub margin: f64,
 }
 
 /// Gate positions on one frame.
@@ -61,8 +65,8 @@ impl Gates {
         let tof = |r_m: f64| 2.0 * r_m / g.c_m_per_s;
         // Peak position p of a pulse whose timing point has time of flight `tof`.
         let peak_at = |tof_s: f64| idx(g.t_ref_s + g.delay_s + tof_s) - g.timing_offset;
-        let p_min = peak_at(tof(g.min_range_m));
-        let p_max = peak_at(tof(g.max_range_m));
+        let p_min = peak_at(tof(g.min_range_m)) - g.margin;
+        let p_max = peak_at(tof(g.max_range_m)) + g.margin;
         let range = clamp(ceil(p_min))..clamp(floor(p_max) + 1.0);
         let guard = g.guard_s / g.dt_s;
         let pre_end = (idx(g.t_ref_s) - guard).min(p_min + g.support_lo - guard);
@@ -98,6 +102,7 @@ mod tests {
             guard_s: 20e-9,
             pre: true,
             beyond: true,
+            margin: 0.0,
         }
     }
 

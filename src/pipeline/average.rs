@@ -84,7 +84,9 @@ impl Average {
         let (a, b) = (&g.first.frame, &w.frame);
         a.len() == b.len()
             && a.sample_interval_s == b.sample_interval_s
-            && a.first_sample_offset_s == b.first_sample_offset_s
+            // Segments trigger at slightly different sub-sample phases; within one
+            // sample they are averaged as they are (start alignment is its own stage).
+            && (a.first_sample_offset_s - b.first_sample_offset_s).abs() <= a.sample_interval_s
             && g.first.start.is_some() == w.start.is_some()
             && g.channels[0].accepts(&b.channels[w.stop])
             && w.start.is_none_or(|s| g.channels[1].accepts(&b.channels[s]))

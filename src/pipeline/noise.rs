@@ -52,6 +52,7 @@ impl Stage for Noise {
             guard_s: s.noise_gate.guard_s,
             pre: s.noise_gate.pre_trigger,
             beyond: s.noise_gate.beyond_range,
+            margin: pulse.fwhm(),
         });
         // Non-finite samples (a float capture's NaN/Inf) are held at the last
         // finite value so nothing downstream sees them; the report says how many.

@@ -1,0 +1,163 @@
+//! The `tofwave` command as a new user runs it: real captures, calibration on
+//! simulated captures, noise-only captures, malformed files.
+
+mod common;
+use common::{rng, Synth};
+use std::path::Path;
+use std::process::Command;
+use tofwave::capture::write_recording;
+use tofwave::scene::Scene;
+
+fn tofwave(args: &[&str]) -> (i32, Vec<serde_json::Value>, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_tofwave")).args(args).output().expect("runs");
+    let stdout = String::from_utf8(out.stdout).unwrap();
+    let reports = stdout.lines().map(|l| serde_json::from_str(l).expect("JSON line")).collect();
+    (out.status.code().unwrap_or(-1), reports, String::from_utf8(out.stderr).unwrap())
+}
+
+fn data(name: &str) -> String {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("replay-data").join(name).display().to_string()
+}
+
+#[test]
+fn lecroy_4_pulse_is_reported_at_the_time_the_file_holds() {
+    let (code, reports, err) = tofwave(&["process", "--input", &data("lecroy_4.trc")]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(reports.len(), 1);
+    let r = &reports[0]["returns"];
+    assert_eq!(r.as_array().unwrap().len(), 1, "{r}");
+    let t_peak_ns = r[0]["t_peak_s"].as_f64().unwrap() * 1e9;
+    let t_half_ns = r[0]["t_stop_s"].as_f64().unwrap() * 1e9;
+    let amp = r[0]["amplitude_v"].as_f64().unwrap();
+    // The file: peak 2.504 V at +4.25 ns, 50 % rising crossing at +0.77 ns (8 mV baseline).
+    assert!((t_peak_ns - 4.25).abs() < 0.3, "{t_peak_ns}");
+    assert!((t_half_ns - 0.77).abs() < 0.3, "{t_half_ns}");
+    assert!((amp - 2.5).abs() < 0.1, "{amp}");
+    assert!(reports[0]["flags"].as_array().unwrap().iter().any(|f| f == "no_start_channel"));
+}
+
+#[test]
+fn lecroy_3_segments_give_reports_with_their_trigger_times_and_average() {
+    let (code, reports, err) = tofwave(&["process", "--input", &data("lecroy_3.trc")]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(reports.len(), 20);
+    let t: Vec<f64> = reports.iter().map(|r| r["time_s"].as_f64().unwrap()).collect();
+    assert!((t[1] - t[0] - 7.4584e-3).abs() < 1e-6, "{}", t[1] - t[0]);
+    assert!((t[2] - t[0] - 1.7308e-2).abs() < 1e-6);
+    assert!(reports.iter().all(|r| r["returns"].as_array().unwrap().len() == 1));
+    let (code, reports, _) = tofwave(&["process", "--input", &data("lecroy_3.trc"), "--average", "20"]);
+    assert_eq!(code, 0);
+    assert_eq!(reports.len(), 1);
+    assert_eq!(reports[0]["frames_averaged"], 20);
+    assert_eq!(reports[0]["seq_last"], 19);
+    assert_eq!(reports[0]["returns"].as_array().unwrap().len(), 1);
+}
+
+/// Captures of one target: 1 GS/s, 13.8 mV rms noise, 8-bit quantisation, a
+/// fixed system delay of 223.33 ns (the source's amplifier delay).
+fn captures(path: &Path, range_m: f64, amp: f64, frames: u64, seed: u64) {
+    let scene = Scene::default_scene();
+    let delay_s = 223.33e-9;
+    let tof = 2.0 * range_m / scene.c_medium_m_per_s() + delay_s;
+    let s = Synth { returns: vec![(tof, amp)], ..Synth::prototype() };
+    let mut r = rng(seed);
+    let v: Vec<_> = (0..frames)
+        .map(|k| {
+            let mut st = s.clone();
+            // The start pulse moves against the sample clock from shot to shot.
+            st.start_time_s = (k as f64 * 0.37).fract() * 1e-9;
+            st.frame(&scene, k, &mut r)
+        })
+        .collect();
+    write_recording(path, &v).unwrap();
+}
+
+#[test]
+fn calibrated_ranges_are_within_2_cm() {
+    let dir = tempfile::tempdir().unwrap();
+    let cal_in = dir.path().join("cal.twr");
+    captures(&cal_in, 3.45, 1.0, 300, 1);
+    let cal = dir.path().join("cal.toml");
+    let (code, _, err) = tofwave(&[
+        "calibrate", "--input", cal_in.to_str().unwrap(), "--known-range-m", "3.45", "--out", cal.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    eprintln!("{err}");
+    // Table 10.20's targets at their measured peak voltages (>= 300 mV).
+    for (i, (range_m, amp)) in [(9.5, 0.56), (15.3986, 0.505), (24.8122, 0.496), (19.6814, 0.392)].into_iter().enumerate() {
+        let input = dir.path().join(format!("t{i}.twr"));
+        captures(&input, range_m, amp, 200, 10 + i as u64);
+        let (code, reports, err) =
+            tofwave(&["process", "--input", input.to_str().unwrap(), "--calibration", cal.to_str().unwrap()]);
+        assert_eq!(code, 0, "{err}");
+        let ranges: Vec<f64> = reports.iter().map(|r| r["returns"][0]["range_m"].as_f64().unwrap()).collect();
+        assert_eq!(ranges.len(), 200);
+        let mean = ranges.iter().sum::<f64>() / ranges.len() as f64;
+        let sd = (ranges.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / 199.0).sqrt();
+        eprintln!("{range_m} m at {amp} V: mean {mean:.4} m (error {:+.4} m), single-shot sd {sd:.4} m", mean - range_m);
+        assert!((mean - range_m).abs() < 0.02, "{range_m}: {mean}");
+    }
+}
+
+#[test]
+fn noise_only_captures_report_every_frame_within_the_design_pfa() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("off.twr");
+    let scene = Scene::default_scene();
+    let s = Synth { start_amplitude_v: 0.0, ..Synth::prototype() };
+    let mut r = rng(5);
+    let frames: Vec<_> = (0..400)
+        .map(|k| {
+            let mut f = s.frame(&scene, k, &mut r);
+            f.laser_off = true;
+            f
+        })
+        .collect();
+    write_recording(&input, &frames).unwrap();
+    let (code, reports, err) = tofwave(&["process", "--input", input.to_str().unwrap(), "--pfa", "0.01"]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(reports.len(), 400);
+    let with_returns = reports.iter().filter(|r| !r["returns"].as_array().unwrap().is_empty()).count();
+    // Binomial(400, 0.01): P(X > 10) = 0.0028, so 10 is the 99.7 % upper bound.
+    assert!(with_returns <= 10, "{with_returns} of 400 noise-only reports had returns at pfa 0.01");
+    assert!(reports.iter().all(|r| r["flags"].as_array().unwrap().iter().any(|f| f == "no_start_pulse")));
+}
+
+#[test]
+fn malformed_files_get_a_clear_error_and_exit_2() {
+    let dir = tempfile::tempdir().unwrap();
+    let real = std::fs::read(data("lecroy_4.trc")).unwrap();
+    let cases: Vec<(&str, Vec<u8>, &str)> = vec![
+        ("empty.trc", vec![], "empty"),
+        ("truncated.trc", real[..700].to_vec(), "offset"),
+        ("magic.trc", { let mut v = real.clone(); v[11..19].copy_from_slice(b"WAVEDESX"); v }, "magic.trc"),
+        ("cell.csv", b"time,CH1,CH2\n0,0.1,0.2\n1e-9,0.1,abc\n".to_vec(), "line 3"),
+    ];
+    for (name, bytes, needle) in cases {
+        let p = dir.path().join(name);
+        std::fs::write(&p, bytes).unwrap();
+        let (code, reports, err) = tofwave(&["process", "--input", p.to_str().unwrap()]);
+        assert_eq!(code, 2, "{name}: {err}");
+        assert!(reports.is_empty());
+        assert!(err.contains(name) && err.contains(needle), "{name}: {err}");
+    }
+    // A missing stop channel refuses the frame by name (exit 1), not the run.
+    let p = dir.path().join("two.csv");
+    let rows: String = (0..200).map(|k| format!("{:e},0.01,0.02\n", k as f64 * 1e-9)).collect();
+    std::fs::write(&p, format!("time,CH1,CH2\n{rows}")).unwrap();
+    let (code, reports, err) = tofwave(&["process", "--input", p.to_str().unwrap(), "--stop-channel", "CH3"]);
+    assert_eq!(code, 1, "{err}");
+    assert!(reports.is_empty());
+    assert!(err.contains("CH3") && err.contains("channels"), "{err}");
+}
+
+#[test]
+fn every_subcommand_explains_its_flags() {
+    for sub in ["process", "calibrate", "scene", "template", "simulate", "serve", "replay", "subscribe"] {
+        let out = Command::new(env!("CARGO_BIN_EXE_tofwave")).args([sub, "--help"]).output().unwrap();
+        assert!(out.status.success(), "{sub}");
+        assert!(String::from_utf8(out.stdout).unwrap().contains("--"), "{sub}");
+    }
+    let (code, _, _) = tofwave(&["scene"]);
+    assert_eq!(code, 0);
+}

@@ -115,19 +115,54 @@ fn ml(input: &TimingInput, start: f64) -> Timed {
     finish(input, fit.delay, fit.amplitude, fit.delay + input.pulse.fraction_offset(input.fraction), None)
 }
 
-/// Raw-sample peak near the detector's peak: index and parabolic height above the mean.
+/// Raw-sample peak near the detector's peak: index and height above the mean.
+/// The height is a least-squares parabola over the samples near the top (those
+/// above 90 % of the largest), so the noise of a single sample does not bias
+/// the constant-fraction level upwards at low SNR.
 fn raw_peak(input: &TimingInput) -> (usize, f64) {
     let x = input.x;
     let w = (input.pulse.fwhm() * 0.5).ceil().max(2.0) as usize;
     let lo = input.peak.saturating_sub(w);
     let hi = (input.peak + w + 1).min(x.len());
     let k = (lo..hi).max_by(|&a, &b| x[a].total_cmp(&x[b])).unwrap_or(input.peak);
-    let h = if k == 0 || k + 1 >= x.len() {
-        x[k]
-    } else {
-        interp::parabolic(x[k - 1], x[k], x[k + 1]).1
-    };
+    let top = input.mean_v + 0.9 * (x[k] - input.mean_v);
+    let mut a = k;
+    while a > 0 && k - a < 8 && x[a - 1] > top {
+        a -= 1;
+    }
+    let mut b = k;
+    while b + 1 < x.len() && b - k < 8 && x[b + 1] > top {
+        b += 1;
+    }
+    let half = (k - a).max(b - k).max(1);
+    let (a, b) = (k.saturating_sub(half), (k + half).min(x.len() - 1));
+    let h = if b - a >= 2 { quadratic_peak(&x[a..=b], (k - a) as f64).unwrap_or(x[k]) } else { x[k] };
     (k, h - input.mean_v)
+}
+
+/// Vertex height of the least-squares parabola through `y` (abscissae 0..n),
+/// if it opens downwards with its vertex within one sample of `near`.
+fn quadratic_peak(y: &[f64], near: f64) -> Option<f64> {
+    let n = y.len() as f64;
+    let c = (n - 1.0) / 2.0;
+    let (mut s2, mut s4, mut sy, mut sxy, mut sx2y) = (0.0, 0.0, 0.0, 0.0, 0.0);
+    for (i, &v) in y.iter().enumerate() {
+        let t = i as f64 - c;
+        s2 += t * t;
+        s4 += t * t * t * t;
+        sy += v;
+        sxy += t * v;
+        sx2y += t * t * v;
+    }
+    // Centred abscissae: odd sums vanish, so the normal equations decouple.
+    let a2 = (n * sx2y - s2 * sy) / (n * s4 - s2 * s2);
+    let a1 = sxy / s2;
+    let a0 = (sy - a2 * s2) / n;
+    if !(a2 < 0.0) {
+        return None;
+    }
+    let t = -a1 / (2.0 * a2);
+    ((t + c - near).abs() <= 1.0).then(|| a0 + a1 * t + a2 * t * t)
 }
 
 fn search_start(input: &TimingInput, k: usize) -> usize {

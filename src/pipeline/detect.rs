@@ -124,6 +124,11 @@ impl Stage for Detect {
         let thr = w.threshold_u * w.sigma_v;
         local_maxima(&w.detector_output, w.gates.range.clone(), thr, &mut w.detections);
         w.components.clear();
+        if w.noise.samples < 2 {
+            // Without a noise estimate there is no threshold to hold a false-alarm
+            // rate: nothing is declared detected (the report says no_noise_estimate).
+            w.detections.clear();
+        }
         if self.resolve && !w.detections.is_empty() {
             w.components = self.resolver.resolve(
                 &w.stop_v,

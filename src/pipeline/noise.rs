@@ -83,6 +83,13 @@ impl Stage for Noise {
         } else {
             1e-12 * noise.mean_v.abs().max(1e-3)
         };
+        let mut noise = noise;
+        if noise.samples < 2 {
+            // No gate: the frame's median stands in for the baseline.
+            let mut sorted = stop_v.clone();
+            sorted.sort_by(f64::total_cmp);
+            noise.mean_v = sorted.get(sorted.len() / 2).copied().unwrap_or(0.0);
+        }
         w.sigma_v = noise.sigma_v;
         if !(noise.sigma_v > floor) {
             w.sigma_v = floor;

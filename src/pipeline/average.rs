@@ -68,7 +68,11 @@ impl Acc {
     fn mean_v(&self, count: u32) -> Vec<f64> {
         let n = count as f64;
         match self {
-            Acc::Int { sums, scale, offset, .. } => sums.iter().map(|&s| (s as f64 / n) * scale + offset).collect(),
+            Acc::Int { sums, scale, offset, .. } => {
+                let mut out = vec![0.0; sums.len()];
+                kernels::mean_from_sums(sums, count as u64, *scale, *offset, &mut out);
+                out
+            }
             Acc::Float { sums } => sums.iter().map(|&s| s / n).collect(),
         }
     }

@@ -208,6 +208,12 @@ fn simulate(a: SimulateArgs) -> Result<i32> {
         indicatif::ProgressStyle::with_template("{bar:40} {pos}/{len} frames {per_sec} eta {eta}")
             .expect("static template"),
     );
+    // Parent directories of the outputs are created, as for the CSV directory.
+    for p in a.truth.iter().chain(std::iter::once(&a.out)) {
+        if let Some(dir) = p.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+        }
+    }
     let mut truth_out = match &a.truth {
         Some(p) => Some(std::io::BufWriter::new(
             std::fs::File::create(p).with_context(|| format!("cannot create {}", p.display()))?,
@@ -412,29 +418,55 @@ fn calibrate(a: CalibrateArgs) -> Result<i32> {
 fn template(a: TemplateArgs) -> Result<i32> {
     use std::sync::{Arc, Mutex};
     use tofwave::detect::template::TemplateLearner;
-    use tofwave::dsp::pulse::Shape;
+    use tofwave::dsp::pulse::{PulseShape, Shape};
     if !(1..=64).contains(&a.oversample) {
         bail!("--oversample {}: allowed 1..=64 grid points per sample", a.oversample);
     }
     let mut scene = load_scene(&a.common)?;
-    // Model-based timing gives each shot's sub-sample position; the scene
-    // written keeps the user's own method.
+    // The first pass times shots by the matched-filter peak: a model-based
+    // fit with a shape that does not match yet would split and flag the
+    // returns it is meant to learn from. Later passes fit the learned shape.
+    // The scene written keeps the user's own method.
     let user_method = scene.timing.method;
-    scene.timing.method = TimingMethod::Ml;
     let opts = ReadOptions { format: a.common.format, sensor_id: a.common.sensor.clone() };
     let frames = capture::read_paths(&a.common.input, &opts)?;
     for pass in 0..a.passes.max(1) {
+        scene.timing.method = if pass == 0 { TimingMethod::PeakParabolic } else { TimingMethod::Ml };
         let dt = frames.first().map(|f| f.sample_interval_s).unwrap_or(1e-9);
         let (lo, hi) = Shape::from_config(&scene.return_pulse, dt).support();
         let learner = Arc::new(Mutex::new(TemplateLearner::new(a.oversample, 1.5 * lo, 1.5 * hi)));
         let mut pipeline = Pipeline::new(&scene, &a.common.sensor);
         let l = learner.clone();
         let min_snr = a.min_snr_db;
+        let shape = Shape::from_config(&scene.return_pulse, dt);
+        let mut cleaned = Vec::new();
         pipeline.set_observer(Box::new(move |w| {
-            let best = w.report.returns.iter().max_by(|x, y| x.amplitude_v.total_cmp(&y.amplitude_v));
-            if let Some(r) = best.filter(|r| r.flags.is_empty() && r.snr_db >= min_snr) {
-                let peak = (r.t_peak_s - w.frame.first_sample_offset_s) / w.frame.sample_interval_s;
-                l.lock().expect("not poisoned").add(&w.stop_v, w.noise.mean_v, peak, r.amplitude_v);
+            let peak_of = |r: &tofwave::frame::Return| (r.t_peak_s - w.frame.first_sample_offset_s) / w.frame.sample_interval_s;
+            // Noise that fails the normality test (e.g. coarse quantisation) does not spoil a shot.
+            let clean = |r: &tofwave::frame::Return| r.flags.iter().all(|f| f == "non_gaussian_noise");
+            for (i, r) in w.report.returns.iter().enumerate() {
+                if !(clean(r) && r.snr_db >= min_snr) {
+                    continue;
+                }
+                // Every other return in the frame is subtracted with the
+                // current shape, so a neighbour inside the learning window does
+                // not become a bump in the template; the next pass subtracts
+                // with the better shape.
+                cleaned.clear();
+                cleaned.extend_from_slice(&w.stop_v);
+                for (j, o) in w.report.returns.iter().enumerate() {
+                    if j == i {
+                        continue;
+                    }
+                    let p = peak_of(o);
+                    let (lo, hi) = shape.support();
+                    let a = (p + lo).floor().max(0.0) as usize;
+                    let b = ((p + hi).ceil().max(0.0) as usize).min(cleaned.len().saturating_sub(1));
+                    for k in a..=b.min(cleaned.len().saturating_sub(1)) {
+                        cleaned[k] -= o.amplitude_v * shape.value_and_slope(k as f64 - p).0;
+                    }
+                }
+                l.lock().expect("not poisoned").add(&cleaned, w.noise.mean_v, peak_of(r), r.amplitude_v);
             }
         }));
         let mut reports = Vec::new();

@@ -78,6 +78,11 @@ impl DetectorPlan {
         self.dc_gain
     }
 
+    /// The unit-energy taps.
+    pub fn taps(&self) -> &[f64] {
+        self.correlator.taps()
+    }
+
     /// Tap index of the template peak.
     pub fn peak_tap(&self) -> usize {
         self.peak_tap

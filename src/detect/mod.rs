@@ -7,6 +7,8 @@ pub mod qfunc;
 pub mod stats;
 /// Noise-gate moments and the fitted noise model.
 pub mod noise;
+/// Noise colour (pooled gate autocorrelation) and the detector output's sigma.
+pub mod colour;
 /// Maxima of correlated Gaussian sequences: per-report thresholds.
 pub mod extreme;
 /// Range gate and noise gates in sample indices.
@@ -15,6 +17,8 @@ pub mod gates;
 pub mod detector;
 /// Timing methods and their uncertainties.
 pub mod timing;
+/// Sub-sample phase bias of the interpolating timing methods, measured and removed.
+pub mod phase;
 /// Learning the pulse shape from aligned shots (equivalent time).
 pub mod template;
 /// Thresholds and Pd with the noise mean and sigma estimated from a finite gate.

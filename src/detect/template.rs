@@ -36,16 +36,31 @@ pub struct TemplateLearner {
     /// Grid start relative to the peak, samples.
     lo: f64,
     sums: Vec<f64>,
+    /// Σ of squares per bin: the bin's standard error decides where the
+    /// learned pulse ends and noise begins.
+    squares: Vec<f64>,
     counts: Vec<u64>,
     shots: u64,
 }
+
+/// Tails below this fraction of the peak are cut from the learned table.
+const TAIL_FRACTION: f64 = 0.01;
+/// ...and so are bins whose mean is within this many standard errors of zero.
+const TAIL_SE: f64 = 3.0;
 
 impl TemplateLearner {
     /// A grid of `oversample` bins per sample over [lo, hi] samples around the peak.
     pub fn new(oversample: usize, lo: f64, hi: f64) -> TemplateLearner {
         let oversample = oversample.max(1);
         let bins = ((hi - lo) * oversample as f64).ceil() as usize + 1;
-        TemplateLearner { oversample, lo, sums: vec![0.0; bins], counts: vec![0; bins], shots: 0 }
+        TemplateLearner {
+            oversample,
+            lo,
+            sums: vec![0.0; bins],
+            squares: vec![0.0; bins],
+            counts: vec![0; bins],
+            shots: 0,
+        }
     }
 
     /// Adds one shot: samples `x` with noise mean `mean_v`, fitted peak at
@@ -63,8 +78,11 @@ impl TemplateLearner {
             if b >= bins as f64 {
                 break;
             }
-            if b >= 0.0 {
-                self.sums[b as usize] += (v - mean_v) / amplitude_v;
+            // Masked samples (NaN) are skipped.
+            if b >= 0.0 && v.is_finite() {
+                let u = (v - mean_v) / amplitude_v;
+                self.sums[b as usize] += u;
+                self.squares[b as usize] += u * u;
                 self.counts[b as usize] += 1;
             }
         }
@@ -99,13 +117,52 @@ impl TemplateLearner {
         let (d, h) = crate::dsp::interp::parabolic(smooth[p - 1], smooth[p], smooth[p + 1]);
         let step = 1.0 / self.oversample as f64;
         let peak_t = self.lo + (p as f64 + d) * step;
-        let table: Vec<f64> = mean.iter().map(|v| v / h).collect();
+        // The grid is wider than the pulse: where the shape is lost in noise
+        // (below 1 % of the peak, or within 3 standard errors of zero) the
+        // table ends, one sample beyond the last significant bin, so a
+        // matched filter or fit does not carry noisy taps.
+        let significant = |i: usize| {
+            let c = self.counts[i] as f64;
+            let var = (self.squares[i] / c - mean[i] * mean[i]).max(0.0);
+            let se = (var / c).sqrt();
+            smooth[i].abs() > (TAIL_FRACTION * h).max(TAIL_SE * se)
+        };
+        // Walk out from the peak; the pulse ends where a whole sample period
+        // of bins in a row is insignificant.
+        let run = self.oversample;
+        let (mut first_sig, mut quiet) = (p, 0);
+        for i in (0..p).rev() {
+            if significant(i) {
+                first_sig = i;
+                quiet = 0;
+            } else {
+                quiet += 1;
+                if quiet >= run {
+                    break;
+                }
+            }
+        }
+        let (mut last_sig, mut quiet) = (p, 0);
+        for i in p + 1..bins {
+            if significant(i) {
+                last_sig = i;
+                quiet = 0;
+            } else {
+                quiet += 1;
+                if quiet >= run {
+                    break;
+                }
+            }
+        }
+        let a = first_sig.saturating_sub(self.oversample);
+        let b = (last_sig + self.oversample).min(bins - 1);
+        let table: Vec<f64> = mean[a..=b].iter().map(|v| v / h).collect();
         Ok(PulseConfig {
             model: PulseModel::Table,
             rise_time_s: 0.0,
             fwhm_s: 0.0,
             table_step_s: step * dt_s,
-            table_first_s: (self.lo - peak_t) * dt_s,
+            table_first_s: (self.lo + a as f64 * step - peak_t) * dt_s,
             table,
         })
     }

@@ -5,6 +5,7 @@
 //! gates are counted against the same design, cumulatively per sensor.
 
 use super::{FrameError, Stage, Work};
+use crate::detect::colour::NoiseColour;
 use crate::detect::detector::{local_maxima, upcrossings, DetectorPlan};
 use crate::detect::extreme::{threshold_for_report, ReportThreshold};
 use crate::detect::finite_gate::{mean_error_inflation, t_quantile_from_z};
@@ -30,8 +31,10 @@ pub struct Detect {
     resolve: bool,
     resolver: Resolver,
     plan: Option<(f64, usize, Shape, DetectorPlan)>,
-    /// Thresholds already solved, by range-gate size.
-    thresholds: Vec<(usize, ReportThreshold)>,
+    /// Thresholds already solved, by range-gate size and output lag-1 correlation (in 1/512).
+    thresholds: Vec<((usize, i32), ReportThreshold)>,
+    /// Noise colour pooled over the noise gates: sets the output sigma and correlation.
+    colour: Option<NoiseColour>,
     /// Normalised gate outputs, for the empirical threshold mode.
     tail: Option<EmpiricalTail>,
     /// Noise-gate crossings since the pipeline started.
@@ -52,6 +55,7 @@ impl Detect {
             resolver: Resolver::default(),
             plan: None,
             thresholds: Vec::new(),
+            colour: None,
             tail: (scene.detector.threshold_mode == ThresholdMode::Empirical).then(EmpiricalTail::default),
             observed_total: 0,
             cells_total: 0.0,
@@ -59,7 +63,11 @@ impl Detect {
     }
 
     fn threshold(&mut self, cells: usize, rho1: f64) -> ReportThreshold {
-        if let Some(t) = self.thresholds.iter().find(|t| t.0 == cells) {
+        // Solving costs ~1 ms: the correlation is rounded to 1/512 so that a
+        // pooled estimate that barely moves reuses the solved threshold.
+        let key = (cells, (rho1 * 512.0).round() as i32);
+        let rho1 = key.1 as f64 / 512.0;
+        if let Some(t) = self.thresholds.iter().find(|t| t.0 == key) {
             return t.1;
         }
         let t = match self.scope {
@@ -73,7 +81,7 @@ impl Detect {
         if self.thresholds.len() >= 16 {
             self.thresholds.remove(0);
         }
-        self.thresholds.push((cells, t));
+        self.thresholds.push((key, t));
         t
     }
 }
@@ -92,11 +100,23 @@ impl Stage for Detect {
                 DetectorKind::MatchedFilter => DetectorPlan::matched_filter(&shape, n),
                 DetectorKind::Threshold => DetectorPlan::threshold(n),
             };
+            // Lags up to the template length are all the output's sigma depends on.
+            self.colour = Some(NoiseColour::new(plan.len()));
             self.plan = Some((dt, n, shape, plan));
         }
-        let rho1 = self.plan.as_ref().expect("built above").3.rho1();
+        let colour = self.colour.as_mut().expect("built with the plan");
+        if w.noise.samples >= 2 {
+            let (pre, beyond) = (&w.stop_v[w.gates.pre.clone()], &w.stop_v[w.gates.beyond.clone()]);
+            colour.add_frame([pre, beyond], w.noise.mean_v);
+        }
+        let out_colour = colour.output(self.plan.as_ref().expect("built above").3.taps());
+        let tau = colour.correlation_time();
+        // Output sigma per unit of the sample sigma (1 for white noise).
+        let out_gain = out_colour.variance_gain.sqrt();
+        w.out_gain = out_gain;
+        w.noise_rho = colour.rho().unwrap_or_default();
         let cells = w.gates.range.len();
-        let t = self.threshold(cells, rho1);
+        let t = self.threshold(cells, out_colour.rho1);
         let (_, _, shape, plan) = self.plan.as_mut().expect("built above");
         let (norm, dc_gain) = (plan.norm(), plan.dc_gain());
         let pre_pos = plan.positions_inside(&w.gates.pre);
@@ -108,7 +128,10 @@ impl Stage for Detect {
         // sigma keeps the design pfa for any gate size (see detect::finite_gate).
         let samples = w.noise.samples;
         w.nu = if samples > 1 { (samples - 1) as f64 } else { f64::INFINITY };
-        w.kappa = mean_error_inflation(dc_gain, samples);
+        // The gate mean's error is σ²τ/n (τ: correlation time in samples); in
+        // units of the output variance σ²g that is n·g/τ effective samples.
+        let mean_samples = (samples as f64 * out_colour.variance_gain / tau).round().max(1.0) as u64;
+        w.kappa = mean_error_inflation(dc_gain, if samples == 0 { 0 } else { mean_samples });
         w.threshold_t = t_quantile_from_z(t.u, w.nu);
         w.threshold_u = w.threshold_t * w.kappa;
         if let Some(tail) = &self.tail {
@@ -121,7 +144,7 @@ impl Stage for Detect {
                 None => w.report.flags.push("empirical_threshold_warming_up".into()),
             }
         }
-        let thr = w.threshold_u * w.sigma_v;
+        let thr = w.threshold_u * w.sigma_v * out_gain;
         local_maxima(&w.detector_output, w.gates.range.clone(), thr, &mut w.detections);
         w.components.clear();
         if w.noise.samples < 2 {
@@ -147,7 +170,7 @@ impl Stage for Detect {
         let y = &w.detector_output;
         if let Some(tail) = &mut self.tail {
             for p in pre_pos.clone().chain(beyond_pos.clone()) {
-                tail.add(y[p] / w.sigma_v);
+                tail.add(y[p] / (w.sigma_v * out_gain));
             }
         }
         let observed = upcrossings(y, pre_pos.clone(), thr) + upcrossings(y, beyond_pos.clone(), thr);

@@ -86,6 +86,10 @@ pub struct Work {
     pub kappa: f64,
     /// Degrees of freedom of the gate's sigma.
     pub nu: f64,
+    /// Detector output sigma per unit of `sigma_v` (√g of the noise colour; 1 for white noise).
+    pub out_gain: f64,
+    /// Normalised noise autocorrelation ρ(0..) pooled over the noise gates (empty: white).
+    pub noise_rho: Vec<f64>,
     /// The report being built.
     pub report: Report,
 }

@@ -6,6 +6,7 @@
 use super::{FrameError, Stage, Work};
 use crate::detect::detector::DetectorPlan;
 use crate::detect::noise::{mad_sigma, Moments};
+use crate::detect::phase::PhaseBias;
 use crate::detect::timing::{time_pulse, TimingInput};
 use crate::dsp::pulse::Shape;
 use crate::scene::{Scene, TimingMethod};
@@ -21,6 +22,8 @@ pub struct Start {
     pulse_cfg: crate::scene::PulseConfig,
     /// Plan for the current sampling period (rebuilt when it changes).
     plan: Option<(f64, Shape, DetectorPlan)>,
+    /// Phase bias of the method on the start shape, removed from every estimate.
+    phase: Option<PhaseBias>,
     volts: Vec<f64>,
     scratch: Vec<f64>,
 }
@@ -36,6 +39,7 @@ impl Start {
             reference_offset_s: scene.channels.reference_offset_s,
             pulse_cfg: scene.start_pulse.clone(),
             plan: None,
+            phase: None,
             volts: Vec::new(),
             scratch: Vec::new(),
         }
@@ -77,6 +81,7 @@ impl Stage for Start {
         if self.plan.as_ref().is_none_or(|p| p.0 != dt || p.2.len() > n + 1) {
             let pulse = Shape::from_config(&self.pulse_cfg, dt);
             let plan = DetectorPlan::matched_filter(&pulse, n);
+            self.phase = PhaseBias::measure(self.method, &pulse, self.fraction, true);
             self.plan = Some((dt, pulse, plan));
         }
         let (lo, hi) = self.plan.as_ref().expect("built above").1.support();
@@ -109,7 +114,7 @@ impl Stage for Start {
         let lo = peak.saturating_sub(w_half);
         let hi = (peak + w_half + 1).min(n);
         let y_peak = (lo..hi).max_by(|&a, &b| y[a].total_cmp(&y[b])).unwrap_or(peak);
-        let timed = time_pulse(
+        let mut timed = time_pulse(
             self.method,
             &TimingInput {
                 x,
@@ -123,6 +128,13 @@ impl Stage for Start {
                 leading_edge_v: self.leading_edge_v,
             },
         );
+        if let Some(pb) = &self.phase {
+            if pb.is_smooth() {
+                timed.index = pb.correct(timed.index);
+            } else {
+                timed.sigma_samples = timed.sigma_samples.hypot(pb.rms());
+            }
+        }
         w.t_ref_s = w.frame.sample_time_s(timed.index);
         w.t_ref_sigma_s = timed.sigma_samples * dt;
         if timed.fallback {

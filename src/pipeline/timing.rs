@@ -5,8 +5,9 @@
 use super::{FrameError, Stage, Work};
 use crate::detect::finite_gate::detection_probability;
 use crate::detect::resolve::MISFIT_LIMIT;
+use crate::detect::phase::PhaseBias;
 use crate::detect::timing::{crlb_samples, time_pulse, Timed, TimingInput};
-use crate::dsp::pulse::Shape;
+use crate::dsp::pulse::{PulseShape, Shape};
 use crate::frame::Return;
 use crate::scene::{DetectorKind, Scene, TimingMethod};
 
@@ -29,6 +30,25 @@ pub struct Timing {
     pulse_cfg: crate::scene::PulseConfig,
     /// Shape and its template norm for the current sampling period.
     pulse: Option<(f64, Shape, f64)>,
+    /// Phase bias of the method on this shape, removed from every estimate.
+    phase: Option<PhaseBias>,
+    /// The method fits the template (peak interpolation or maximum likelihood).
+    template_timed: bool,
+}
+
+/// Variance gain of coloured noise (normalised autocorrelation `rho`) on the
+/// unit-energy slope of `pulse` with its peak at `peak_index` (1 for white noise).
+fn slope_colour_gain(pulse: &Shape, n: usize, peak_index: f64, rho: &[f64]) -> f64 {
+    let (lo, hi) = pulse.support();
+    let first = (peak_index + lo).floor().max(0.0) as usize;
+    let last = ((peak_index + hi).ceil().max(0.0) as usize).min(n.saturating_sub(1));
+    let mut slope: Vec<f64> = (first..=last).map(|k| pulse.value_and_slope(k as f64 - peak_index).1).collect();
+    let e = slope.iter().map(|v| v * v).sum::<f64>().sqrt();
+    if !(e > 0.0) {
+        return 1.0;
+    }
+    slope.iter_mut().for_each(|v| *v /= e);
+    crate::detect::colour::output_gain(&slope, rho).variance_gain
 }
 
 impl Timing {
@@ -43,6 +63,11 @@ impl Timing {
             matched: scene.detector.kind == DetectorKind::MatchedFilter,
             pulse_cfg: scene.return_pulse.clone(),
             pulse: None,
+            phase: None,
+            template_timed: matches!(
+                scene.timing.method,
+                TimingMethod::Ml | TimingMethod::PeakParabolic | TimingMethod::PeakGaussian
+            ),
         }
     }
 }
@@ -61,6 +86,7 @@ impl Stage for Timing {
             } else {
                 1.0
             };
+            self.phase = PhaseBias::measure(self.method, &shape, self.fraction, self.matched);
             self.pulse = Some((dt, shape, norm));
         }
         let (_, pulse, norm) = self.pulse.as_ref().expect("set above");
@@ -86,7 +112,7 @@ impl Stage for Timing {
             }
         } else {
             for &p in w.detections.iter().take(MAX_RETURNS) {
-                let t = time_pulse(
+                let mut t = time_pulse(
                     self.method,
                     &TimingInput {
                         x,
@@ -100,6 +126,13 @@ impl Stage for Timing {
                         leading_edge_v: self.leading_edge_v,
                     },
                 );
+                if let Some(pb) = &self.phase {
+                    if pb.is_smooth() {
+                        t.index = pb.correct(t.index);
+                    } else {
+                        t.sigma_samples = t.sigma_samples.hypot(pb.rms());
+                    }
+                }
                 timed.push((p, t, 0.0));
             }
         }
@@ -108,9 +141,19 @@ impl Stage for Timing {
             let timed_peak = one.peak_index;
             let t_stop_s = w.frame.sample_time_s(one.index);
             let tof_s = t_stop_s - w.t_ref_s - self.delay_s;
-            let sigma_t = ((one.sigma_samples * dt).powi(2) + w.t_ref_sigma_s.powi(2)).sqrt();
+            // Template-based estimators fit as if the noise were white; in
+            // coloured noise their variance is the sandwich
+            // σ²·ṡᵀRṡ / (A²(ṡᵀṡ)²): the white bound times the colour's gain on
+            // the normalised slope. (Crossing methods read one sample's noise,
+            // which colour does not change.)
+            let sigma_stop = if self.template_timed && !w.noise_rho.is_empty() && one.sigma_samples.is_finite() {
+                one.sigma_samples * slope_colour_gain(pulse, n, one.peak_index, &w.noise_rho).sqrt()
+            } else {
+                one.sigma_samples
+            };
+            let sigma_t = ((sigma_stop * dt).powi(2) + w.t_ref_sigma_s.powi(2)).sqrt();
             let amplitude_v = one.amplitude_v;
-            let d = amplitude_v * norm / w.sigma_v;
+            let d = amplitude_v * norm / (w.sigma_v * w.out_gain);
             let mut flags = Vec::new();
             let first = (one.peak_index + lo).floor();
             let last = (one.peak_index + hi).ceil();
@@ -148,7 +191,7 @@ impl Stage for Timing {
                 tof_s,
                 amplitude_v,
                 snr_db: 20.0 * (amplitude_v.abs().max(f64::MIN_POSITIVE) / w.sigma_v).log10(),
-                score: w.detector_output[p] / (w.threshold_u * w.sigma_v),
+                score: w.detector_output[p] / (w.threshold_u * w.sigma_v * w.out_gain),
                 pd,
                 t_stop_s,
                 t_peak_s: w.frame.sample_time_s(one.peak_index),

@@ -137,6 +137,8 @@ impl Validate {
             threshold_t: 0.0,
             kappa: 1.0,
             nu: f64::INFINITY,
+            out_gain: 1.0,
+            noise_rho: Vec::new(),
             report,
         });
         Ok(())

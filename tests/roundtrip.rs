@@ -1,0 +1,111 @@
+//! `tofwave simulate` then `tofwave process`, as a user runs them: the ranges
+//! reported for the simulated lab set-up (six targets of the source's Table
+//! 10.20 along one beam) against the truth file the simulator wrote.
+
+use std::path::Path;
+use std::process::Command;
+
+fn run(args: &[&str]) -> String {
+    let out = Command::new(env!("CARGO_BIN_EXE_tofwave")).args(args).output().expect("runs");
+    assert!(out.status.success(), "tofwave {args:?}: {}", String::from_utf8_lossy(&out.stderr));
+    String::from_utf8(out.stdout).expect("utf-8")
+}
+
+fn scene(name: &str) -> String {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("replay-data/scenes").join(name).display().to_string()
+}
+
+/// One reported return matched to its true target: (target, error m, reported sigma m).
+fn matched(truth: &str, reports: &str) -> (Vec<(u64, f64, f64)>, usize) {
+    let c = 299_792_458.0 / 1.000268;
+    let mut rows = Vec::new();
+    let mut unmatched = 0;
+    for (t, r) in truth.lines().zip(reports.lines()) {
+        let t: serde_json::Value = serde_json::from_str(t).unwrap();
+        let r: serde_json::Value = serde_json::from_str(r).unwrap();
+        assert_eq!(t["sequence"], r["seq_first"], "truth and reports in step");
+        for x in r["returns"].as_array().unwrap() {
+            let tof = x["tof_s"].as_f64().unwrap();
+            let best = t["returns"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .min_by(|a, b| {
+                    let da = (a["tof_s"].as_f64().unwrap() - tof).abs();
+                    let db = (b["tof_s"].as_f64().unwrap() - tof).abs();
+                    da.total_cmp(&db)
+                })
+                .unwrap();
+            let dt = tof - best["tof_s"].as_f64().unwrap();
+            // Farther than a pulse width from every target: not a return of any.
+            if dt.abs() > 20e-9 {
+                unmatched += 1;
+                continue;
+            }
+            rows.push((best["target"].as_u64().unwrap(), dt * c / 2.0, x["range_sigma_m"].as_f64().unwrap()));
+        }
+    }
+    (rows, unmatched)
+}
+
+#[test]
+fn simulated_lab_ranges_match_the_truth_within_the_reported_uncertainty() {
+    let dir = std::env::temp_dir().join(format!("tofwave-roundtrip-{}", std::process::id()));
+    let rec = dir.join("lab.twr");
+    let truth_path = dir.join("truth.jsonl");
+    let frames = 300;
+    run(&[
+        "simulate",
+        "--scene",
+        &scene("lab-table-10-20.toml"),
+        "--frames",
+        &frames.to_string(),
+        "--seed",
+        "11",
+        "--out",
+        rec.to_str().unwrap(),
+        "--truth",
+        truth_path.to_str().unwrap(),
+    ]);
+    let reports = run(&["process", "--input", rec.to_str().unwrap(), "--scene", &scene("lab-table-10-20.toml")]);
+    let truth = std::fs::read_to_string(&truth_path).unwrap();
+    std::fs::remove_dir_all(&dir).ok();
+    let (rows, unmatched) = matched(&truth, &reports);
+
+    // Detection: the five returns above 0.39 V are found in every frame; the
+    // 20.8 mV return at 32 m is below a single shot's threshold (pfa 1e-6 per
+    // report); nothing else is reported.
+    assert_eq!(unmatched, 0, "returns that belong to no target");
+    for k in 0..5 {
+        let n = rows.iter().filter(|r| r.0 == k).count();
+        assert_eq!(n, frames, "target {k}: found in {n} of {frames} frames");
+    }
+    assert!(rows.iter().all(|r| r.0 != 5), "the 20.8 mV return is not reported single-shot");
+
+    // Calibration: the fixed delay is what the 3.45 m target's mean error is
+    // (as `tofwave calibrate` would fit on it); every range is then compared
+    // with the truth in units of its own reported sigma.
+    let cal = rows.iter().filter(|r| r.0 == 0).map(|r| r.1).sum::<f64>() / frames as f64;
+    let z: Vec<f64> = rows.iter().map(|r| ((r.1 - cal) / r.2).abs()).collect();
+    let coverage = |k: f64| z.iter().filter(|&&v| v <= k).count() as f64 / z.len() as f64;
+    let (c1, c2, c3) = (coverage(1.0), coverage(2.0), coverage(3.0));
+    eprintln!("coverage of the reported sigma over {} returns: 1σ {c1:.3}, 2σ {c2:.3}, 3σ {c3:.3}", z.len());
+    for k in 0..5 {
+        let e: Vec<f64> = rows.iter().filter(|r| r.0 == k).map(|r| r.1 - cal).collect();
+        let m = e.iter().sum::<f64>() / e.len() as f64;
+        let sd = (e.iter().map(|v| (v - m) * (v - m)).sum::<f64>() / (e.len() - 1) as f64).sqrt();
+        let sig = rows.iter().filter(|r| r.0 == k).map(|r| r.2).sum::<f64>() / e.len() as f64;
+        eprintln!("target {k}: bias {:+.2} cm, sd {:.2} cm, mean reported sigma {:.2} cm", m * 100.0, sd * 100.0, sig * 100.0);
+    }
+    // Stated coverage: at least 90 % of ranges within 2 reported sigmas and
+    // 97 % within 3 (Gaussian: 95.4 % and 99.7 %). With 1 500 returns the
+    // binomial standard error of a coverage near 0.92 is 0.007, so these
+    // bounds sit > 3 standard errors below what an honest sigma gives, and
+    // well above what a sigma half the true scatter would give (68 % at 2σ).
+    // Measured (seed 11): see the printed line; the deficit from Gaussian is
+    // the start-pulse timing, whose model shape differs from the simulated one.
+    assert!(c2 >= 0.90, "2σ coverage {c2:.3}");
+    assert!(c3 >= 0.97, "3σ coverage {c3:.3}");
+    // ...and the sigma is not inflated to pass: over half within 1σ (Gaussian 68 %).
+    assert!(c1 >= 0.5 && c1 <= 0.85, "1σ coverage {c1:.3}");
+}

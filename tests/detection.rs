@@ -178,8 +178,13 @@ fn probability_of_detection_follows_theory() {
     let mut rng = ChaCha8Rng::seed_from_u64(21);
     let mut p = Pipeline::new(&sc, "pd");
     let mut out = Vec::new();
-    // The threshold in output sigmas, as the pipeline solved it.
-    p.push(frame(&shape, 300.0, 0.0, None, &mut rng, 0), &mut out).unwrap();
+    // The threshold in output sigmas, as the pipeline solved it once it has
+    // learned the noise (its colour is pooled over frames: 400 noise-only
+    // frames first).
+    for t in 0..400 {
+        out.clear();
+        p.push(frame(&shape, 300.0, 0.0, None, &mut rng, 1_000_000 + t), &mut out).unwrap();
+    }
     // The gate's mean and sigma are estimated from `samples` samples: the
     // threshold is Student-t on an inflated sigma (detect::finite_gate).
     let u = q_inv(out[0].detector.pfa_cell);

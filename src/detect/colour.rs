@@ -25,8 +25,14 @@ pub struct NoiseColour {
     sums: Vec<f64>,
     /// Number of products per lag.
     counts: Vec<f64>,
-    /// Samples pooled (lag 0 count).
+    /// Σ over segments of (products at this lag) / (samples the frame's mean
+    /// was taken over): how much of the mean's variance each lag's sum lost
+    /// to centring on an estimated mean.
+    centring: Vec<f64>,
+    /// Frames offered.
     frames: u64,
+    /// Frames whose samples were added (halved with the sums).
+    added: f64,
 }
 
 /// Pooled samples beyond which old sums are halved, so that the estimate
@@ -43,7 +49,9 @@ impl NoiseColour {
         NoiseColour {
             sums: vec![0.0; max_lag + 1],
             counts: vec![0.0; max_lag + 1],
+            centring: vec![0.0; max_lag + 1],
             frames: 0,
+            added: 0.0,
         }
     }
 
@@ -62,8 +70,13 @@ impl NoiseColour {
         if self.counts[0] > POOL_CAP {
             self.sums.iter_mut().for_each(|s| *s *= 0.5);
             self.counts.iter_mut().for_each(|c| *c *= 0.5);
+            self.centring.iter_mut().for_each(|c| *c *= 0.5);
+            self.added *= 0.5;
         }
+        self.added += 1.0;
         let lags = self.sums.len();
+        let segments: Vec<&[f64]> = segments.into_iter().collect();
+        let total = segments.iter().map(|s| s.len()).sum::<usize>() as f64;
         let mut centred = Vec::new();
         for seg in segments {
             centred.clear();
@@ -75,24 +88,51 @@ impl NoiseColour {
                 let s: f64 = centred[..n - k].iter().zip(&centred[k..]).map(|(a, b)| a * b).sum();
                 self.sums[k] += s;
                 self.counts[k] += (n - k) as f64;
+                self.centring[k] += (n - k) as f64 / total;
             }
         }
     }
 
-    /// Normalised autocorrelation ρ(0..=max_lag) (ρ(0) = 1), or `None` before
+    /// Normalised autocorrelation ρ(0..=K) (ρ(0) = 1; K is `max_lag` or a
+    /// quarter of a frame's gate samples, whichever is less), or `None` before
     /// any noise sample has been seen or when the pooled variance is zero.
     pub fn rho(&self) -> Option<Vec<f64>> {
         if self.counts[0] < 2.0 || !(self.sums[0] > 0.0) {
             return None;
         }
-        let c0 = self.sums[0] / self.counts[0];
-        Some(
-            self.sums
-                .iter()
-                .zip(&self.counts)
-                .map(|(s, c)| if *c > 0.0 { (s / c / c0).clamp(-1.0, 1.0) } else { 0.0 })
-                .collect(),
-        )
+        // Centring each frame on its own gate mean takes the mean's variance,
+        // σ²τ/n, off every product's expectation: for white noise on a
+        // 200-sample gate that is −1/200 at every lag, which summed over a
+        // long template's lags would shrink the output sigma by several per
+        // cent. Added back with τ from the corrected estimate (a few
+        // fixed-point steps; τ changes little after the first).
+        //
+        // With v = σ²τ the corrected lag sums are g_k = (S_k + v W_k)/C_k and
+        // v = g_0 + 2 Σ g_k is linear in v: v = A / (1 − B). B grows with the
+        // lags used per gate sample; lags are therefore limited to a quarter
+        // of a frame's gate (B ≈ 1/2), and the correlation is taken as zero
+        // beyond (noise correlated over more than a quarter of the gate
+        // cannot be told from a wandering mean with such a gate).
+        let per_frame = self.counts[0] / self.added.max(1.0);
+        let lags = (self.sums.len() - 1).min((per_frame / 4.0).floor() as usize);
+        let (mut a, mut b) = (0.0, 0.0);
+        for k in 0..=lags {
+            if self.counts[k] > 0.0 {
+                let c = if k == 0 { 1.0 } else { 2.0 };
+                a += c * self.sums[k] / self.counts[k];
+                b += c * self.centring[k] / self.counts[k];
+            }
+        }
+        let v = if b < 0.9 { (a / (1.0 - b)).max(0.0) } else { 0.0 };
+        let mut g = vec![0.0; lags + 1];
+        for (k, gk) in g.iter_mut().enumerate() {
+            *gk = if self.counts[k] > 0.0 { (self.sums[k] + v * self.centring[k]) / self.counts[k] } else { 0.0 };
+        }
+        let c0 = g[0];
+        if !(c0 > 0.0) {
+            return None;
+        }
+        Some(g.iter().map(|gk| (gk / c0).clamp(-1.0, 1.0)).collect())
     }
 
     /// Integrated correlation time in samples, τ = 1 + 2 Σ_{k≥1} ρ(k): the
@@ -220,6 +260,41 @@ mod tests {
         // Truncated at lag 8 the true τ is 1 + 2 Σ_{1..8} φ^k.
         let tau_trunc = 1.0 + 2.0 * (1..=8).map(|k| phi.powi(k)).sum::<f64>();
         assert!((est.correlation_time() - tau_trunc).abs() < 0.3, "{} vs {tau_trunc} ({tau_true})", est.correlation_time());
+    }
+
+    #[test]
+    fn centring_on_each_frame_mean_does_not_bias_white_noise() {
+        // 5 000 frames of 200 white samples, each centred on its own mean:
+        // uncorrected, every lag would sit at -1/200 = -0.005. Corrected, the
+        // sum over 40 lags (what a 40-tap template's gain sees) is within its
+        // Monte-Carlo error (~40 x 1/sqrt(1e6) = 0.04 at most, 3 sigma) of 0.
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let mut est = NoiseColour::new(40);
+        for _ in 0..5000 {
+            let seg: Vec<f64> = (0..200).map(|_| StandardNormal.sample(&mut rng)).collect();
+            let mean = seg.iter().sum::<f64>() / 200.0;
+            est.add_frame([seg.as_slice()], mean);
+        }
+        let r = est.rho().unwrap();
+        let tail: f64 = r[1..].iter().sum();
+        assert!(tail.abs() < 0.04, "sum of rho(1..40) = {tail}");
+        assert!((est.correlation_time() - 1.0).abs() < 0.08, "{}", est.correlation_time());
+    }
+
+    #[test]
+    fn short_split_gate_with_long_lags_is_still_white() {
+        // A 218-sample gate in two pieces (190 + 28) sharing one mean, lags
+        // asked up to 100: the estimate uses a quarter of the gate (54 lags)
+        // and τ is 1 within its Monte-Carlo error (3 000 frames: ~0.02).
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let mut est = NoiseColour::new(100);
+        for _ in 0..3000 {
+            let seg: Vec<f64> = (0..218).map(|_| StandardNormal.sample(&mut rng)).collect();
+            let mean = seg.iter().sum::<f64>() / 218.0;
+            est.add_frame([&seg[..190], &seg[190..]], mean);
+        }
+        assert_eq!(est.rho().unwrap().len(), 55);
+        assert!((est.correlation_time() - 1.0).abs() < 0.06, "{}", est.correlation_time());
     }
 
     #[test]

@@ -31,7 +31,7 @@ pub struct Detect {
     resolve: bool,
     resolver: Resolver,
     plan: Option<(f64, usize, Shape, DetectorPlan)>,
-    /// Thresholds already solved, by range-gate size and output lag-1 correlation (in 1/512).
+    /// Thresholds already solved, by range-gate size and output lag-1 correlation (rounded).
     thresholds: Vec<((usize, i32), ReportThreshold)>,
     /// Noise colour pooled over the noise gates: sets the output sigma and correlation.
     colour: Option<NoiseColour>,
@@ -63,10 +63,12 @@ impl Detect {
     }
 
     fn threshold(&mut self, cells: usize, rho1: f64) -> ReportThreshold {
-        // Solving costs ~1 ms: the correlation is rounded to 1/512 so that a
-        // pooled estimate that barely moves reuses the solved threshold.
-        let key = (cells, (rho1 * 512.0).round() as i32);
-        let rho1 = key.1 as f64 / 512.0;
+        // Solving costs ~1 ms: the correlation is rounded so that a pooled
+        // estimate that barely moves reuses the solved threshold. What the
+        // threshold depends on is 1 − ρ1 (the up-crossing rate goes as its
+        // square root), so that is rounded, to 0.5 % relative steps.
+        let key = (cells, ((1.0 - rho1).max(1e-12).ln() * 200.0).round() as i32);
+        let rho1 = 1.0 - (key.1 as f64 / 200.0).exp();
         if let Some(t) = self.thresholds.iter().find(|t| t.0 == key) {
             return t.1;
         }

@@ -303,6 +303,8 @@ pub struct Report {
     pub returns: Vec<Return>,
     /// Time reference (start pulse instant, or trigger + offset) relative to the trigger, seconds.
     pub t_start_s: f64,
+    /// One-sigma uncertainty of `t_start_s`, seconds (0 when the trigger is the reference).
+    pub t_start_sigma_s: f64,
     /// Frame-level flags ("no_start_pulse", "laser_off", "noise_gate_small", ...).
     pub flags: Vec<String>,
 }

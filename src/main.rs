@@ -38,7 +38,7 @@ enum Command {
     Calibrate(CalibrateArgs),
     /// Print the embedded default scene (commented TOML), or check a scene file.
     Scene(SceneArgs),
-    /// Learn the return pulse shape from captures (equivalent-time alignment of many shots)
+    /// Learn the return pulse shape (and the start pulse shape, when the captures have a start channel) from captures (equivalent-time alignment of many shots)
     /// and write a scene that uses it.
     Template(TemplateArgs),
 }
@@ -435,6 +435,15 @@ fn template(a: TemplateArgs) -> Result<i32> {
         let dt = frames.first().map(|f| f.sample_interval_s).unwrap_or(1e-9);
         let (lo, hi) = Shape::from_config(&scene.return_pulse, dt).support();
         let learner = Arc::new(Mutex::new(TemplateLearner::new(a.oversample, 1.5 * lo, 1.5 * hi)));
+        // The start pulse's shape is learned the same way, aligned on the
+        // start timing: a start shape that does not match the pulse makes its
+        // timing depend on the sample phase, which no calibration removes.
+        let start_shape = Shape::from_config(&scene.start_pulse, dt);
+        let (slo, shi) = start_shape.support();
+        let start_learner = Arc::new(Mutex::new(TemplateLearner::new(a.oversample, 1.5 * slo, 1.5 * shi)));
+        let sl = start_learner.clone();
+        let start_offset = start_shape.fraction_offset(scene.timing.fraction);
+        let mut start_v = Vec::new();
         let mut pipeline = Pipeline::new(&scene, &a.common.sensor);
         let l = learner.clone();
         let min_snr = a.min_snr_db;
@@ -442,6 +451,16 @@ fn template(a: TemplateArgs) -> Result<i32> {
         let mut cleaned = Vec::new();
         pipeline.set_observer(Box::new(move |w| {
             let peak_of = |r: &tofwave::frame::Return| (r.t_peak_s - w.frame.first_sample_offset_s) / w.frame.sample_interval_s;
+            let timed_start = !w.report.flags.iter().any(|f| f.starts_with("no_start") || f == "start_timing_fallback");
+            if let (Some(s), true) = (w.start, timed_start) {
+                w.frame.channels[s].volts_into(&mut start_v);
+                let mut sorted = start_v.clone();
+                sorted.sort_by(f64::total_cmp);
+                let baseline = sorted[sorted.len() / 2];
+                let amplitude = sorted[sorted.len() - 1] - baseline;
+                let peak = (w.t_ref_s - w.frame.first_sample_offset_s) / w.frame.sample_interval_s - start_offset;
+                sl.lock().expect("not poisoned").add(&start_v, baseline, peak, amplitude);
+            }
             // Noise that fails the normality test (e.g. coarse quantisation) does not spoil a shot.
             let clean = |r: &tofwave::frame::Return| r.flags.iter().all(|f| f == "non_gaussian_noise");
             for (i, r) in w.report.returns.iter().enumerate() {
@@ -478,6 +497,19 @@ fn template(a: TemplateArgs) -> Result<i32> {
         pipeline.flush(&mut reports);
         let learner = learner.lock().expect("not poisoned");
         scene.return_pulse = learner.finish(dt).with_context(|| format!("pass {}", pass + 1))?;
+        let start_learner = start_learner.lock().expect("not poisoned");
+        if start_learner.shots() > 0 {
+            scene.start_pulse = start_learner
+                .finish(dt)
+                .with_context(|| format!("pass {}: learning the start pulse", pass + 1))?;
+            let s = Shape::from_config(&scene.start_pulse, dt);
+            eprintln!(
+                "tofwave template: pass {}: start pulse from {} shots, FWHM {:.3} ns",
+                pass + 1,
+                start_learner.shots(),
+                s.fwhm() * dt * 1e9
+            );
+        }
         let shape = Shape::from_config(&scene.return_pulse, dt);
         eprintln!(
             "tofwave template: pass {}: {} shots, FWHM {:.3} ns, half-rise {:.3} ns before the peak",
@@ -490,7 +522,7 @@ fn template(a: TemplateArgs) -> Result<i32> {
     scene.timing.method = user_method;
     scene.validate("learned scene")?;
     let text = format!(
-        "# tofwave scene with a return pulse shape learned by `tofwave template` from {}\n{}",
+        "# tofwave scene with the return (and start) pulse shapes learned by `tofwave template` from {}\n{}",
         a.common.input.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(", "),
         scene.to_toml()
     );

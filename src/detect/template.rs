@@ -105,7 +105,15 @@ impl TemplateLearner {
         if empty > 0 {
             return Err(TemplateError::Gaps { empty, bins });
         }
-        let mean: Vec<f64> = self.sums.iter().zip(&self.counts).map(|(s, &c)| s / c as f64).collect();
+        let raw: Vec<f64> = self.sums.iter().zip(&self.counts).map(|(s, &c)| s / c as f64).collect();
+        // Each bin carries its own noise, and a fit follows the table's
+        // slope, which differencing bins 1/oversample apart amplifies: the
+        // cost of a delay fit then has ripples a bin wide that trap the
+        // iteration. The pulse, sampled at 1/dt, has no content near the
+        // grid's own Nyquist rate, so a Gaussian of 0.15 sample (a 0.4 %
+        // loss at 0.1 cycle per sample, 1.8 % at 0.2) removes the bin noise
+        // and keeps the shape.
+        let mean = gaussian_smooth(&raw, 0.15 * self.oversample as f64);
         // A light 3-bin average before locating the peak, so one noisy bin does not move it.
         let smooth: Vec<f64> = (0..bins)
             .map(|i| {
@@ -156,7 +164,17 @@ impl TemplateLearner {
         }
         let a = first_sig.saturating_sub(self.oversample);
         let b = (last_sig + self.oversample).min(bins - 1);
-        let table: Vec<f64> = mean[a..=b].iter().map(|v| v / h).collect();
+        let mut table: Vec<f64> = mean[a..=b].iter().map(|v| v / h).collect();
+        // A half-Hann taper over one sample at each end: the shape then goes
+        // to zero smoothly where the table stops, so a fit that slides it
+        // against a fixed window sees no step at the ends.
+        let taper = self.oversample.min(table.len() / 4);
+        let len = table.len();
+        for i in 0..taper {
+            let w = 0.5 * (1.0 - (std::f64::consts::PI * (i as f64 + 0.5) / taper as f64).cos());
+            table[i] *= w;
+            table[len - 1 - i] *= w;
+        }
         Ok(PulseConfig {
             model: PulseModel::Table,
             rise_time_s: 0.0,
@@ -166,6 +184,29 @@ impl TemplateLearner {
             table,
         })
     }
+}
+
+/// `x` convolved with a unit-area Gaussian of `sigma_bins`, edges renormalised.
+fn gaussian_smooth(x: &[f64], sigma_bins: f64) -> Vec<f64> {
+    if !(sigma_bins > 0.0) {
+        return x.to_vec();
+    }
+    let half = (3.0 * sigma_bins).ceil() as isize;
+    let w: Vec<f64> = (-half..=half).map(|k| (-0.5 * (k as f64 / sigma_bins).powi(2)).exp()).collect();
+    let n = x.len() as isize;
+    (0..n)
+        .map(|i| {
+            let (mut s, mut ws) = (0.0, 0.0);
+            for (j, wk) in (-half..=half).zip(&w) {
+                let k = i + j;
+                if (0..n).contains(&k) {
+                    s += wk * x[k as usize];
+                    ws += wk;
+                }
+            }
+            s / ws
+        })
+        .collect()
 }
 
 #[cfg(test)]
@@ -192,7 +233,12 @@ mod tests {
             let (a, b) = (learned.value_and_slope(t + shift).0, truth.value_and_slope(t).0);
             assert!((a - b).abs() < 5e-3, "{t}: {a} vs {b}");
         }
-        assert!(shift.abs() < 0.1, "{shift}");
+        // The half-rise point sits a constant fraction of a sample off the
+        // truth's: 0.08 sample from the equivalent-time grid, and 0.065 more
+        // from the 0.15-sample smoothing on this fast (1.2-sample rise) pulse.
+        // A constant is what calibration removes; what must not be there is
+        // more than 0.2 sample of it.
+        assert!(shift.abs() < 0.2, "{shift}");
         assert!((learned.fwhm() - Shape::Parametric(truth).fwhm()).abs() < 0.02);
     }
 

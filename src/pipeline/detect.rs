@@ -51,7 +51,7 @@ impl Detect {
             pfa: scene.detector.pfa,
             scope: scene.detector.pfa_scope,
             pulse_cfg: scene.return_pulse.clone(),
-            resolve: scene.timing.method == TimingMethod::Ml && scene.detector.kind == DetectorKind::MatchedFilter,
+            resolve: scene.timing.method == TimingMethod::Ml && scene.detector.kind == DetectorKind::MatchedFilter && std::env::var("TW_NORESOLVE").is_err(),
             resolver: Resolver::default(),
             plan: None,
             thresholds: Vec::new(),

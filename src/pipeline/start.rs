@@ -98,7 +98,13 @@ impl Stage for Start {
         } else {
             (median, robust_sigma)
         };
-        let sigma = sigma.max(f64::MIN_POSITIVE);
+        // A start pulse far larger than its noise is timed on samples whose
+        // quantisation error is not dithered away: its edge sweeps through
+        // the codes, so each edge sample carries the full uniform error of
+        // one step (LSB²/12), whatever the quiet baseline shows.
+        let ch = &w.frame.channels[s];
+        let lsb = if ch.samples.is_integer() { ch.volts_per_code.abs() } else { 0.0 };
+        let sigma = (sigma * sigma + lsb * lsb / 12.0).sqrt().max(f64::MIN_POSITIVE);
         let amplitude = x[peak] - baseline;
         if !(amplitude >= self.min_amplitude_v.max(6.0 * sigma)) {
             w.report.flags.push("no_start_pulse".into());
@@ -141,6 +147,7 @@ impl Stage for Start {
             w.report.flags.push("start_timing_fallback".into());
         }
         w.report.t_start_s = w.t_ref_s;
+        w.report.t_start_sigma_s = w.t_ref_sigma_s;
         out.push(w);
         Ok(())
     }

@@ -201,6 +201,7 @@ pub fn report_to_proto(r: &Report, json: String) -> proto::Report {
             })
             .collect(),
         t_start_s: r.t_start_s,
+        t_start_sigma_s: r.t_start_sigma_s,
         flags: r.flags.clone(),
         json,
     }

@@ -6,6 +6,7 @@ use super::{FrameError, Stage, Work};
 use crate::detect::finite_gate::detection_probability;
 use crate::detect::resolve::MISFIT_LIMIT;
 use crate::detect::timing::{crlb_samples, time_pulse, Timed, TimingInput};
+use crate::detect::walk::WalkTable;
 use crate::dsp::pulse::Shape;
 use crate::frame::Return;
 use crate::scene::{DetectorKind, Scene, TimingMethod};
@@ -29,6 +30,8 @@ pub struct Timing {
     pulse_cfg: crate::scene::PulseConfig,
     /// Shape and its template norm for the current sampling period.
     pulse: Option<(f64, Shape, f64)>,
+    /// Leading-edge walk table (leading-edge timing with a calibrated table only).
+    walk: Option<WalkTable>,
 }
 
 impl Timing {
@@ -43,6 +46,11 @@ impl Timing {
             matched: scene.detector.kind == DetectorKind::MatchedFilter,
             pulse_cfg: scene.return_pulse.clone(),
             pulse: None,
+            walk: if scene.timing.method == TimingMethod::LeadingEdge {
+                WalkTable::new(&scene.calibration.walk_amplitude_v, &scene.calibration.walk_delay_s)
+            } else {
+                None
+            },
         }
     }
 }
@@ -106,7 +114,14 @@ impl Stage for Timing {
         let mut returns = Vec::with_capacity(timed.len());
         for (rank, &(p, one, misfit)) in timed.iter().enumerate() {
             let timed_peak = one.peak_index;
-            let t_stop_s = w.frame.sample_time_s(one.index);
+            // A comparator crossing comes earlier the larger the pulse: the
+            // calibrated walk at this amplitude moves it to where the table's
+            // reference amplitude would cross (not for a fallback timing).
+            let walk_s = match &self.walk {
+                Some(table) if !one.fallback => table.delay_s(one.amplitude_v),
+                _ => 0.0,
+            };
+            let t_stop_s = w.frame.sample_time_s(one.index) - walk_s;
             let tof_s = t_stop_s - w.t_ref_s - self.delay_s;
             let sigma_t = ((one.sigma_samples * dt).powi(2) + w.t_ref_sigma_s.powi(2)).sqrt();
             let amplitude_v = one.amplitude_v;

@@ -6,6 +6,8 @@
 //!
 //! Print the numbers with `cargo test --release --test walk -- --nocapture`.
 
+mod common;
+use common::Synth;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
@@ -159,4 +161,82 @@ fn walk_table_is_validated() {
     assert!(e.contains("calibration.walk_delay_s"), "{e}");
     s.calibration.walk_delay_s = vec![0.0, 1e-9];
     s.validate("x").unwrap();
+}
+
+fn tofwave(args: &[&str]) -> (i32, Vec<serde_json::Value>, String) {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_tofwave")).args(args).output().expect("runs");
+    let stdout = String::from_utf8(out.stdout).unwrap();
+    let reports = stdout.lines().map(|l| serde_json::from_str(l).expect("JSON line")).collect();
+    (out.status.code().unwrap_or(-1), reports, String::from_utf8(out.stderr).unwrap())
+}
+
+/// Captures of a target at `range_m` with return amplitude `amp`, start pulse
+/// on CH1, 3 mV noise, a 223.33 ns system delay, no quantisation.
+fn captures(scene: &Scene, path: &std::path::Path, range_m: f64, amp: f64, frames: u64, seed: u64) {
+    let tof = 2.0 * range_m / scene.c_medium_m_per_s() + 223.33e-9;
+    let s = Synth { returns: vec![(tof, amp)], noise_sigma_v: 0.003, quantise_8bit: None, ..Synth::prototype() };
+    let mut r = common::rng(seed);
+    let v: Vec<_> = (0..frames)
+        .map(|k| {
+            let mut st = s.clone();
+            st.start_time_s = (k as f64 * 0.37).fract() * 1e-9;
+            st.frame(scene, k, &mut r)
+        })
+        .collect();
+    tofwave::capture::write_recording(path, &v).unwrap();
+}
+
+#[test]
+fn calibrate_walk_on_the_command_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut scene = Scene::default_scene();
+    scene.timing.method = TimingMethod::LeadingEdge;
+    scene.timing.leading_edge_v = LEVEL_V;
+    let scene_path = dir.path().join("le.toml");
+    std::fs::write(&scene_path, scene.to_toml()).unwrap();
+    let cal_dir = dir.path().join("cal");
+    std::fs::create_dir(&cal_dir).unwrap();
+    for i in 0..16 {
+        let amp = 0.04 * (2.5f64 / 0.04).powf(i as f64 / 15.0);
+        captures(&scene, &cal_dir.join(format!("a{i:02}.twr")), 3.45, amp, 40, 100 + i as u64);
+    }
+    let (sp, cd) = (scene_path.to_str().unwrap(), cal_dir.to_str().unwrap());
+    let with = dir.path().join("walk.toml");
+    let without = dir.path().join("plain.toml");
+    let (code, _, err) =
+        tofwave(&["calibrate", "--input", cd, "--scene", sp, "--known-range-m", "3.45", "--walk", "--out", with.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    eprintln!("{err}");
+    let file = CalibrationFile::load(&with).unwrap();
+    assert!(file.calibration.walk_amplitude_v.len() >= 16, "{:?}", file.calibration);
+    let (code, _, err) =
+        tofwave(&["calibrate", "--input", cd, "--scene", sp, "--known-range-m", "3.45", "--out", without.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    // --walk belongs to leading-edge timing.
+    let (code, _, err) = tofwave(&[
+        "calibrate", "--input", cd, "--known-range-m", "3.45", "--walk", "--out", dir.path().join("x.toml").to_str().unwrap(),
+    ]);
+    assert_ne!(code, 0);
+    assert!(err.contains("leading_edge"), "{err}");
+    let mut worst = (0.0f64, 0.0f64);
+    for (i, amp) in [0.05, 0.3, 1.8].into_iter().enumerate() {
+        let input = dir.path().join(format!("t{i}.twr"));
+        captures(&scene, &input, 12.0, amp, 100, 200 + i as u64);
+        let mut means = Vec::new();
+        for cal in [&with, &without] {
+            let (code, reports, err) =
+                tofwave(&["process", "--input", input.to_str().unwrap(), "--scene", sp, "--calibration", cal.to_str().unwrap()]);
+            assert_eq!(code, 0, "{err}");
+            let r: Vec<f64> = reports.iter().map(|r| r["returns"][0]["range_m"].as_f64().unwrap()).collect();
+            assert_eq!(r.len(), 100);
+            means.push(r.iter().sum::<f64>() / 100.0 - 12.0);
+        }
+        eprintln!("12 m at {amp} V: mean range error with the walk table {:+.4} m, without {:+.4} m", means[0], means[1]);
+        worst.0 = worst.0.max(means[0].abs());
+        worst.1 = worst.1.max(means[1].abs());
+    }
+    // 0.1 ns is 1.5 cm of range; the mean of 100 shots at 0.05 V has a
+    // standard error of ~0.5 cm.
+    assert!(worst.0 < 0.03, "with the table: worst mean error {} m", worst.0);
+    assert!(worst.1 > 0.3, "without the table the walk shows: worst {} m", worst.1);
 }

@@ -476,7 +476,7 @@ impl CalibrationConfig {
                 "as many values as calibration.walk_amplitude_v",
             ));
         }
-        if a.iter().any(|v| !(v.is_finite() && *v > 0.0)) || a.windows(2).any(|w| !(w[1] > w[0])) {
+        if a.iter().any(|v| !(v.is_finite() && *v > 0.0)) || a.windows(2).any(|w| w[1] <= w[0]) {
             return Err(bad(
                 "calibration.walk_amplitude_v",
                 format!("{a:?}"),

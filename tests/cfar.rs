@@ -29,7 +29,9 @@ const TRAINING: usize = 16;
 /// White noise whose σ is 4× larger from `step_at` on.
 fn stepped_noise(rng: &mut ChaCha8Rng, n: usize, step_at: usize) -> Vec<f64> {
     let g = Normal::new(0.0, 1.0).unwrap();
-    (0..n).map(|k| g.sample(rng) * if k < step_at { SIGMA_LOW } else { SIGMA_HIGH }).collect()
+    (0..n)
+        .map(|k| g.sample(rng) * if k < step_at { SIGMA_LOW } else { SIGMA_HIGH })
+        .collect()
 }
 
 #[derive(Default, Debug)]
@@ -42,7 +44,14 @@ struct Counts {
 /// and training cells) lies on one side of the step, spaced so no two windows
 /// overlap (independent trials). `fixed_sigma`: a fixed threshold
 /// Q⁻¹(p)·σ instead of CFAR.
-fn count(method: CfarMethod, shape: Option<&Shape>, p: f64, frames: u64, seed: u64, fixed_sigma: Option<f64>) -> Counts {
+fn count(
+    method: CfarMethod,
+    shape: Option<&Shape>,
+    p: f64,
+    frames: u64,
+    seed: u64,
+    fixed_sigma: Option<f64>,
+) -> Counts {
     let mut plan = match shape {
         Some(s) => DetectorPlan::matched_filter(s, N),
         None => DetectorPlan::threshold(N),
@@ -71,7 +80,11 @@ fn count(method: CfarMethod, shape: Option<&Shape>, p: f64, frames: u64, seed: u
             None => cfar.thresholds(&x, &mut thr),
         }
         for &cell in &cells {
-            let side = if cell < STEP_AT { &mut c.quiet } else { &mut c.loud };
+            let side = if cell < STEP_AT {
+                &mut c.quiet
+            } else {
+                &mut c.loud
+            };
             side.1 += 1;
             if y[cell] > thr[cell] {
                 side.0 += 1;
@@ -83,7 +96,10 @@ fn count(method: CfarMethod, shape: Option<&Shape>, p: f64, frames: u64, seed: u
 
 fn report(label: &str, p: f64, c: &Counts) -> [bool; 2] {
     let mut ok = [false; 2];
-    for (i, (name, (hits, trials))) in [("quiet", c.quiet), ("loud", c.loud)].into_iter().enumerate() {
+    for (i, (name, (hits, trials))) in [("quiet", c.quiet), ("loud", c.loud)]
+        .into_iter()
+        .enumerate()
+    {
         let (lo, hi) = clopper_pearson(hits, trials, 0.99);
         ok[i] = lo <= p && p <= hi;
         eprintln!(
@@ -111,7 +127,10 @@ fn ca_cfar_holds_the_per_cell_rate_across_a_noise_step() {
     assert_eq!(report("CA-CFAR, matched filter", p, &mf), [true, true]);
     // The plain threshold detector (one tap): every cell is its own test.
     let thr = count(CfarMethod::CellAveraging, None, 1e-2, frames() / 4, 2, None);
-    assert_eq!(report("CA-CFAR, threshold detector", 1e-2, &thr), [true, true]);
+    assert_eq!(
+        report("CA-CFAR, threshold detector", 1e-2, &thr),
+        [true, true]
+    );
 }
 
 #[test]
@@ -119,8 +138,22 @@ fn os_cfar_holds_the_per_cell_rate_across_a_noise_step() {
     let p = 1e-3;
     let s = shape();
     let rank = CfarPlan::default_rank(TRAINING);
-    let mf = count(CfarMethod::OrderedStatistic { rank }, Some(&s), p, frames(), 3, None);
-    assert_eq!(report(&format!("OS-CFAR (k = {rank} of {}), matched filter", 2 * TRAINING), p, &mf), [true, true]);
+    let mf = count(
+        CfarMethod::OrderedStatistic { rank },
+        Some(&s),
+        p,
+        frames(),
+        3,
+        None,
+    );
+    assert_eq!(
+        report(
+            &format!("OS-CFAR (k = {rank} of {}), matched filter", 2 * TRAINING),
+            p,
+            &mf
+        ),
+        [true, true]
+    );
 }
 
 #[test]
@@ -129,12 +162,22 @@ fn a_fixed_threshold_fails_across_the_step() {
     // even): right on the quiet side, far off on the loud side.
     let p = 1e-3;
     let s = shape();
-    let c = count(CfarMethod::CellAveraging, Some(&s), p, frames() / 4, 4, Some(SIGMA_LOW));
+    let c = count(
+        CfarMethod::CellAveraging,
+        Some(&s),
+        p,
+        frames() / 4,
+        4,
+        Some(SIGMA_LOW),
+    );
     let ok = report("fixed threshold from the quiet gate", p, &c);
     assert!(ok[0], "the fixed threshold is right where its σ is");
     let loud_rate = c.loud.0 as f64 / c.loud.1 as f64;
     let (lo, _) = clopper_pearson(c.loud.0, c.loud.1, 0.99);
-    assert!(lo > 50.0 * p, "loud side rate {loud_rate} should be far above design {p}");
+    assert!(
+        lo > 50.0 * p,
+        "loud side rate {loud_rate} should be far above design {p}"
+    );
 }
 
 fn noise_frame(v: Vec<f64>, pre: usize, seq: u64) -> Frame {
@@ -150,7 +193,12 @@ fn noise_frame(v: Vec<f64>, pre: usize, seq: u64) -> Frame {
 }
 
 /// Noise-only reports with a return, pipeline with `cfar`; σ steps at `step_at`.
-fn pipeline_false_reports(cfar: CfarKind, frames: u64, seed: u64, step_at: usize) -> (u64, Vec<String>) {
+fn pipeline_false_reports(
+    cfar: CfarKind,
+    frames: u64,
+    seed: u64,
+    step_at: usize,
+) -> (u64, Vec<String>) {
     let mut scene = Scene::default_scene();
     scene.detector.pfa = 1e-2;
     scene.detector.cfar = cfar;
@@ -163,7 +211,11 @@ fn pipeline_false_reports(cfar: CfarKind, frames: u64, seed: u64, step_at: usize
     for seq in 0..frames {
         // 1000 samples, 300 before the trigger; σ steps 4x at sample 650 (mid range gate).
         out.clear();
-        p.push(noise_frame(stepped_noise(&mut rng, 1000, step_at), 300, seq), &mut out).unwrap();
+        p.push(
+            noise_frame(stepped_noise(&mut rng, 1000, step_at), 300, seq),
+            &mut out,
+        )
+        .unwrap();
         if !out[0].returns.is_empty() {
             hits += 1;
         }

@@ -22,7 +22,11 @@ fn noise_frame(rng: &mut ChaCha8Rng, sigma: f64, seq: u64) -> Frame {
         trigger_time_s: seq as f64 * 1e-3,
         sample_interval_s: 1e-9,
         first_sample_offset_s: -300e-9,
-        channels: vec![Channel::from_volts("CH2", ChannelRole::Stop, (0..1000).map(|_| g.sample(rng)).collect())],
+        channels: vec![Channel::from_volts(
+            "CH2",
+            ChannelRole::Stop,
+            (0..1000).map(|_| g.sample(rng)).collect(),
+        )],
         laser_off: true,
     }
 }
@@ -52,9 +56,15 @@ fn sigma_step_is_tracked_within_three_time_constants() {
     let sig: Vec<f64> = out.iter().map(|r| r.noise.sigma_v).collect();
     // After k frames at the new level the old level keeps weight λ^k = e^(−k/N):
     // σ_k² = (1 − e^(−k/N)) σ₂² + e^(−k/N) σ₁².
-    let model = |k: f64| ((1.0 - (-k / TAU as f64).exp()) * s2 * s2 + (-k / TAU as f64).exp() * s1 * s1).sqrt();
+    let model = |k: f64| {
+        ((1.0 - (-k / TAU as f64).exp()) * s2 * s2 + (-k / TAU as f64).exp() * s1 * s1).sqrt()
+    };
     for k in [1usize, TAU as usize, 3 * TAU as usize] {
-        eprintln!("{k} frames after the step: sigma {:.5} V (model {:.5}, new level {s2})", sig[k - 1], model(k as f64));
+        eprintln!(
+            "{k} frames after the step: sigma {:.5} V (model {:.5}, new level {s2})",
+            sig[k - 1],
+            model(k as f64)
+        );
     }
     eprintln!(
         "before the step: sigma {:.5} V from {} effective samples",
@@ -65,10 +75,18 @@ fn sigma_step_is_tracked_within_three_time_constants() {
     let n_eff = before.samples as f64;
     assert!(n_eff > 5000.0, "effective samples {n_eff}");
     let tol = 3.3 / (2.0 * n_eff).sqrt();
-    assert!((before.sigma_v / s1 - 1.0).abs() < tol, "settled sigma {} vs {s1}", before.sigma_v);
+    assert!(
+        (before.sigma_v / s1 - 1.0).abs() < tol,
+        "settled sigma {} vs {s1}",
+        before.sigma_v
+    );
     for (k, s) in sig.iter().enumerate() {
         let m = model((k + 1) as f64);
-        assert!((s / m - 1.0).abs() < tol, "frame {} after the step: {s} vs model {m}", k + 1);
+        assert!(
+            (s / m - 1.0).abs() < tol,
+            "frame {} after the step: {s} vs model {m}",
+            k + 1
+        );
     }
     // "Tracked within 3N frames": within 5 % of the new level.
     assert!((sig[3 * TAU as usize - 1] / s2 - 1.0).abs() < 0.05);
@@ -80,9 +98,16 @@ fn sigma_step_is_tracked_within_three_time_constants() {
 fn without_forgetting_each_frame_is_fitted_on_its_own_gates() {
     let sc = scene(0);
     let mut p = Pipeline::new(&sc, "f");
-    let seen: Arc<Mutex<Vec<(Vec<f64>, std::ops::Range<usize>, std::ops::Range<usize>)>>> = Arc::default();
+    type Gates = (Vec<f64>, std::ops::Range<usize>, std::ops::Range<usize>);
+    let seen: Arc<Mutex<Vec<Gates>>> = Arc::default();
     let sink = seen.clone();
-    p.set_observer(Box::new(move |w| sink.lock().unwrap().push((w.stop_v.clone(), w.gates.pre.clone(), w.gates.beyond.clone()))));
+    p.set_observer(Box::new(move |w| {
+        sink.lock().unwrap().push((
+            w.stop_v.clone(),
+            w.gates.pre.clone(),
+            w.gates.beyond.clone(),
+        ))
+    }));
     let mut rng = ChaCha8Rng::seed_from_u64(2);
     let mut out = Vec::new();
     for seq in 0..20 {
@@ -92,7 +117,10 @@ fn without_forgetting_each_frame_is_fitted_on_its_own_gates() {
     let seen = seen.lock().unwrap();
     let mut fitter = NoiseFitter::default();
     for (r, (x, pre, beyond)) in out.iter().zip(seen.iter()) {
-        let own: NoiseSummary = fitter.fit(&[&x[pre.clone()], &x[beyond.clone()]], sc.detector.normality_alpha);
+        let own: NoiseSummary = fitter.fit(
+            &[&x[pre.clone()], &x[beyond.clone()]],
+            sc.detector.normality_alpha,
+        );
         assert_eq!(r.noise, own, "frame {}", r.seq_first);
     }
     // The step shows at once.

@@ -15,7 +15,10 @@ use tofwave::detect::walk::fit_walk;
 use tofwave::dsp::pulse::{PulseShape, Shape};
 use tofwave::frame::{Channel, ChannelRole, Frame};
 use tofwave::pipeline::Pipeline;
-use tofwave::scene::{CalibrationConfig, CalibrationFile, CalibrationMeasurement, RangeGateConfig, Scene, TimingMethod};
+use tofwave::scene::{
+    CalibrationConfig, CalibrationFile, CalibrationMeasurement, RangeGateConfig, Scene,
+    TimingMethod,
+};
 
 const N: usize = 600;
 const PRE: usize = 200;
@@ -28,14 +31,19 @@ fn scene() -> Scene {
     let mut s = Scene::default_scene();
     s.timing.method = TimingMethod::LeadingEdge;
     s.timing.leading_edge_v = LEVEL_V;
-    s.range_gate = RangeGateConfig { min_m: 0.0, max_m: 30.0 };
+    s.range_gate = RangeGateConfig {
+        min_m: 0.0,
+        max_m: 30.0,
+    };
     s
 }
 
 /// A stop-only frame with one pulse of the scene's shape peaking at `peak` (samples).
 fn frame(shape: &Shape, peak: f64, amp: f64, rng: &mut ChaCha8Rng, seq: u64) -> Frame {
     let noise = Normal::new(0.0, SIGMA).unwrap();
-    let v = (0..N).map(|k| amp * shape.value_and_slope(k as f64 - peak).0 + noise.sample(rng)).collect();
+    let v = (0..N)
+        .map(|k| amp * shape.value_and_slope(k as f64 - peak).0 + noise.sample(rng))
+        .collect();
     Frame {
         sensor_id: "walk".into(),
         sequence: seq,
@@ -49,16 +57,31 @@ fn frame(shape: &Shape, peak: f64, amp: f64, rng: &mut ChaCha8Rng, seq: u64) -> 
 
 /// (amplitude estimate V, time of flight − true peak time s) of the strongest
 /// return of each of `shots` frames at amplitude `amp`, random sub-sample phase.
-fn measure(p: &mut Pipeline, shape: &Shape, amp: f64, shots: usize, rng: &mut ChaCha8Rng) -> Vec<(f64, f64)> {
+fn measure(
+    p: &mut Pipeline,
+    shape: &Shape,
+    amp: f64,
+    shots: usize,
+    rng: &mut ChaCha8Rng,
+) -> Vec<(f64, f64)> {
     let mut out = Vec::new();
     let mut got = Vec::with_capacity(shots);
     for t in 0..shots {
         let peak = 300.0 + rng.random::<f64>();
         out.clear();
-        p.push(frame(shape, peak, amp, rng, t as u64), &mut out).unwrap();
+        p.push(frame(shape, peak, amp, rng, t as u64), &mut out)
+            .unwrap();
         let truth_s = (peak - PRE as f64) * 1e-9;
-        if let Some(r) = out[0].returns.iter().max_by(|a, b| a.amplitude_v.total_cmp(&b.amplitude_v)) {
-            assert!(!r.flags.iter().any(|f| f == "timing_fallback"), "A = {amp}: {:?}", r.flags);
+        if let Some(r) = out[0]
+            .returns
+            .iter()
+            .max_by(|a, b| a.amplitude_v.total_cmp(&b.amplitude_v))
+        {
+            assert!(
+                !r.flags.iter().any(|f| f == "timing_fallback"),
+                "A = {amp}: {:?}",
+                r.flags
+            );
             got.push((r.amplitude_v, r.tof_s - truth_s));
         }
     }
@@ -68,7 +91,10 @@ fn measure(p: &mut Pipeline, shape: &Shape, amp: f64, shots: usize, rng: &mut Ch
 fn mean_sd(v: &[f64]) -> (f64, f64) {
     let n = v.len() as f64;
     let m = v.iter().sum::<f64>() / n;
-    (m, (v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (n - 1.0)).sqrt())
+    (
+        m,
+        (v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (n - 1.0)).sqrt(),
+    )
 }
 
 #[test]
@@ -88,12 +114,27 @@ fn walk_table_removes_leading_edge_walk() {
     }
     let fit = fit_walk(&pairs).expect("20 amplitude groups");
     let nodes: Vec<String> = (0..fit.amplitude_v.len())
-        .map(|i| format!("{:.4} V: {:+.3} ns ({})", fit.amplitude_v[i], fit.walk_delay_s[i] * 1e9, fit.counts[i]))
+        .map(|i| {
+            format!(
+                "{:.4} V: {:+.3} ns ({})",
+                fit.amplitude_v[i],
+                fit.walk_delay_s[i] * 1e9,
+                fit.counts[i]
+            )
+        })
         .collect();
-    eprintln!("walk table (amplitude: extra delay (returns)), {} excluded:\n  {}", fit.excluded, nodes.join("\n  "));
+    eprintln!(
+        "walk table (amplitude: extra delay (returns)), {} excluded:\n  {}",
+        fit.excluded,
+        nodes.join("\n  ")
+    );
     // Noise spreads the smallest levels' amplitude estimates over more than the
     // 10 % grouping ratio, so a level may give two adjacent nodes.
-    assert!(fit.amplitude_v.len() >= 20, "{} nodes", fit.amplitude_v.len());
+    assert!(
+        fit.amplitude_v.len() >= 20,
+        "{} nodes",
+        fit.amplitude_v.len()
+    );
     // What a calibration file holds; applying it goes through the same checks as `process --calibration`.
     let file = CalibrationFile {
         calibration: CalibrationConfig {
@@ -128,8 +169,14 @@ fn walk_table_removes_leading_edge_walk() {
     let mut p_without = Pipeline::new(&without, "without");
     let (mut min_plain, mut max_plain) = (f64::INFINITY, f64::NEG_INFINITY);
     for amp in [0.05, 0.08, 0.13, 0.22, 0.37, 0.6, 1.0, 1.5, 2.0] {
-        let e_without: Vec<f64> = measure(&mut p_without, &shape, amp, shots, &mut rng).iter().map(|p| p.1 * 1e9).collect();
-        let e_with: Vec<f64> = measure(&mut p_with, &shape, amp, shots, &mut rng).iter().map(|p| p.1 * 1e9).collect();
+        let e_without: Vec<f64> = measure(&mut p_without, &shape, amp, shots, &mut rng)
+            .iter()
+            .map(|p| p.1 * 1e9)
+            .collect();
+        let e_with: Vec<f64> = measure(&mut p_with, &shape, amp, shots, &mut rng)
+            .iter()
+            .map(|p| p.1 * 1e9)
+            .collect();
         assert_eq!(e_with.len(), shots, "every shot detected at {amp} V");
         let (b0, _) = mean_sd(&e_without);
         let (b1, sd1) = mean_sd(&e_with);
@@ -141,11 +188,21 @@ fn walk_table_removes_leading_edge_walk() {
         max_plain = max_plain.max(b0);
         // The requirement is |bias| < 0.1 ns; the standard error must be small
         // against it for the check to mean anything (3.3 SE < 0.1 ns: 99.9 %).
-        assert!(3.3 * se < 0.1, "A = {amp}: standard error {se} ns too large for the check");
+        assert!(
+            3.3 * se < 0.1,
+            "A = {amp}: standard error {se} ns too large for the check"
+        );
         assert!(b1.abs() < 0.1, "A = {amp} V: bias with the table {b1} ns");
     }
-    eprintln!("walk without the table: {:.2} ns from 0.05 V to 2 V", max_plain - min_plain);
-    assert!(max_plain - min_plain > 3.0, "the walk to be removed is several ns: {}", max_plain - min_plain);
+    eprintln!(
+        "walk without the table: {:.2} ns from 0.05 V to 2 V",
+        max_plain - min_plain
+    );
+    assert!(
+        max_plain - min_plain > 3.0,
+        "the walk to be removed is several ns: {}",
+        max_plain - min_plain
+    );
 }
 
 #[test]
@@ -164,17 +221,32 @@ fn walk_table_is_validated() {
 }
 
 fn tofwave(args: &[&str]) -> (i32, Vec<serde_json::Value>, String) {
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_tofwave")).args(args).output().expect("runs");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_tofwave"))
+        .args(args)
+        .output()
+        .expect("runs");
     let stdout = String::from_utf8(out.stdout).unwrap();
-    let reports = stdout.lines().map(|l| serde_json::from_str(l).expect("JSON line")).collect();
-    (out.status.code().unwrap_or(-1), reports, String::from_utf8(out.stderr).unwrap())
+    let reports = stdout
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("JSON line"))
+        .collect();
+    (
+        out.status.code().unwrap_or(-1),
+        reports,
+        String::from_utf8(out.stderr).unwrap(),
+    )
 }
 
 /// Captures of a target at `range_m` with return amplitude `amp`, start pulse
 /// on CH1, 3 mV noise, a 223.33 ns system delay, no quantisation.
 fn captures(scene: &Scene, path: &std::path::Path, range_m: f64, amp: f64, frames: u64, seed: u64) {
     let tof = 2.0 * range_m / scene.c_medium_m_per_s() + 223.33e-9;
-    let s = Synth { returns: vec![(tof, amp)], noise_sigma_v: 0.003, quantise_8bit: None, ..Synth::prototype() };
+    let s = Synth {
+        returns: vec![(tof, amp)],
+        noise_sigma_v: 0.003,
+        quantise_8bit: None,
+        ..Synth::prototype()
+    };
     let mut r = common::rng(seed);
     let v: Vec<_> = (0..frames)
         .map(|k| {
@@ -198,23 +270,60 @@ fn calibrate_walk_on_the_command_line() {
     std::fs::create_dir(&cal_dir).unwrap();
     for i in 0..16 {
         let amp = 0.04 * (2.5f64 / 0.04).powf(i as f64 / 15.0);
-        captures(&scene, &cal_dir.join(format!("a{i:02}.twr")), 3.45, amp, 40, 100 + i as u64);
+        captures(
+            &scene,
+            &cal_dir.join(format!("a{i:02}.twr")),
+            3.45,
+            amp,
+            40,
+            100 + i as u64,
+        );
     }
     let (sp, cd) = (scene_path.to_str().unwrap(), cal_dir.to_str().unwrap());
     let with = dir.path().join("walk.toml");
     let without = dir.path().join("plain.toml");
-    let (code, _, err) =
-        tofwave(&["calibrate", "--input", cd, "--scene", sp, "--known-range-m", "3.45", "--walk", "--out", with.to_str().unwrap()]);
+    let (code, _, err) = tofwave(&[
+        "calibrate",
+        "--input",
+        cd,
+        "--scene",
+        sp,
+        "--known-range-m",
+        "3.45",
+        "--walk",
+        "--out",
+        with.to_str().unwrap(),
+    ]);
     assert_eq!(code, 0, "{err}");
     eprintln!("{err}");
     let file = CalibrationFile::load(&with).unwrap();
-    assert!(file.calibration.walk_amplitude_v.len() >= 16, "{:?}", file.calibration);
-    let (code, _, err) =
-        tofwave(&["calibrate", "--input", cd, "--scene", sp, "--known-range-m", "3.45", "--out", without.to_str().unwrap()]);
+    assert!(
+        file.calibration.walk_amplitude_v.len() >= 16,
+        "{:?}",
+        file.calibration
+    );
+    let (code, _, err) = tofwave(&[
+        "calibrate",
+        "--input",
+        cd,
+        "--scene",
+        sp,
+        "--known-range-m",
+        "3.45",
+        "--out",
+        without.to_str().unwrap(),
+    ]);
     assert_eq!(code, 0, "{err}");
     // --walk belongs to leading-edge timing.
     let (code, _, err) = tofwave(&[
-        "calibrate", "--input", cd, "--known-range-m", "3.45", "--walk", "--out", dir.path().join("x.toml").to_str().unwrap(),
+        "calibrate",
+        "--input",
+        cd,
+        "--known-range-m",
+        "3.45",
+        "--walk",
+        "--out",
+        dir.path().join("x.toml").to_str().unwrap(),
     ]);
     assert_ne!(code, 0);
     assert!(err.contains("leading_edge"), "{err}");
@@ -224,19 +333,40 @@ fn calibrate_walk_on_the_command_line() {
         captures(&scene, &input, 12.0, amp, 100, 200 + i as u64);
         let mut means = Vec::new();
         for cal in [&with, &without] {
-            let (code, reports, err) =
-                tofwave(&["process", "--input", input.to_str().unwrap(), "--scene", sp, "--calibration", cal.to_str().unwrap()]);
+            let (code, reports, err) = tofwave(&[
+                "process",
+                "--input",
+                input.to_str().unwrap(),
+                "--scene",
+                sp,
+                "--calibration",
+                cal.to_str().unwrap(),
+            ]);
             assert_eq!(code, 0, "{err}");
-            let r: Vec<f64> = reports.iter().map(|r| r["returns"][0]["range_m"].as_f64().unwrap()).collect();
+            let r: Vec<f64> = reports
+                .iter()
+                .map(|r| r["returns"][0]["range_m"].as_f64().unwrap())
+                .collect();
             assert_eq!(r.len(), 100);
             means.push(r.iter().sum::<f64>() / 100.0 - 12.0);
         }
-        eprintln!("12 m at {amp} V: mean range error with the walk table {:+.4} m, without {:+.4} m", means[0], means[1]);
+        eprintln!(
+            "12 m at {amp} V: mean range error with the walk table {:+.4} m, without {:+.4} m",
+            means[0], means[1]
+        );
         worst.0 = worst.0.max(means[0].abs());
         worst.1 = worst.1.max(means[1].abs());
     }
     // 0.1 ns is 1.5 cm of range; the mean of 100 shots at 0.05 V has a
     // standard error of ~0.5 cm.
-    assert!(worst.0 < 0.03, "with the table: worst mean error {} m", worst.0);
-    assert!(worst.1 > 0.3, "without the table the walk shows: worst {} m", worst.1);
+    assert!(
+        worst.0 < 0.03,
+        "with the table: worst mean error {} m",
+        worst.0
+    );
+    assert!(
+        worst.1 > 0.3,
+        "without the table the walk shows: worst {} m",
+        worst.1
+    );
 }

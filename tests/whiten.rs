@@ -67,7 +67,8 @@ fn false_reports(whiten: bool, pfa: f64, frames: u64, seed: u64, phi: f64) -> (u
     let mut stages = Vec::new();
     for seq in 0..frames {
         out.clear();
-        p.push(frame(ar1(&mut rng, 1000, phi), 300, seq), &mut out).unwrap();
+        p.push(frame(ar1(&mut rng, 1000, phi), 300, seq), &mut out)
+            .unwrap();
         if !out[0].returns.is_empty() {
             hits += 1;
         }
@@ -134,7 +135,8 @@ fn whitened_detection_beats_the_plain_matched_filter_and_follows_theory() {
     let mut var_mf = 0.0;
     for (j, a) in taps.iter().enumerate() {
         for (k, b) in taps.iter().enumerate() {
-            var_mf += a * b / (s_norm * s_norm) * SIGMA_X * SIGMA_X * PHI.powi(j.abs_diff(k) as i32);
+            var_mf +=
+                a * b / (s_norm * s_norm) * SIGMA_X * SIGMA_X * PHI.powi(j.abs_diff(k) as i32);
         }
     }
     let sigma_mf = var_mf.sqrt();
@@ -146,19 +148,27 @@ fn whitened_detection_beats_the_plain_matched_filter_and_follows_theory() {
     assert!(g_norm > d_plain_per_volt);
 
     // The pipeline's whitened output, threshold and deflection at the return's cell.
-    let seen: Arc<Mutex<Option<(f64, f64, f64, f64, f64)>>> = Arc::new(Mutex::new(None));
+    type Cell = (f64, f64, f64, f64, f64);
+    let seen: Arc<Mutex<Option<Cell>>> = Arc::new(Mutex::new(None));
     let mut p = Pipeline::new(&sc, "pd");
     let sink = seen.clone();
     p.set_observer(Box::new(move |w| {
         // unit-σ statistic, threshold (unit σ), Student-t threshold, kappa, nu
-        *sink.lock().unwrap() = Some((w.detector_output[PEAK] / w.sigma_v, w.threshold_u, w.threshold_t, w.kappa, w.nu));
+        *sink.lock().unwrap() = Some((
+            w.detector_output[PEAK] / w.sigma_v,
+            w.threshold_u,
+            w.threshold_t,
+            w.kappa,
+            w.nu,
+        ));
     }));
     let mut rng = ChaCha8Rng::seed_from_u64(21);
     let mut out = Vec::new();
     // Warm the noise model up on 64 noise-only frames.
     for seq in 0..64 {
         out.clear();
-        p.push(frame(ar1(&mut rng, N, PHI), PRE, seq), &mut out).unwrap();
+        p.push(frame(ar1(&mut rng, N, PHI), PRE, seq), &mut out)
+            .unwrap();
     }
     assert!(out[0].stages.iter().any(|s| s == "whiten"));
     let u = q_inv(out[0].detector.pfa_cell);
@@ -172,7 +182,8 @@ fn whitened_detection_beats_the_plain_matched_filter_and_follows_theory() {
                 *v += amp * shape.value_and_slope(k as f64 - PEAK as f64).0;
             }
             out.clear();
-            p.push(frame(x.clone(), PRE, 100 + t as u64), &mut out).unwrap();
+            p.push(frame(x.clone(), PRE, 100 + t as u64), &mut out)
+                .unwrap();
             let (z, thr, u_t, kappa, nu) = seen.lock().unwrap().expect("observer ran");
             if z > thr {
                 white_hits += 1;
@@ -199,11 +210,21 @@ fn whitened_detection_beats_the_plain_matched_filter_and_follows_theory() {
             amp * d_plain_per_volt,
             half(predicted)
         );
-        assert!((white - predicted).abs() < half(predicted), "whitened Pd {white} vs {predicted}");
-        assert!((plain - plain_theory).abs() < half(plain_theory).max(3.0 / trials as f64), "plain Pd {plain} vs {plain_theory}");
+        assert!(
+            (white - predicted).abs() < half(predicted),
+            "whitened Pd {white} vs {predicted}"
+        );
+        assert!(
+            (plain - plain_theory).abs() < half(plain_theory).max(3.0 / trials as f64),
+            "plain Pd {plain} vs {plain_theory}"
+        );
         // Two independent binomial estimates: their difference's 99 % band.
-        let diff_band = 2.576 * ((white * (1.0 - white) + plain * (1.0 - plain)) / trials as f64).sqrt();
-        assert!(white - plain > diff_band, "whitening must gain: {white} vs {plain}");
+        let diff_band =
+            2.576 * ((white * (1.0 - white) + plain * (1.0 - plain)) / trials as f64).sqrt();
+        assert!(
+            white - plain > diff_band,
+            "whitening must gain: {white} vs {plain}"
+        );
     }
 }
 
@@ -212,14 +233,24 @@ fn whitening_waits_for_a_noise_model_and_default_scene_has_no_whiten_stage() {
     let mut p = Pipeline::new(&Scene::default_scene(), "d");
     let mut rng = ChaCha8Rng::seed_from_u64(3);
     let mut out = Vec::new();
-    p.push(frame(ar1(&mut rng, 1000, 0.9), 300, 0), &mut out).unwrap();
+    p.push(frame(ar1(&mut rng, 1000, 0.9), 300, 0), &mut out)
+        .unwrap();
     assert!(!out[0].stages.iter().any(|s| s == "whiten"));
     // A frame without noise gates (no pre-trigger samples, gate beyond the frame): no model, no stage.
     let mut sc = scene(true, 1e-2, 75.0);
     sc.noise_gate.beyond_range = false;
     let mut p = Pipeline::new(&sc, "w");
     out.clear();
-    p.push(frame(ar1(&mut rng, 600, 0.9), 0, 0), &mut out).unwrap();
-    assert!(!out[0].stages.iter().any(|s| s == "whiten"), "{:?}", out[0].stages);
-    assert!(out[0].flags.iter().any(|f| f == "whiten_warming_up"), "{:?}", out[0].flags);
+    p.push(frame(ar1(&mut rng, 600, 0.9), 0, 0), &mut out)
+        .unwrap();
+    assert!(
+        !out[0].stages.iter().any(|s| s == "whiten"),
+        "{:?}",
+        out[0].stages
+    );
+    assert!(
+        out[0].flags.iter().any(|f| f == "whiten_warming_up"),
+        "{:?}",
+        out[0].flags
+    );
 }

@@ -98,7 +98,11 @@ fn os_ln_density(n: usize, k: usize, z_max: f64) -> (Vec<f64>, f64) {
             } else {
                 0.0
             };
-            let ln_g = if n > k { (n - k) as f64 * ln_upper } else { 0.0 };
+            let ln_g = if n > k {
+                (n - k) as f64 * ln_upper
+            } else {
+                0.0
+            };
             ln_c + ln_f + ln_g + std::f64::consts::LN_2 + ln_phi(z)
         })
         .collect();
@@ -109,7 +113,10 @@ fn os_ln_density(n: usize, k: usize, z_max: f64) -> (Vec<f64>, f64) {
 fn os_ln_pfa_grid(alpha: f64, dens: &[f64], h: f64) -> f64 {
     let last = dens.len() - 1;
     let term = |i: usize| ln_q(alpha * i as f64 * h) + dens[i];
-    let top = (0..=last).map(term).filter(|v| v.is_finite()).fold(f64::NEG_INFINITY, f64::max);
+    let top = (0..=last)
+        .map(term)
+        .filter(|v| v.is_finite())
+        .fold(f64::NEG_INFINITY, f64::max);
     if !top.is_finite() {
         return f64::NEG_INFINITY;
     }
@@ -142,7 +149,11 @@ pub fn os_pfa(alpha: f64, n: usize, k: usize) -> f64 {
 /// beyond z = 12, and Q(αz)·z^(k−1) is negligible beyond αz = 40 + 2√k, so a
 /// large α (small N, small pfa) gets a grid fine enough for Q(αz)'s width 1/α.
 fn os_z_max(alpha: f64, k: usize) -> f64 {
-    if alpha > 0.0 { (12.0f64).min((40.0 + 2.0 * (k as f64).sqrt()) / alpha) } else { 12.0 }
+    if alpha > 0.0 {
+        (12.0f64).min((40.0 + 2.0 * (k as f64).sqrt()) / alpha)
+    } else {
+        12.0
+    }
 }
 
 /// OS-CFAR factor: the α with `os_pfa(α, n, k)` = `p_cell`.
@@ -218,7 +229,10 @@ impl CfarPlan {
         if let CfarMethod::OrderedStatistic { rank } = method
             && !(1..=2 * training).contains(&rank)
         {
-            return Err(CfarError::Rank { rank, max: 2 * training });
+            return Err(CfarError::Rank {
+                rank,
+                max: 2 * training,
+            });
         }
         if !(p_cell > 0.0 && p_cell <= 0.5) {
             return Err(CfarError::Probability(p_cell));
@@ -313,9 +327,14 @@ impl CfarPlan {
                 for p in 0..len {
                     let (a, b) = self.windows(p, len);
                     let n = a.len() + b.len();
-                    let ss = (self.prefix[a.end] - self.prefix[a.start]) + (self.prefix[b.end] - self.prefix[b.start]);
+                    let ss = (self.prefix[a.end] - self.prefix[a.start])
+                        + (self.prefix[b.end] - self.prefix[b.start]);
                     let alpha = self.factor(n);
-                    out.push(if n == 0 { f64::INFINITY } else { alpha * (ss.max(0.0) / n as f64).sqrt() });
+                    out.push(if n == 0 {
+                        f64::INFINITY
+                    } else {
+                        alpha * (ss.max(0.0) / n as f64).sqrt()
+                    });
                 }
             }
             CfarMethod::OrderedStatistic { .. } => {
@@ -359,7 +378,10 @@ mod tests {
         for alpha in [0.5, 2.0, 30.0] {
             let exact = 0.5 - f64::atan(alpha) / std::f64::consts::PI;
             let got = os_pfa(alpha, 1, 1);
-            assert!((got / exact - 1.0).abs() < 1e-6, "alpha {alpha}: {got} vs {exact}");
+            assert!(
+                (got / exact - 1.0).abs() < 1e-6,
+                "alpha {alpha}: {got} vs {exact}"
+            );
         }
         let a = os_factor(1e-3, 1, 1);
         assert!((0.5 - a.atan() / std::f64::consts::PI - 1e-3).abs() < 1e-9);

@@ -143,7 +143,8 @@ pub fn local_maxima_above(y: &[f64], range: Range<usize>, threshold: &[f64], out
     let end = range.end.min(y.len()).min(threshold.len());
     for p in range.start..end {
         let v = y[p];
-        if !(v > threshold[p]) {
+        // A NaN output or threshold is never a detection.
+        if v.partial_cmp(&threshold[p]) != Some(std::cmp::Ordering::Greater) {
             continue;
         }
         let left_ok = p == 0 || y[p - 1] < v;

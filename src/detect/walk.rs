@@ -52,7 +52,10 @@ impl WalkTable {
         if amplitude_v.is_empty() || amplitude_v.len() != delay_s.len() {
             return None;
         }
-        Some(WalkTable { ln_amplitude: amplitude_v.iter().map(|a| a.ln()).collect(), delay_s: delay_s.to_vec() })
+        Some(WalkTable {
+            ln_amplitude: amplitude_v.iter().map(|a| a.ln()).collect(),
+            delay_s: delay_s.to_vec(),
+        })
     }
 
     /// Extra delay for a return of `amplitude_v`, s: linear in ln A between
@@ -60,7 +63,7 @@ impl WalkTable {
     pub fn delay_s(&self, amplitude_v: f64) -> f64 {
         let (x, y) = (&self.ln_amplitude, &self.delay_s);
         let last = x.len() - 1;
-        if !(amplitude_v > 0.0) {
+        if amplitude_v.is_nan() || amplitude_v <= 0.0 {
             return y[0];
         }
         let u = amplitude_v.ln();
@@ -101,8 +104,11 @@ pub struct WalkFit {
 /// amplitude and mean delay. Non-finite or non-positive amplitudes are
 /// excluded.
 pub fn fit_walk(pairs: &[(f64, f64)]) -> Result<WalkFit, WalkError> {
-    let mut v: Vec<(f64, f64)> =
-        pairs.iter().copied().filter(|(a, d)| a.is_finite() && *a > 0.0 && d.is_finite()).collect();
+    let mut v: Vec<(f64, f64)> = pairs
+        .iter()
+        .copied()
+        .filter(|(a, d)| a.is_finite() && *a > 0.0 && d.is_finite())
+        .collect();
     let mut excluded = pairs.len() - v.len();
     v.sort_by(|a, b| a.0.total_cmp(&b.0));
     let mut nodes: Vec<(f64, f64, usize)> = Vec::new();
@@ -122,8 +128,10 @@ pub fn fit_walk(pairs: &[(f64, f64)]) -> Result<WalkFit, WalkError> {
         let mut dev: Vec<f64> = d.iter().map(|x| (x - med).abs()).collect();
         dev.sort_by(f64::total_cmp);
         let robust = 1.4826 * dev[dev.len() / 2];
-        let keep: Vec<&(f64, f64)> =
-            group.iter().filter(|p| robust == 0.0 || (p.1 - med).abs() <= 5.0 * robust).collect();
+        let keep: Vec<&(f64, f64)> = group
+            .iter()
+            .filter(|p| robust == 0.0 || (p.1 - med).abs() <= 5.0 * robust)
+            .collect();
         excluded += group.len() - keep.len();
         let n = keep.len() as f64;
         let ln_a = keep.iter().map(|p| p.0.ln()).sum::<f64>() / n;

@@ -60,7 +60,8 @@ impl ArModel {
             // k_m = −(c_m + Σ_{j=1}^{m−1} a_j c_{m−j}) / E_{m−1}
             let acc: f64 = c[m] + (1..m).map(|j| prev[j] * c[m - j]).sum::<f64>();
             let k = -acc / e;
-            if !(k.abs() < 1.0) || !k.is_finite() {
+            // NaN fails both tests: a non-finite k stops the recursion too.
+            if k.is_nan() || k.abs() >= 1.0 {
                 break;
             }
             let mut next = prev.clone();
@@ -70,7 +71,7 @@ impl ArModel {
             }
             next[m] = k;
             let e_next = e * (1.0 - k * k);
-            if !(e_next > 0.0) {
+            if e_next.is_nan() || e_next <= 0.0 {
                 break;
             }
             predictors.push(next);
@@ -142,14 +143,27 @@ impl AutocovarianceAccumulator {
     /// Accumulates lags 0..=`max_lag`.
     pub fn new(max_lag: usize) -> Self {
         let z = vec![0.0; max_lag + 1];
-        Self { shift: None, sum_x: 0.0, samples: 0.0, sum_xy: z.clone(), sum_a: z.clone(), sum_b: z.clone(), pairs: z }
+        Self {
+            shift: None,
+            sum_x: 0.0,
+            samples: 0.0,
+            sum_xy: z.clone(),
+            sum_a: z.clone(),
+            sum_b: z.clone(),
+            pairs: z,
+        }
     }
 
     /// Multiplies everything accumulated so far by `lambda` (0 < λ ≤ 1).
     pub fn forget(&mut self, lambda: f64) {
         self.sum_x *= lambda;
         self.samples *= lambda;
-        for v in [&mut self.sum_xy, &mut self.sum_a, &mut self.sum_b, &mut self.pairs] {
+        for v in [
+            &mut self.sum_xy,
+            &mut self.sum_a,
+            &mut self.sum_b,
+            &mut self.pairs,
+        ] {
             v.iter_mut().for_each(|s| *s *= lambda);
         }
     }
@@ -158,14 +172,20 @@ impl AutocovarianceAccumulator {
     /// sets the shift on the first call. Non-finite samples end the segment
     /// there (pairs never straddle them).
     pub fn add_segment(&mut self, x: &[f64], mean: f64) {
-        let shift = *self.shift.get_or_insert(if mean.is_finite() { mean } else { 0.0 });
+        let shift = *self
+            .shift
+            .get_or_insert(if mean.is_finite() { mean } else { 0.0 });
         for part in x.split(|v| !v.is_finite()) {
             let n = part.len();
             self.sum_x += part.iter().map(|v| v - shift).sum::<f64>();
             self.samples += n as f64;
             for k in 0..self.sum_xy.len().min(n) {
                 let (a, b) = (&part[..n - k], &part[k..]);
-                self.sum_xy[k] += a.iter().zip(b).map(|(u, v)| (u - shift) * (v - shift)).sum::<f64>();
+                self.sum_xy[k] += a
+                    .iter()
+                    .zip(b)
+                    .map(|(u, v)| (u - shift) * (v - shift))
+                    .sum::<f64>();
                 self.sum_a[k] += a.iter().map(|u| u - shift).sum::<f64>();
                 self.sum_b[k] += b.iter().map(|v| v - shift).sum::<f64>();
                 self.pairs[k] += (n - k) as f64;
@@ -187,7 +207,10 @@ impl AutocovarianceAccumulator {
         let m = self.sum_x / self.samples;
         (0..self.sum_xy.len())
             .take_while(|&k| self.pairs[k] > 0.0)
-            .map(|k| (self.sum_xy[k] - m * (self.sum_a[k] + self.sum_b[k]) + m * m * self.pairs[k]) / self.pairs[k])
+            .map(|k| {
+                (self.sum_xy[k] - m * (self.sum_a[k] + self.sum_b[k]) + m * m * self.pairs[k])
+                    / self.pairs[k]
+            })
             .collect()
     }
 }
@@ -322,7 +345,12 @@ mod tests {
 
     #[test]
     fn whitened_template_is_the_convolution() {
-        let w = Whitener { filters: vec![vec![1.0], vec![2.0, -1.0]] };
-        assert_eq!(w.whiten_template(&[1.0, 2.0, 3.0]), vec![2.0, 3.0, 4.0, -3.0]);
+        let w = Whitener {
+            filters: vec![vec![1.0], vec![2.0, -1.0]],
+        };
+        assert_eq!(
+            w.whiten_template(&[1.0, 2.0, 3.0]),
+            vec![2.0, 3.0, 4.0, -3.0]
+        );
     }
 }

@@ -371,14 +371,15 @@ fn update_whitener(ws: &mut WhitenState, w: &Work, shape: &Shape, n: usize) -> b
         || ws.plan.as_ref().is_none_or(|p| p.0 < n)
         || ws.frames.is_power_of_two()
         || ws.frames.is_multiple_of(ws.refit_frames);
-    if enough && due {
-        if let Some(model) = ArModel::levinson_durbin(&ws.acc.autocovariance(), ws.order) {
-            let wh = Whitener::new(&model);
-            let (taps, peak_tap) = shape.template();
-            let g = wh.whiten_template(&taps);
-            ws.plan = Some((n, DetectorPlan::from_template(g, peak_tap, n)));
-            ws.whitener = Some(wh);
-        }
+    if enough
+        && due
+        && let Some(model) = ArModel::levinson_durbin(&ws.acc.autocovariance(), ws.order)
+    {
+        let wh = Whitener::new(&model);
+        let (taps, peak_tap) = shape.template();
+        let g = wh.whiten_template(&taps);
+        ws.plan = Some((n, DetectorPlan::from_template(g, peak_tap, n)));
+        ws.whitener = Some(wh);
     }
     ws.whitener.is_some() && ws.plan.as_ref().is_some_and(|p| p.0 >= n)
 }

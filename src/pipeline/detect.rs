@@ -13,7 +13,9 @@
 //!   forgetting). The whitened output has unit σ; it is stored scaled by
 //!   σ_eff = ‖s‖/‖h ∗ s‖ volts (the white-noise σ that would give the same
 //!   matched-filter deflection), so amplitudes (output/‖s‖), thresholds,
-//!   scores and Pd downstream keep their meaning. The report lists `whiten`
+//!   scores and Pd downstream keep their meaning; `snr_db` and the
+//!   Cramér-Rao `range_sigma_m` are then computed with σ_eff (the
+//!   white-noise equivalent), not with the coloured noise itself. The report lists `whiten`
 //!   only for frames where it ran (a model exists). Overlapping returns are
 //!   not resolved jointly while whitening (each is timed alone).
 //! * `detector.cfar = "ca" | "os"`: a per-cell threshold from the local noise

@@ -98,6 +98,11 @@ struct CalibrateArgs {
     /// Calibration file to write (TOML); pass it to `process --calibration`.
     #[arg(long, value_name = "FILE")]
     out: PathBuf,
+    /// Also fit the leading-edge amplitude walk table (timing method leading_edge):
+    /// give captures of the target at several amplitudes (returns within 10 % of
+    /// each other in amplitude form one table node; at least 5 per node).
+    #[arg(long)]
+    walk: bool,
 }
 
 #[derive(Args, Debug)]
@@ -348,7 +353,13 @@ fn calibrate(a: CalibrateArgs) -> Result<i32> {
         bail!("--known-range-m {r}: must be a positive, finite range in metres");
     }
     let mut scene = load_scene(&a.common)?;
-    scene.calibration.delay_s = 0.0;
+    if a.walk && scene.timing.method != TimingMethod::LeadingEdge {
+        bail!(
+            "--walk: the walk table belongs to leading-edge timing; the scene's timing.method is {} (pass --timing leading_edge)",
+            scene.timing.method.name()
+        );
+    }
+    scene.calibration = tofwave::scene::CalibrationConfig::default();
     let (reports, refused) = run(&scene, &a.common)?;
     let true_tof_s = 2.0 * r / scene.c_medium_m_per_s();
     // The strongest return of each report is the calibration target.
@@ -380,18 +391,52 @@ fn calibrate(a: CalibrateArgs) -> Result<i32> {
     } else {
         0.0
     };
-    let mean_amp = keep.iter().map(|&i| amplitudes[i]).sum::<f64>() / n;
+    let mut mean_amp = keep.iter().map(|&i| amplitudes[i]).sum::<f64>() / n;
+    let mut calibration = tofwave::scene::CalibrationConfig { delay_s: mean, ..Default::default() };
+    let (mut used, mut var, mut n, mut mean) = (keep.len(), var, n, mean);
+    if a.walk {
+        // Walk: group by amplitude (every return; the outlier rejection is per group).
+        let pairs: Vec<(f64, f64)> = amplitudes.iter().copied().zip(delays.iter().copied()).collect();
+        let fit = tofwave::detect::walk::fit_walk(&pairs)?;
+        let table = tofwave::detect::walk::WalkTable::new(&fit.amplitude_v, &fit.walk_delay_s)
+            .expect("fit_walk gives at least two nodes");
+        // Residuals after the table, over the returns the fit kept (within 5 robust sigmas of their node).
+        let residuals: Vec<f64> = pairs
+            .iter()
+            .map(|&(amp, d)| d - fit.delay_s - table.delay_s(amp))
+            .collect();
+        used = fit.counts.iter().sum();
+        n = used as f64;
+        let mut sorted: Vec<f64> = residuals.iter().map(|v| v.abs()).collect();
+        sorted.sort_by(f64::total_cmp);
+        let cut = 5.0 * 1.4826 * sorted[sorted.len() / 2];
+        let kept: Vec<f64> = residuals.iter().copied().filter(|v| cut == 0.0 || v.abs() <= cut).collect();
+        let rm = kept.iter().sum::<f64>() / kept.len() as f64;
+        var = kept.iter().map(|v| (v - rm).powi(2)).sum::<f64>() / (kept.len() as f64 - 1.0).max(1.0);
+        mean = fit.delay_s;
+        mean_amp = fit.amplitude_v.iter().zip(&fit.counts).map(|(a, c)| a * *c as f64).sum::<f64>() / n;
+        calibration = tofwave::scene::CalibrationConfig {
+            delay_s: fit.delay_s,
+            walk_amplitude_v: fit.amplitude_v.clone(),
+            walk_delay_s: fit.walk_delay_s.clone(),
+        };
+        eprintln!("tofwave calibrate: walk table, {} nodes (amplitude V -> extra delay ns):", fit.amplitude_v.len());
+        for ((amp, d), c) in fit.amplitude_v.iter().zip(&fit.walk_delay_s).zip(&fit.counts) {
+            eprintln!("  {amp:.4} V -> {:+.4} ns ({c} returns)", d * 1e9);
+        }
+    }
     let file = CalibrationFile {
-        calibration: tofwave::scene::CalibrationConfig { delay_s: mean },
+        calibration,
         measurement: CalibrationMeasurement {
             known_range_m: r,
-            returns: keep.len() as u64,
-            excluded: (reports.len() - keep.len()) as u64,
+            returns: used as u64,
+            excluded: (reports.len() - used) as u64,
             delay_std_s: var.sqrt(),
             delay_sem_s: (var / n).sqrt(),
             mean_amplitude_v: mean_amp,
             timing_method: scene.timing.method,
             timing_fraction: scene.timing.fraction,
+            leading_edge_v: scene.timing.leading_edge_v,
             frames_averaged: scene.averaging.frames,
             inputs: a.common.input.iter().map(|p| p.display().to_string()).collect(),
         },
@@ -407,9 +452,9 @@ fn calibrate(a: CalibrateArgs) -> Result<i32> {
         "tofwave calibrate: delay {:.4} ns ± {:.4} ns (standard error; {} returns, std {:.4} ns, {} excluded) -> {}",
         mean * 1e9,
         (var / n).sqrt() * 1e9,
-        keep.len(),
+        used,
         var.sqrt() * 1e9,
-        reports.len() - keep.len(),
+        reports.len() - used,
         a.out.display()
     );
     Ok(if refused > 0 { 1 } else { 0 })

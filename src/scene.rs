@@ -244,6 +244,11 @@ pub struct NoiseGateConfig {
     pub beyond_range: bool,
     /// Minimum gate size before flagging.
     pub min_samples: usize,
+    /// Time constant, frames, of the exponentially forgetting noise model
+    /// (mean and sigma blended over frames with weight e^(−1/N) per frame, so
+    /// slow drift is followed without one frame throwing the model).
+    /// 0 (the default): each frame's model is fitted on that frame's gates alone.
+    pub forgetting_frames: u32,
 }
 
 impl Default for NoiseGateConfig {
@@ -253,6 +258,7 @@ impl Default for NoiseGateConfig {
             guard_s: 20e-9,
             beyond_range: true,
             min_samples: 32,
+            forgetting_frames: 0,
         }
     }
 }
@@ -299,6 +305,30 @@ pub enum ThresholdMode {
     Empirical,
 }
 
+/// Constant-false-alarm-rate thresholding against a background that varies along the frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CfarKind {
+    /// One threshold from the noise-gate model for the whole range gate.
+    Off,
+    /// Cell averaging: the local sigma is the RMS of the training cells.
+    Ca,
+    /// Ordered statistic: the local scale is the k-th smallest |training cell|
+    /// (robust to a second return in the training window).
+    Os,
+}
+
+impl CfarKind {
+    /// The stage name in reports (`cfar_ca`, `cfar_os`); empty when off.
+    pub fn name(self) -> &'static str {
+        match self {
+            CfarKind::Off => "",
+            CfarKind::Ca => "cfar_ca",
+            CfarKind::Os => "cfar_os",
+        }
+    }
+}
+
 /// Detector configuration.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -313,6 +343,19 @@ pub struct DetectorConfig {
     pub normality_alpha: f64,
     /// Gaussian or empirical threshold.
     pub threshold_mode: ThresholdMode,
+    /// Prewhiten data and template with an AR model of the gate noise before
+    /// the matched filter (coloured noise).
+    pub whiten: bool,
+    /// Order of the autoregressive noise model used for whitening.
+    pub whiten_order: usize,
+    /// CFAR thresholding: "off", "ca" or "os".
+    pub cfar: CfarKind,
+    /// CFAR guard cells on each side, beyond the samples the template covers.
+    pub cfar_guard_cells: usize,
+    /// CFAR training cells on each side.
+    pub cfar_training_cells: usize,
+    /// OS-CFAR rank k (1-based) among the 2·training cells; 0 = ⌈3/4 · 2·training⌉.
+    pub cfar_os_rank: usize,
 }
 
 impl Default for DetectorConfig {
@@ -323,6 +366,12 @@ impl Default for DetectorConfig {
             pfa_scope: PfaScope::Report,
             normality_alpha: 1e-3,
             threshold_mode: ThresholdMode::Gaussian,
+            whiten: false,
+            whiten_order: 8,
+            cfar: CfarKind::Off,
+            cfar_guard_cells: 2,
+            cfar_training_cells: 16,
+            cfar_os_rank: 0,
         }
     }
 }
@@ -398,6 +447,47 @@ impl Default for AveragingConfig {
 pub struct CalibrationConfig {
     /// Fixed start-to-stop delay, seconds.
     pub delay_s: f64,
+    /// Leading-edge walk table: return amplitudes, volts, strictly increasing.
+    /// Empty: no walk correction.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub walk_amplitude_v: Vec<f64>,
+    /// Leading-edge walk table: extra delay at each amplitude, seconds
+    /// (subtracted, with `delay_s`, from the time of flight; interpolated
+    /// linearly in ln amplitude, held constant beyond the ends).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub walk_delay_s: Vec<f64>,
+}
+
+impl CalibrationConfig {
+    /// Checks the walk table: equal lengths, finite, amplitudes positive and
+    /// strictly increasing, delays within ±1 s. Names the offending field.
+    pub fn validate_walk(&self, origin: &str) -> Result<(), SceneError> {
+        let bad = |field: &'static str, value: String, allowed: &'static str| SceneError::Invalid {
+            origin: origin.to_string(),
+            field,
+            value,
+            allowed,
+        };
+        let (a, d) = (&self.walk_amplitude_v, &self.walk_delay_s);
+        if a.len() != d.len() {
+            return Err(bad(
+                "calibration.walk_delay_s",
+                format!("{} values ({} amplitudes)", d.len(), a.len()),
+                "as many values as calibration.walk_amplitude_v",
+            ));
+        }
+        if a.iter().any(|v| !(v.is_finite() && *v > 0.0)) || a.windows(2).any(|w| w[1] <= w[0]) {
+            return Err(bad(
+                "calibration.walk_amplitude_v",
+                format!("{a:?}"),
+                "finite, positive, strictly increasing volts",
+            ));
+        }
+        if d.iter().any(|v| !(v.is_finite() && v.abs() <= 1.0)) {
+            return Err(bad("calibration.walk_delay_s", format!("{d:?}"), "finite, [-1, 1] s"));
+        }
+        Ok(())
+    }
 }
 
 /// Medium.
@@ -563,6 +653,13 @@ impl Scene {
         if g.min_samples < 2 {
             return Err(bad("noise_gate.min_samples", g.min_samples.to_string(), "[2, inf)"));
         }
+        if g.forgetting_frames > 1_000_000 {
+            return Err(bad(
+                "noise_gate.forgetting_frames",
+                g.forgetting_frames.to_string(),
+                "0 (off) or [1, 1000000] frames",
+            ));
+        }
         let det = &self.detector;
         if !(det.pfa > 0.0 && det.pfa <= 0.5) {
             return Err(bad("detector.pfa", det.pfa.to_string(), "(0, 0.5]"));
@@ -573,6 +670,42 @@ impl Scene {
                 det.normality_alpha.to_string(),
                 "(0, 1)",
             ));
+        }
+        if det.whiten && det.kind != DetectorKind::MatchedFilter {
+            return Err(bad(
+                "detector.whiten",
+                "true (with kind = \"threshold\")".into(),
+                "false unless detector.kind = \"matched_filter\" (whitening prewhitens the matched filter)",
+            ));
+        }
+        if det.whiten && !(1..=64).contains(&det.whiten_order) {
+            return Err(bad("detector.whiten_order", det.whiten_order.to_string(), "[1, 64]"));
+        }
+        if det.cfar != CfarKind::Off {
+            if !(1..=1024).contains(&det.cfar_training_cells) {
+                return Err(bad(
+                    "detector.cfar_training_cells",
+                    det.cfar_training_cells.to_string(),
+                    "[1, 1024] cells on each side",
+                ));
+            }
+            if det.cfar_guard_cells > 4096 {
+                return Err(bad("detector.cfar_guard_cells", det.cfar_guard_cells.to_string(), "[0, 4096]"));
+            }
+            if det.cfar == CfarKind::Os && det.cfar_os_rank > 2 * det.cfar_training_cells {
+                return Err(bad(
+                    "detector.cfar_os_rank",
+                    det.cfar_os_rank.to_string(),
+                    "0 (3/4 of the training cells) or [1, 2 * cfar_training_cells]",
+                ));
+            }
+            if det.threshold_mode == ThresholdMode::Empirical {
+                return Err(bad(
+                    "detector.threshold_mode",
+                    "\"empirical\" (with cfar)".into(),
+                    "\"gaussian\" when detector.cfar is \"ca\" or \"os\" (CFAR sets its own threshold)",
+                ));
+            }
         }
         let t = &self.timing;
         if !(t.fraction > 0.0 && t.fraction < 1.0) {
@@ -595,6 +728,7 @@ impl Scene {
                 "[-1, 1] s",
             ));
         }
+        self.calibration.validate_walk(origin)?;
         let n = self.medium.refractive_index;
         if !(n.is_finite() && (1.0..=4.0).contains(&n)) {
             return Err(bad("medium.refractive_index", n.to_string(), "[1, 4]"));
@@ -677,6 +811,10 @@ pub struct CalibrationMeasurement {
     pub timing_method: TimingMethod,
     /// Timing fraction the delay belongs to.
     pub timing_fraction: f64,
+    /// Leading-edge level the walk table belongs to, volts (0 in files
+    /// written before walk tables existed).
+    #[serde(default)]
+    pub leading_edge_v: f64,
     /// Frames averaged per report when measured.
     pub frames_averaged: u32,
     /// Inputs measured.
@@ -702,6 +840,7 @@ impl CalibrationFile {
                 allowed: "[-1, 1] s",
             });
         }
+        f.calibration.validate_walk(&path.display().to_string())?;
         Ok(f)
     }
 
@@ -716,7 +855,15 @@ impl CalibrationFile {
                 allowed: "the scene's timing.method and timing.fraction (re-run `tofwave calibrate` with this scene)",
             });
         }
-        scene.calibration.delay_s = self.calibration.delay_s;
+        if !self.calibration.walk_amplitude_v.is_empty() && scene.timing.leading_edge_v != m.leading_edge_v {
+            return Err(SceneError::Invalid {
+                origin: origin.to_string(),
+                field: "measurement.leading_edge_v",
+                value: m.leading_edge_v.to_string(),
+                allowed: "the scene's timing.leading_edge_v (a walk table belongs to one comparator level)",
+            });
+        }
+        scene.calibration = self.calibration.clone();
         Ok(())
     }
 }

@@ -34,6 +34,13 @@ impl DetectorPlan {
         Self::from_taps(vec![1.0], 0, max_samples)
     }
 
+    /// Matched filter for an arbitrary template (e.g. a whitened one): `taps`
+    /// in correlation order, `peak_tap` the tap at the pulse peak. The taps are
+    /// normalised to unit energy; [`norm`](Self::norm) keeps their ‖·‖.
+    pub fn from_template(taps: Vec<f64>, peak_tap: usize, max_samples: usize) -> DetectorPlan {
+        Self::from_taps(taps, peak_tap, max_samples)
+    }
+
     fn from_taps(mut taps: Vec<f64>, peak_tap: usize, max_samples: usize) -> DetectorPlan {
         let norm = taps.iter().map(|t| t * t).sum::<f64>().sqrt();
         for t in &mut taps {
@@ -132,6 +139,41 @@ pub fn local_maxima(y: &[f64], range: Range<usize>, threshold: f64, out: &mut Ve
         }
     }
     out.sort_by(|&a, &b| y[b].total_cmp(&y[a]));
+}
+
+/// Local maxima of `y` inside `range` above a per-cell threshold
+/// (`y[p] > threshold[p]`), strongest first; a plateau counts once.
+pub fn local_maxima_above(y: &[f64], range: Range<usize>, threshold: &[f64], out: &mut Vec<usize>) {
+    out.clear();
+    let end = range.end.min(y.len()).min(threshold.len());
+    for p in range.start..end {
+        let v = y[p];
+        // A NaN output or threshold is never a detection.
+        if v.partial_cmp(&threshold[p]) != Some(std::cmp::Ordering::Greater) {
+            continue;
+        }
+        let left_ok = p == 0 || y[p - 1] < v;
+        let right_ok = p + 1 >= y.len() || y[p + 1] <= v;
+        if left_ok && right_ok {
+            out.push(p);
+        }
+    }
+    out.sort_by(|&a, &b| y[b].total_cmp(&y[a]));
+}
+
+/// Excursions of `y` above a per-cell threshold that start inside `range`.
+pub fn upcrossings_above(y: &[f64], range: Range<usize>, threshold: &[f64]) -> u64 {
+    let end = range.end.min(y.len()).min(threshold.len());
+    let mut count = 0;
+    let mut above = false;
+    for p in range.start.min(end)..end {
+        let now = y[p] > threshold[p];
+        if now && !above {
+            count += 1;
+        }
+        above = now;
+    }
+    count
 }
 
 /// Number of excursions of `y` above `threshold` that start inside `range`

@@ -27,3 +27,9 @@ pub mod finite_gate;
 pub mod resolve;
 /// Empirical-quantile thresholds for non-Gaussian noise.
 pub mod empirical;
+/// Prewhitening for coloured noise: AR model by Levinson-Durbin, whitening FIR.
+pub mod whiten;
+/// CA- and OS-CFAR thresholds with factors solved from the design pfa.
+pub mod cfar;
+/// Leading-edge amplitude walk table: fit and interpolation.
+pub mod walk;

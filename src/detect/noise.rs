@@ -141,6 +141,23 @@ pub struct NoiseTracker {
 }
 
 impl NoiseTracker {
+    /// A tracker whose memory decays with a time constant of `frames` frames:
+    /// λ = e^(−1/frames), so a frame k updates old contributes weight e^(−k/frames).
+    /// After a step in the noise, the old level's share of the weight falls
+    /// below 5 % within 3·`frames` updates. `frames` = 0 never forgets.
+    pub fn with_time_constant(frames: f64) -> Self {
+        if frames > 0.0 && frames.is_finite() {
+            Self::with_forgetting((-1.0 / frames).exp())
+        } else {
+            Self::with_forgetting(1.0)
+        }
+    }
+
+    /// The forgetting factor λ per update.
+    pub fn lambda(&self) -> f64 {
+        self.lambda
+    }
+
     /// A tracker with forgetting factor `lambda`, clamped to [0, 1] (NaN → 1):
     /// 0 keeps only the latest frame, 1 accumulates forever.
     pub fn with_forgetting(lambda: f64) -> Self {
@@ -268,6 +285,8 @@ pub struct NoiseFitter {
     scratch: Vec<f64>,
     /// Non-finite samples (NaN, ±Inf) skipped by the last fit.
     skipped_nonfinite: u64,
+    /// Moments of the last fit's finite samples, for a [`NoiseTracker`].
+    moments: Moments,
 }
 
 impl NoiseFitter {
@@ -306,6 +325,7 @@ impl NoiseFitter {
                 }
             }
         }
+        self.moments = m;
         let n = m.count();
         if n == 0 {
             return NoiseSummary {
@@ -365,6 +385,11 @@ impl NoiseFitter {
     /// Non-finite samples skipped by the last [`NoiseFitter::fit`].
     pub fn skipped_nonfinite(&self) -> u64 {
         self.skipped_nonfinite
+    }
+
+    /// Moments of the finite samples of the last [`NoiseFitter::fit`].
+    pub fn moments(&self) -> &Moments {
+        &self.moments
     }
 }
 

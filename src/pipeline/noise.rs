@@ -1,9 +1,17 @@
 //! noise: converts the stop channel to volts, places the range and noise gates
 //! from the time reference, and fits the noise model on the noise gates.
+//!
+//! With `noise_gate.forgetting_frames = N > 0` the mean, sigma, skewness and
+//! kurtosis come from an exponentially forgetting blend of the frames' gate
+//! moments ([`NoiseTracker`], λ = e^(−1/N)) and `samples` is its effective
+//! sample size W²/ΣW² (so the finite-gate threshold correction sees how much
+//! data the model rests on); the normality test, the robust sigma and the
+//! contamination flag stay per frame (they judge this frame's gate). With
+//! N = 0 (the default) every frame is fitted on its own gates alone.
 
 use super::{FrameError, Stage, Work};
 use crate::detect::gates::{GateInputs, Gates};
-use crate::detect::noise::NoiseFitter;
+use crate::detect::noise::{NoiseFitter, NoiseTracker};
 use crate::dsp::pulse::Shape;
 use crate::scene::Scene;
 
@@ -13,12 +21,20 @@ pub struct Noise {
     scene: Scene,
     fitter: NoiseFitter,
     pulse: Option<(f64, Shape)>,
+    /// Present when the scene asks for a forgetting noise model.
+    tracker: Option<NoiseTracker>,
 }
 
 impl Noise {
     /// From the scene's gates and return-pulse shape.
     pub fn new(scene: &Scene) -> Noise {
-        Noise { scene: scene.clone(), fitter: NoiseFitter::default(), pulse: None }
+        let n = scene.noise_gate.forgetting_frames;
+        Noise {
+            scene: scene.clone(),
+            fitter: NoiseFitter::default(),
+            pulse: None,
+            tracker: (n > 0).then(|| NoiseTracker::with_time_constant(n as f64)),
+        }
     }
 }
 
@@ -75,6 +91,17 @@ impl Stage for Noise {
         if (noise.samples as usize) < s.noise_gate.min_samples {
             w.report.flags.push("noise_gate_small".into());
         }
+        let mut noise = noise;
+        if let Some(tracker) = &mut self.tracker {
+            tracker.update(self.fitter.moments());
+            if tracker.effective_samples() >= 1.0 {
+                noise.mean_v = tracker.mean();
+                noise.sigma_v = tracker.variance().sqrt();
+                noise.skewness = tracker.skewness();
+                noise.excess_kurtosis = tracker.excess_kurtosis();
+                noise.samples = tracker.effective_samples().floor() as u64;
+            }
+        }
         // A gate with no spread (noise-free or clipped data) still needs a
         // finite threshold: floor sigma at the quantisation noise, or at 1e-12
         // of the signal scale for float data.
@@ -83,7 +110,6 @@ impl Stage for Noise {
         } else {
             1e-12 * noise.mean_v.abs().max(1e-3)
         };
-        let mut noise = noise;
         if noise.samples < 2 {
             // No gate: the frame's median stands in for the baseline.
             let mut sorted = stop_v.clone();

@@ -7,6 +7,7 @@ use crate::detect::finite_gate::detection_probability;
 use crate::detect::resolve::MISFIT_LIMIT;
 use crate::detect::phase::PhaseBias;
 use crate::detect::timing::{crlb_samples, time_pulse, Timed, TimingInput};
+use crate::detect::walk::WalkTable;
 use crate::dsp::pulse::{PulseShape, Shape};
 use crate::frame::Return;
 use crate::scene::{DetectorKind, Scene, TimingMethod};
@@ -34,6 +35,8 @@ pub struct Timing {
     phase: Option<PhaseBias>,
     /// The method fits the template (peak interpolation or maximum likelihood).
     template_timed: bool,
+    /// Leading-edge walk table (leading-edge timing with a calibrated table only).
+    walk: Option<WalkTable>,
 }
 
 /// Variance gain of coloured noise (normalised autocorrelation `rho`) on the
@@ -68,6 +71,11 @@ impl Timing {
                 scene.timing.method,
                 TimingMethod::Ml | TimingMethod::PeakParabolic | TimingMethod::PeakGaussian
             ),
+            walk: if scene.timing.method == TimingMethod::LeadingEdge {
+                WalkTable::new(&scene.calibration.walk_amplitude_v, &scene.calibration.walk_delay_s)
+            } else {
+                None
+            },
         }
     }
 }
@@ -139,7 +147,14 @@ impl Stage for Timing {
         let mut returns = Vec::with_capacity(timed.len());
         for (rank, &(p, one, misfit)) in timed.iter().enumerate() {
             let timed_peak = one.peak_index;
-            let t_stop_s = w.frame.sample_time_s(one.index);
+            // A comparator crossing comes earlier the larger the pulse: the
+            // calibrated walk at this amplitude moves it to where the table's
+            // reference amplitude would cross (not for a fallback timing).
+            let walk_s = match &self.walk {
+                Some(table) if !one.fallback => table.delay_s(one.amplitude_v),
+                _ => 0.0,
+            };
+            let t_stop_s = w.frame.sample_time_s(one.index) - walk_s;
             let tof_s = t_stop_s - w.t_ref_s - self.delay_s;
             // Template-based estimators fit as if the noise were white; in
             // coloured noise their variance is the sandwich

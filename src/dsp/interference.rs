@@ -472,6 +472,11 @@ impl BurstCanceller {
         }
     }
 
+    /// Frame length planned for, samples.
+    pub fn frame_len(&self) -> usize {
+        self.n
+    }
+
     /// The template.
     pub fn template(&self) -> &BurstTemplate {
         &self.template

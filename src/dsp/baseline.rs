@@ -42,8 +42,15 @@ pub struct DriftTracker {
 impl DriftTracker {
     /// A tracker with weight `smoothing` for the newest frame (clamped to (0, 1]).
     pub fn new(smoothing: f64) -> DriftTracker {
-        let smoothing = if smoothing.is_finite() { smoothing.clamp(f64::MIN_POSITIVE, 1.0) } else { 1.0 };
-        DriftTracker { smoothing, state: None }
+        let smoothing = if smoothing.is_finite() {
+            smoothing.clamp(f64::MIN_POSITIVE, 1.0)
+        } else {
+            1.0
+        };
+        DriftTracker {
+            smoothing,
+            state: None,
+        }
     }
 
     /// Feeds one frame's offset and returns the smoothed offset. A non-finite
@@ -78,7 +85,10 @@ mod tests {
         assert_eq!(robust_offset(&mut v, OffsetEstimator::Median), None);
         let mut v: Vec<f64> = (0..10).map(|i| i as f64).chain([1e6]).collect();
         // 11 values, trim 0.1: drops one at each end (0 and 1e6).
-        assert_eq!(robust_offset(&mut v, OffsetEstimator::TrimmedMean(0.1)), Some(5.0));
+        assert_eq!(
+            robust_offset(&mut v, OffsetEstimator::TrimmedMean(0.1)),
+            Some(5.0)
+        );
     }
 
     #[test]

@@ -40,6 +40,9 @@ const ACF_LAGS: usize = 64;
 const BURST_VARIANCE_RATIO: f64 = 2.0;
 /// Fewest overlapping samples for two occurrences to be aligned on.
 const MIN_OVERLAP: f64 = 400.0;
+/// Frames either side of a detected burst frame that join its occurrence
+/// (they hold the burst's faint ends).
+const EDGE_FRAMES: usize = 3;
 /// Half-length of the fractional-delay filter used to shift the template.
 const SHIFT_HALF_LEN: usize = 16;
 
@@ -65,7 +68,13 @@ impl Xcorr {
         let fwd = planner.plan_fft_forward(n);
         let inv = planner.plan_fft_inverse(n);
         let spec = fwd.make_output_vec();
-        Xcorr { n, fwd, inv, buf: vec![0.0; n], spec }
+        Xcorr {
+            n,
+            fwd,
+            inv,
+            buf: vec![0.0; n],
+            spec,
+        }
     }
 
     /// Spectrum of `x` zero-padded to the FFT size.
@@ -79,7 +88,9 @@ impl Xcorr {
         self.buf.fill(0.0);
         let m = x.len().min(self.n);
         self.buf[..m].copy_from_slice(&x[..m]);
-        self.fwd.process(&mut self.buf, out).expect("buffers sized by the plan");
+        self.fwd
+            .process(&mut self.buf, out)
+            .expect("buffers sized by the plan");
     }
 
     /// `out[q] = Σ_j a[q + j] · b[j]` from the spectra of `a` and `b` (no
@@ -95,7 +106,9 @@ impl Xcorr {
         if let Some(s) = self.spec.last_mut() {
             s.im = 0.0;
         }
-        self.inv.process(&mut self.spec, &mut self.buf).expect("buffers sized by the plan");
+        self.inv
+            .process(&mut self.spec, &mut self.buf)
+            .expect("buffers sized by the plan");
         let scale = 1.0 / self.n as f64;
         for (o, v) in out.iter_mut().zip(&self.buf) {
             *o = v * scale;
@@ -152,7 +165,11 @@ impl BurstLearner {
     /// A learner for bursts up to `max_len` samples long whose modes lie below
     /// `bandwidth` cycles per sample (e.g. 12 MHz × 1 ns = 0.012).
     pub fn new(max_len: usize, bandwidth: f64) -> BurstLearner {
-        BurstLearner { max_len: max_len.max(16), bandwidth, frames: Vec::new() }
+        BurstLearner {
+            max_len: max_len.max(16),
+            bandwidth,
+            frames: Vec::new(),
+        }
     }
 
     /// Frames added so far.
@@ -171,7 +188,10 @@ impl BurstLearner {
             if r.is_empty() {
                 continue;
             }
-            let v: Vec<f64> = x[r.clone()].iter().map(|v| if v.is_finite() { *v } else { 0.0 }).collect();
+            let v: Vec<f64> = x[r.clone()]
+                .iter()
+                .map(|v| if v.is_finite() { *v } else { 0.0 })
+                .collect();
             all.extend_from_slice(&v);
             segments.push((abs_pos + r.start as i64, v));
         }
@@ -180,7 +200,11 @@ impl BurstLearner {
         }
         let median_v = crate::dsp::average::median(&mut all.clone()).unwrap_or(0.0);
         let variance = all.iter().map(|v| (v - median_v).powi(2)).sum::<f64>() / all.len() as f64;
-        self.frames.push(LearnFrame { segments, median_v, variance });
+        self.frames.push(LearnFrame {
+            segments,
+            median_v,
+            variance,
+        });
     }
 
     /// Learns the template; `None` when no frame held a burst (or too few did
@@ -191,17 +215,40 @@ impl BurstLearner {
         }
         let mut vars: Vec<f64> = self.frames.iter().map(|f| f.variance).collect();
         let typical = crate::dsp::average::median(&mut vars)?;
-        let has_burst: Vec<bool> = self.frames.iter().map(|f| f.variance > BURST_VARIANCE_RATIO * typical).collect();
-        let mut quiet_medians: Vec<f64> =
-            self.frames.iter().zip(&has_burst).filter(|(_, b)| !**b).map(|(f, _)| f.median_v).collect();
+        let has_burst: Vec<bool> = self
+            .frames
+            .iter()
+            .map(|f| f.variance > BURST_VARIANCE_RATIO * typical)
+            .collect();
+        let mut quiet_medians: Vec<f64> = self
+            .frames
+            .iter()
+            .zip(&has_burst)
+            .filter(|(_, b)| !**b)
+            .map(|(f, _)| f.median_v)
+            .collect();
         let offset_v = crate::dsp::average::median(&mut quiet_medians)?;
         let (sigma_v, noise_acf) = self.noise_acf(&has_burst, offset_v);
-        // Stitch consecutive burst frames into occurrences.
+        // Stitch consecutive burst frames into occurrences. The burst's
+        // envelope fades in and out: the frames just before and after the ones
+        // the variance test caught hold its weak ends, so they join too.
+        let mut member = has_burst.clone();
+        for (i, _) in has_burst.iter().enumerate().filter(|(_, b)| **b) {
+            for m in member
+                .iter_mut()
+                .take((i + EDGE_FRAMES + 1).min(has_burst.len()))
+                .skip(i.saturating_sub(EDGE_FRAMES))
+            {
+                *m = true;
+            }
+        }
         let mut occs: Vec<Vec<(i64, &[f64])>> = Vec::new();
         let mut last_end: Option<i64> = None;
-        for (f, _) in self.frames.iter().zip(&has_burst).filter(|(_, b)| **b) {
+        for (f, _) in self.frames.iter().zip(&member).filter(|(_, b)| **b) {
             let start = f.segments.first().map_or(0, |s| s.0);
-            let joins = last_end.is_some_and(|e| start - e <= self.max_len as i64 / 4 && start >= e - self.max_len as i64);
+            let joins = last_end.is_some_and(|e| {
+                start - e <= self.max_len as i64 / 4 && start >= e - self.max_len as i64
+            });
             if !joins {
                 occs.push(Vec::new());
             }
@@ -228,47 +275,76 @@ impl BurstLearner {
                         }
                     }
                 }
-                Some(Occurrence { values, mask, at: 0 })
+                Some(Occurrence {
+                    values,
+                    mask,
+                    at: 0,
+                })
             })
             .collect();
         if occs.is_empty() {
             return None;
         }
         // Best-covered first: the reference the others align to.
-        occs.sort_by(|a, b| b.mask.iter().sum::<f64>().total_cmp(&a.mask.iter().sum::<f64>()));
+        occs.sort_by(|a, b| {
+            b.mask
+                .iter()
+                .sum::<f64>()
+                .total_cmp(&a.mask.iter().sum::<f64>())
+        });
         let longest = occs.iter().map(|o| o.values.len()).max().unwrap_or(0);
-        let pad = self.max_len + longest;
+        let pad = self.max_len + longest.saturating_sub(occs[0].values.len());
         let width = occs[0].values.len() + 2 * pad;
-        let mut canvas = Canvas { sum: vec![0.0; width], count: vec![0.0; width] };
-        let mut xc = Xcorr::new(width + longest);
+        // Coarse search on block averages: the burst's band is far below the
+        // decimated Nyquist frequency, so the coarse lag is right to a block.
+        let d = ((0.1 / self.bandwidth.max(1e-6)) as usize).clamp(1, 64);
+        let mut xc = Xcorr::new((width + longest).div_ceil(d) + 1);
+        let mut canvas = Canvas {
+            sum: vec![0.0; width],
+            count: vec![0.0; width],
+        };
         occs[0].at = pad;
         canvas.add(&occs[0], 1.0);
         let mut used = vec![false; occs.len()];
         used[0] = true;
-        for (i, o) in occs.iter_mut().enumerate().skip(1) {
-            if let Some(at) = canvas.align(&mut xc, o) {
-                o.at = at;
-                canvas.add(o, 1.0);
-                used[i] = true;
+        // Pass 1 aligns every occurrence to the reference; pass 2 re-aligns
+        // each to the average of pass 1 (refinement).
+        for pass in 0..2 {
+            let reference = CoarseRef::new(&canvas, d, &mut xc);
+            let mut next = Canvas {
+                sum: vec![0.0; width],
+                count: vec![0.0; width],
+            };
+            for (i, o) in occs.iter_mut().enumerate() {
+                if pass == 0 && i == 0 {
+                    next.add(o, 1.0);
+                    continue;
+                }
+                if pass == 1 && !used[i] {
+                    continue;
+                }
+                if let Some(at) = reference.align(&mut xc, o) {
+                    o.at = at;
+                    used[i] = true;
+                    next.add(o, 1.0);
+                } else if pass == 1 {
+                    next.add(o, 1.0);
+                }
             }
-        }
-        // Refinement: each occurrence re-aligned against the average of the others.
-        for (i, o) in occs.iter_mut().enumerate() {
-            if !used[i] {
-                continue;
-            }
-            canvas.add(o, -1.0);
-            if let Some(at) = canvas.align(&mut xc, o) {
-                o.at = at;
-            }
-            canvas.add(o, 1.0);
+            canvas = next;
         }
         let first = canvas.count.iter().position(|&c| c > 0.5)?;
         let last = canvas.count.iter().rposition(|&c| c > 0.5)?;
         let span = &canvas.count[first..=last];
         let coverage = span.iter().filter(|&&c| c > 0.5).count() as f64 / span.len() as f64;
         let raw: Vec<f64> = (first..=last)
-            .map(|i| if canvas.count[i] > 0.5 { canvas.sum[i] / canvas.count[i] } else { 0.0 })
+            .map(|i| {
+                if canvas.count[i] > 0.5 {
+                    canvas.sum[i] / canvas.count[i]
+                } else {
+                    0.0
+                }
+            })
             .collect();
         let values = low_pass(&raw, self.bandwidth);
         Some(BurstTemplate {
@@ -286,10 +362,20 @@ impl BurstLearner {
         let mut r = [0.0; ACF_LAGS + 1];
         let mut n = [0.0; ACF_LAGS + 1];
         // A few hundred frames pin the autocorrelation to well under 1 %.
-        for (f, _) in self.frames.iter().zip(has_burst).filter(|(_, b)| !**b).take(500) {
+        for (f, _) in self
+            .frames
+            .iter()
+            .zip(has_burst)
+            .filter(|(_, b)| !**b)
+            .take(500)
+        {
             for (_, v) in &f.segments {
                 for k in 0..=ACF_LAGS.min(v.len().saturating_sub(1)) {
-                    let s: f64 = v.iter().zip(&v[k..]).map(|(a, b)| (a - offset_v) * (b - offset_v)).sum();
+                    let s: f64 = v
+                        .iter()
+                        .zip(&v[k..])
+                        .map(|(a, b)| (a - offset_v) * (b - offset_v))
+                        .sum();
                     r[k] += s;
                     n[k] += (v.len() - k) as f64;
                 }
@@ -299,7 +385,9 @@ impl BurstLearner {
             return (0.0, vec![1.0]);
         }
         let r0 = r[0] / n[0];
-        let acf = (0..=ACF_LAGS).map(|k| if n[k] > 0.0 { r[k] / n[k] / r0 } else { 0.0 }).collect();
+        let acf = (0..=ACF_LAGS)
+            .map(|k| if n[k] > 0.0 { r[k] / n[k] / r0 } else { 0.0 })
+            .collect();
         (r0.sqrt(), acf)
     }
 }
@@ -317,30 +405,110 @@ impl Canvas {
             self.count[o.at + k] += sign * m;
         }
     }
+}
+
+/// Block sums of `x` weighted by `m` (and of `m`), `d` samples per block.
+fn decimate(x: &[f64], m: &[f64], d: usize) -> (Vec<f64>, Vec<f64>) {
+    let n = x.len().div_ceil(d);
+    let (mut xs, mut ms) = (vec![0.0; n], vec![0.0; n]);
+    for (i, (v, w)) in x.iter().zip(m).enumerate() {
+        xs[i / d] += v * w;
+        ms[i / d] += w;
+    }
+    // Block means where anything was seen; the weight is the fraction seen.
+    for (v, w) in xs.iter_mut().zip(ms.iter_mut()) {
+        if *w > 0.0 {
+            *v /= *w;
+        }
+        *w /= d as f64;
+    }
+    (xs, ms)
+}
+
+/// The current average, prepared once per pass for aligning occurrences to it.
+struct CoarseRef {
+    d: usize,
+    /// Full-rate average and coverage.
+    t: Vec<f64>,
+    mt: Vec<f64>,
+    /// Spectra of the decimated average (weighted), its square and its coverage.
+    st: Vec<Complex<f64>>,
+    st2: Vec<Complex<f64>>,
+    smt: Vec<Complex<f64>>,
+    coarse_len: usize,
+}
+
+impl CoarseRef {
+    fn new(c: &Canvas, d: usize, xc: &mut Xcorr) -> CoarseRef {
+        let t: Vec<f64> = c
+            .sum
+            .iter()
+            .zip(&c.count)
+            .map(|(s, n)| if *n > 0.5 { s / n } else { 0.0 })
+            .collect();
+        let mt: Vec<f64> = c
+            .count
+            .iter()
+            .map(|&n| if n > 0.5 { 1.0 } else { 0.0 })
+            .collect();
+        let (tc, mtc) = decimate(&t, &mt, d);
+        let tw: Vec<f64> = tc.iter().zip(&mtc).map(|(a, b)| a * b).collect();
+        let t2w: Vec<f64> = tc.iter().zip(&mtc).map(|(a, b)| a * a * b).collect();
+        CoarseRef {
+            d,
+            st: xc.spectrum(&tw),
+            st2: xc.spectrum(&t2w),
+            smt: xc.spectrum(&mtc),
+            coarse_len: tc.len(),
+            t,
+            mt,
+        }
+    }
+
+    /// Normalised correlation of `o` placed at full-rate position `q` (direct).
+    fn fine(&self, o: &Occurrence, q: usize) -> Option<f64> {
+        if q + o.values.len() > self.t.len() {
+            return None;
+        }
+        let (mut c, mut et, mut ey, mut ov) = (0.0, 0.0, 0.0, 0.0);
+        for (k, (y, m)) in o.values.iter().zip(&o.mask).enumerate() {
+            let w = m * self.mt[q + k];
+            let t = self.t[q + k];
+            c += t * y * w;
+            et += t * t * w;
+            ey += y * y * w;
+            ov += w;
+        }
+        (ov >= MIN_OVERLAP.min(0.5 * o.mask.iter().sum::<f64>()) && et > 0.0 && ey > 0.0)
+            .then(|| c / (et * ey).sqrt())
+    }
 
     /// Canvas position with the highest normalised correlation of `o` with the
-    /// current average over their overlap.
+    /// average over their overlap: coarse FFT search, then ±1 block at full rate.
     fn align(&self, xc: &mut Xcorr, o: &Occurrence) -> Option<usize> {
-        let w = self.sum.len();
-        let t: Vec<f64> = self.sum.iter().zip(&self.count).map(|(s, c)| if *c > 0.5 { s / c } else { 0.0 }).collect();
-        let t2: Vec<f64> = t.iter().map(|v| v * v).collect();
-        let mt: Vec<f64> = self.count.iter().map(|&c| if c > 0.5 { 1.0 } else { 0.0 }).collect();
-        let y2: Vec<f64> = o.values.iter().map(|v| v * v).collect();
-        let (st, st2, smt) = (xc.spectrum(&t), xc.spectrum(&t2), xc.spectrum(&mt));
-        let (sy, sy2, sm) = (xc.spectrum(&o.values), xc.spectrum(&y2), xc.spectrum(&o.mask));
-        let q_count = w.checked_sub(o.values.len())? + 1;
+        let d = self.d;
+        let (yc, myc) = decimate(&o.values, &o.mask, d);
+        let yw: Vec<f64> = yc.iter().zip(&myc).map(|(a, b)| a * b).collect();
+        let y2w: Vec<f64> = yc.iter().zip(&myc).map(|(a, b)| a * a * b).collect();
+        let (sy, sy2, sm) = (xc.spectrum(&yw), xc.spectrum(&y2w), xc.spectrum(&myc));
+        let q_count = self.coarse_len.checked_sub(yc.len())? + 1;
         let mut c = vec![0.0; q_count];
         let mut et = vec![0.0; q_count];
         let mut ey = vec![0.0; q_count];
         let mut ov = vec![0.0; q_count];
-        xc.correlate(&st, &sy, &mut c);
-        xc.correlate(&st2, &sm, &mut et);
-        xc.correlate(&smt, &sy2, &mut ey);
-        xc.correlate(&smt, &sm, &mut ov);
-        let need = MIN_OVERLAP.min(0.5 * o.mask.iter().sum::<f64>());
-        (0..q_count)
+        xc.correlate(&self.st, &sy, &mut c);
+        xc.correlate(&self.st2, &sm, &mut et);
+        xc.correlate(&self.smt, &sy2, &mut ey);
+        xc.correlate(&self.smt, &sm, &mut ov);
+        let need = MIN_OVERLAP.min(0.5 * o.mask.iter().sum::<f64>()) / d as f64;
+        let coarse = (0..q_count)
             .filter(|&q| ov[q] >= need && et[q] > 0.0 && ey[q] > 0.0)
-            .map(|q| (q, c[q] / (et[q] * ey[q]).sqrt()))
+            .max_by(|&a, &b| {
+                (c[a] / (et[a] * ey[a]).sqrt()).total_cmp(&(c[b] / (et[b] * ey[b]).sqrt()))
+            })?;
+        let lo = (coarse * d).saturating_sub(d);
+        (lo..=coarse * d + d)
+            .filter_map(|q| self.fine(o, q).map(|r| (q, r)))
             .max_by(|a, b| a.1.total_cmp(&b.1))
             .map(|(q, _)| q)
     }
@@ -376,8 +544,13 @@ fn low_pass(x: &[f64], bandwidth: f64) -> Vec<f64> {
         s.im = 0.0;
     }
     let mut out = vec![0.0; n];
-    xc.inv.process(&mut spec, &mut out).expect("buffers sized by the plan");
-    out[pad..pad + x.len()].iter().map(|v| v / n as f64).collect()
+    xc.inv
+        .process(&mut spec, &mut out)
+        .expect("buffers sized by the plan");
+    out[pad..pad + x.len()]
+        .iter()
+        .map(|v| v / n as f64)
+        .collect()
 }
 
 /// What was found and subtracted in one frame.
@@ -446,7 +619,13 @@ impl BurstCanceller {
         let mut colour = 1.0;
         if e0 > 0.0 {
             for (k, rho) in template.noise_acf.iter().enumerate().skip(1) {
-                let rt: f64 = template.values.iter().zip(&template.values[k.min(l)..]).map(|(a, b)| a * b).sum::<f64>() / e0;
+                let rt: f64 = template
+                    .values
+                    .iter()
+                    .zip(&template.values[k.min(l)..])
+                    .map(|(a, b)| a * b)
+                    .sum::<f64>()
+                    / e0;
                 colour += 2.0 * rho * rt;
             }
         }
@@ -521,7 +700,11 @@ impl BurstCanceller {
     /// Template value at (integer) index `i`, 0 outside.
     fn t_at(&self, i: i64) -> f64 {
         let p = i + self.n as i64;
-        if p < 0 || p as usize >= self.padded.len() { 0.0 } else { self.padded[p as usize] }
+        if p < 0 || p as usize >= self.padded.len() {
+            0.0
+        } else {
+            self.padded[p as usize]
+        }
     }
 
     /// Correlation and masked energy at template lag `lag` (direct sums).
@@ -536,12 +719,27 @@ impl BurstCanceller {
         (c, e)
     }
 
+    /// Writes the template at indices `lag + i + delta` for i in
+    /// −SHIFT_HALF_LEN..n + SHIFT_HALF_LEN into `seg` (fractional-delay filter).
+    fn slice(&mut self, lag: i64, delta: f64) {
+        let h = SHIFT_HALF_LEN as i64;
+        for j in 0..self.raw.len() {
+            self.raw[j] = self.t_at(lag - h + j as i64);
+        }
+        FractionalDelay::new(-delta).apply(&self.raw, &mut self.seg);
+    }
+
     /// Finds and subtracts the burst in `x` (volts, one frame of the planned
     /// length); `gates` are the samples free of returns, `predicted_lag` a
     /// template lag where the burst is expected (from the previous frame and
     /// the trigger times), tried first. Returns what was subtracted, or `None`
     /// when no burst crossed its threshold.
-    pub fn cancel(&mut self, x: &mut [f64], gates: &[Range<usize>], predicted_lag: Option<i64>) -> Option<Cancelled> {
+    pub fn cancel(
+        &mut self,
+        x: &mut [f64],
+        gates: &[Range<usize>],
+        predicted_lag: Option<i64>,
+    ) -> Option<Cancelled> {
         if x.len() != self.n || self.template.values.is_empty() || !(self.template.sigma_v > 0.0) {
             return None;
         }
@@ -553,16 +751,23 @@ impl BurstCanceller {
         }
         let scale = self.template.sigma_v * self.colour.sqrt();
         let z_of = |c: f64, e: f64| if e > 0.0 { c / (scale * e.sqrt()) } else { 0.0 };
-        let mut found: Option<(i64, f64, f64, f64)> = None; // lag, z, c(lag-1), c(lag+1)
+        // The lag is chosen by maximum likelihood for the burst at its learned
+        // amplitude (the largest 2c − e, i.e. the smallest residual); the
+        // normalised correlation z at that lag is then held against the
+        // Neyman-Pearson threshold. Choosing by z alone would favour a lag
+        // where a strong part of the template partly matches a weak burst end.
+        let mut found: Option<(i64, f64)> = None;
         if let Some(p) = predicted_lag {
             // A narrow window of 5 lags: its own, much lower threshold.
             let t = q_inv(per_cell_pfa(self.pfa, 5.0));
-            let cs: Vec<(f64, f64)> = (p - 3..=p + 3).map(|l| self.direct(l)).collect();
-            let best = (1..6).max_by(|&a, &b| z_of(cs[a].0, cs[a].1).abs().total_cmp(&z_of(cs[b].0, cs[b].1).abs()));
-            if let Some(k) = best {
-                let z = z_of(cs[k].0, cs[k].1);
-                if z.abs() >= t && (2..=4).contains(&k) {
-                    found = Some((p - 3 + k as i64, z, cs[k - 1].0, cs[k + 1].0));
+            let best = (p - 2..=p + 2)
+                .map(|l| (l, self.direct(l)))
+                .filter(|(_, (_, e))| *e > 0.0)
+                .max_by(|a, b| (2.0 * a.1.0 - a.1.1).total_cmp(&(2.0 * b.1.0 - b.1.1)));
+            if let Some((l, (c, e))) = best {
+                let z = z_of(c, e);
+                if z >= t {
+                    found = Some((l, z));
                 }
             }
         }
@@ -578,46 +783,72 @@ impl BurstCanceller {
             self.spec_y = sy;
             let best = (0..corr.len())
                 .filter(|&q| self.energy[q] > 0.0)
-                .max_by(|&a, &b| z_of(corr[a], self.energy[a]).abs().total_cmp(&z_of(corr[b], self.energy[b]).abs()));
+                .max_by(|&a, &b| {
+                    (2.0 * corr[a] - self.energy[a]).total_cmp(&(2.0 * corr[b] - self.energy[b]))
+                });
             if let Some(q) = best {
                 let z = z_of(corr[q], self.energy[q]);
-                if z.abs() >= self.threshold {
-                    let lag = q as i64 - self.n as i64;
-                    let cm = if q > 0 { corr[q - 1] } else { self.direct(lag - 1).0 };
-                    let cp = if q + 1 < corr.len() { corr[q + 1] } else { self.direct(lag + 1).0 };
-                    found = Some((lag, z, cm, cp));
+                if z >= self.threshold {
+                    found = Some((q as i64 - self.n as i64, z));
                 }
             }
             self.corr = corr;
         }
-        let (lag, z, cm, cp) = found?;
-        // Sub-sample shift from a parabola through the correlation peak.
-        let c0 = self.direct(lag).0;
-        let s = c0.signum();
-        let (a, b, c) = (s * cm, s * c0, s * cp);
-        let den = a - 2.0 * b + c;
-        let delta = if den < 0.0 { (0.5 * (a - c) / den).clamp(-0.5, 0.5) } else { 0.0 };
-        // Template slice at indices lag + i + delta: shift the integer slice
-        // (with SHIFT_HALF_LEN samples of context each side) by −delta.
-        let h = SHIFT_HALF_LEN as i64;
-        for j in 0..self.raw.len() {
-            self.raw[j] = self.t_at(lag - h + j as i64);
+        let (mut lag, z) = found?;
+        // Sub-sample shift: Gauss-Newton on x ≈ a·T(i + lag + δ) with the
+        // template's slope, twice (the second pass from the shifted slice).
+        let mut delta = 0.0;
+        let mut amplitude = 0.0;
+        for _ in 0..3 {
+            self.slice(lag, delta);
+            let seg = &self.seg[SHIFT_HALF_LEN..SHIFT_HALF_LEN + self.n];
+            let (mut sxx, mut sxd, mut sdd, mut sy0, mut syd) = (0.0, 0.0, 0.0, 0.0, 0.0);
+            for i in 1..self.n - 1 {
+                let m = self.mask[i];
+                if m == 0.0 {
+                    continue;
+                }
+                let t0 = seg[i];
+                let d = 0.5 * (seg[i + 1] - seg[i - 1]);
+                sxx += t0 * t0;
+                sxd += t0 * d;
+                sdd += d * d;
+                sy0 += self.y[i] * t0;
+                syd += self.y[i] * d;
+            }
+            let det = sxx * sdd - sxd * sxd;
+            if !(det > 0.0 && sxx > 0.0) {
+                break;
+            }
+            let a = (sy0 * sdd - syd * sxd) / det;
+            let b = (sxx * syd - sxd * sy0) / det;
+            amplitude = a;
+            if a.abs() > 0.0 {
+                delta += (b / a).clamp(-1.0, 1.0);
+            }
+            // Keep the fractional part small: move whole samples into the lag.
+            let whole = delta.round();
+            lag += whole as i64;
+            delta -= whole;
         }
-        FractionalDelay::new(-delta).apply(&self.raw, &mut self.seg);
+        self.slice(lag, delta);
         let seg = &self.seg[SHIFT_HALF_LEN..SHIFT_HALF_LEN + self.n];
         let (mut num, mut den) = (0.0, 0.0);
         for i in 0..self.n {
             num += self.y[i] * seg[i];
             den += seg[i] * seg[i] * self.mask[i];
         }
-        if !(den > 0.0) {
-            return None;
+        if den > 0.0 {
+            amplitude = num / den;
         }
-        let amplitude = num / den;
         for (v, s) in x.iter_mut().zip(seg) {
             *v -= amplitude * s;
         }
-        Some(Cancelled { lag: lag as f64 + delta, amplitude, z })
+        Some(Cancelled {
+            lag: lag as f64 + delta,
+            amplitude,
+            z,
+        })
     }
 }
 
@@ -649,11 +880,23 @@ mod tests {
         let gates = [0..300usize, 600..1000];
         let mut learner = BurstLearner::new(22_000, 0.012);
         let make = |k: i64, start: f64, rng: &mut ChaCha8Rng| -> Vec<f64> {
-            (0..n).map(|i| burst((k * period + i as f64 as i64) as f64 - start) + noise.sample(rng)).collect()
+            (0..n)
+                .map(|i| burst((k * period + i as f64 as i64) as f64 - start) + noise.sample(rng))
+                .collect()
         };
         // Bursts start every 100 frames at a random sub-period phase.
-        let starts: Vec<f64> = (0..12).map(|b| b as f64 * 100.0 * period as f64 + 37.3 * b as f64 * 11.0).collect();
-        let at = |k: i64| starts.iter().copied().find(|s| (k * period) as f64 + n as f64 > *s && ((k * period) as f64) < s + 20_000.0).unwrap_or(-1e12);
+        let starts: Vec<f64> = (0..12)
+            .map(|b| b as f64 * 100.0 * period as f64 + 37.3 * b as f64 * 11.0)
+            .collect();
+        let at = |k: i64| {
+            starts
+                .iter()
+                .copied()
+                .find(|s| {
+                    (k * period) as f64 + n as f64 > *s && ((k * period) as f64) < s + 20_000.0
+                })
+                .unwrap_or(-1e12)
+        };
         for k in 0..1000i64 {
             let x = make(k, at(k), &mut rng);
             learner.push(k * period, &x, &gates);
@@ -669,7 +912,10 @@ mod tests {
         let got = c.cancel(&mut x, &gates, None).expect("burst detected");
         let after: f64 = x.iter().map(|v| v * v).sum::<f64>() / n as f64;
         assert!(before > 10.0 * 1e-4, "{before}");
-        assert!(after < 1.3e-4, "residual power {after} (noise 1e-4), {got:?}");
+        assert!(
+            after < 1.3e-4,
+            "residual power {after} (noise 1e-4), {got:?}"
+        );
         // A burst-free frame is left alone.
         let mut q = make(50, -1e12, &mut rng);
         let orig = q.clone();

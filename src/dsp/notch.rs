@@ -42,7 +42,11 @@ impl Biquad {
     /// Gain at DC.
     pub fn dc_gain(&self) -> f64 {
         let den = 1.0 + self.a[0] + self.a[1];
-        if den == 0.0 { 0.0 } else { (self.b[0] + self.b[1] + self.b[2]) / den }
+        if den == 0.0 {
+            0.0
+        } else {
+            (self.b[0] + self.b[1] + self.b[2]) / den
+        }
     }
 
     /// Filters `x` in place, starting from the steady state of a constant input
@@ -71,12 +75,23 @@ pub struct ZeroPhaseFilter {
 impl ZeroPhaseFilter {
     /// Notches at each of `freqs_hz`.
     pub fn notches(freqs_hz: &[f64], q: f64, dt_s: f64) -> ZeroPhaseFilter {
-        ZeroPhaseFilter { sections: freqs_hz.iter().map(|&f| Biquad::notch(f, q, dt_s)).collect() }
+        ZeroPhaseFilter {
+            sections: freqs_hz
+                .iter()
+                .map(|&f| Biquad::notch(f, q, dt_s))
+                .collect(),
+        }
     }
 
     /// A second-order Butterworth high-pass (fourth order after the backward pass).
     pub fn highpass(f_hz: f64, dt_s: f64) -> ZeroPhaseFilter {
-        ZeroPhaseFilter { sections: vec![Biquad::highpass(f_hz, std::f64::consts::FRAC_1_SQRT_2, dt_s)] }
+        ZeroPhaseFilter {
+            sections: vec![Biquad::highpass(
+                f_hz,
+                std::f64::consts::FRAC_1_SQRT_2,
+                dt_s,
+            )],
+        }
     }
 
     /// Filters `x` in place: every section forward, then every section backward.
@@ -99,7 +114,9 @@ mod tests {
     fn gain_at(f: &ZeroPhaseFilter, f_hz: f64, dt: f64) -> f64 {
         // Steady-state amplitude of a long sine, measured in the middle.
         let n = 200_000;
-        let mut x: Vec<f64> = (0..n).map(|i| (2.0 * PI * f_hz * dt * i as f64).sin()).collect();
+        let mut x: Vec<f64> = (0..n)
+            .map(|i| (2.0 * PI * f_hz * dt * i as f64).sin())
+            .collect();
         f.apply(&mut x);
         let mid = &x[n / 4..3 * n / 4];
         (2.0 * mid.iter().map(|v| v * v).sum::<f64>() / mid.len() as f64).sqrt()

@@ -31,7 +31,7 @@
 use super::baseline::GatePlacer;
 use super::{FrameError, Stage, Work};
 use crate::detect::noise::Moments;
-use crate::dsp::average::{mean_from_sums, robust_average, CodeAccumulator};
+use crate::dsp::average::{CodeAccumulator, mean_from_sums, robust_average};
 use crate::dsp::fracdelay::FractionalDelay;
 use crate::dsp::pulse::Shape;
 use crate::frame::{Channel, ChannelRole, Samples};
@@ -56,14 +56,25 @@ struct Acc {
 
 impl Acc {
     fn new(len: usize) -> Acc {
-        Acc { codes: None, merged: Vec::new(), offset_sum_v: 0.0, volts: vec![0.0; len], count: 0 }
+        Acc {
+            codes: None,
+            merged: Vec::new(),
+            offset_sum_v: 0.0,
+            volts: vec![0.0; len],
+            count: 0,
+        }
     }
 
     fn add_channel(&mut self, c: &Channel, scratch: &mut Vec<f64>) {
         let n = self.volts.len();
-        let scale_ok = self.codes.as_ref().is_none_or(|(_, g)| *g == c.volts_per_code);
+        let scale_ok = self
+            .codes
+            .as_ref()
+            .is_none_or(|(_, g)| *g == c.volts_per_code);
         if c.samples.is_integer() && scale_ok && c.samples.len() == n {
-            let (acc, _) = self.codes.get_or_insert_with(|| (CodeAccumulator::new(n), c.volts_per_code));
+            let (acc, _) = self
+                .codes
+                .get_or_insert_with(|| (CodeAccumulator::new(n), c.volts_per_code));
             match &c.samples {
                 Samples::I8(v) => acc.add_i8(v),
                 Samples::I16(v) => acc.add_i16(v),
@@ -240,9 +251,15 @@ impl Average {
     fn gate_variance(&mut self, w: &Work, v: &[f64]) -> f64 {
         let mut m = Moments::default();
         for r in self.gates.quiet_ranges(w) {
-            v[r].iter().filter(|x| x.is_finite()).for_each(|&x| m.push(x));
+            v[r].iter()
+                .filter(|x| x.is_finite())
+                .for_each(|&x| m.push(x));
         }
-        if m.count() >= 2 { m.variance() } else { f64::NAN }
+        if m.count() >= 2 {
+            m.variance()
+        } else {
+            f64::NAN
+        }
     }
 
     /// Aligned volts of channel `c` of `w` into `out`.
@@ -307,7 +324,17 @@ impl Average {
 
     /// Output work from a mean (or robust) stop/start and the group's bookkeeping.
     #[allow(clippy::too_many_arguments)]
-    fn finish(&mut self, mut w: Work, stop: Vec<f64>, start: Option<Vec<f64>>, count: u32, var_sum: f64, t_var_sum: f64, mean_t_s: Option<f64>, seq_last: u64) -> Work {
+    fn finish(
+        &mut self,
+        mut w: Work,
+        stop: Vec<f64>,
+        start: Option<Vec<f64>>,
+        count: u32,
+        var_sum: f64,
+        t_var_sum: f64,
+        mean_t_s: Option<f64>,
+        seq_last: u64,
+    ) -> Work {
         let stop_name = w.frame.channels[w.stop].name.clone();
         let mut channels = vec![Channel::from_volts(stop_name, ChannelRole::Stop, stop)];
         if let (Some(s), Some(v)) = (w.start, start) {
@@ -322,7 +349,11 @@ impl Average {
         w.seq_last = seq_last;
         // Aligned: every frame's start sits at the reference. Unaligned: the
         // returns sit, on average, at the frames' mean start instant.
-        if let Some(r) = self.reference_s.filter(|_| has_start_pulse(&w)).or(mean_t_s) {
+        if let Some(r) = self
+            .reference_s
+            .filter(|_| has_start_pulse(&w))
+            .or(mean_t_s)
+        {
             w.t_ref_s = r;
             w.report.t_start_s = r;
             w.t_ref_sigma_s = t_var_sum.sqrt() / count as f64;
@@ -350,7 +381,16 @@ impl Average {
         let count = g.count();
         let seq_last = g.first.seq_last;
         let mean_t = (g.t_count > 0).then(|| g.t_sum_s / g.t_count as f64);
-        let mut w = self.finish(g.first, stop, start, count, g.var_sum, g.t_var_sum, mean_t, seq_last);
+        let mut w = self.finish(
+            g.first,
+            stop,
+            start,
+            count,
+            g.var_sum,
+            g.t_var_sum,
+            mean_t,
+            seq_last,
+        );
         if partial {
             w.report.flags.push("partial_average".into());
         }
@@ -363,7 +403,8 @@ impl Average {
 
     /// Block mean with accumulators.
     fn process_block_mean(&mut self, w: Work, out: &mut Vec<Work>) {
-        let geometry_ok = |g: &Option<Group>| g.as_ref().is_none_or(|g| Self::matches(&g.first, &w));
+        let geometry_ok =
+            |g: &Option<Group>| g.as_ref().is_none_or(|g| Self::matches(&g.first, &w));
         if !geometry_ok(&self.group) || !geometry_ok(&self.block) {
             self.close_block(out);
             if let Some(g) = self.group.take() {
@@ -374,20 +415,39 @@ impl Average {
         let laser_off = w.frame.laser_off;
         let seq = w.seq_last;
         // Without a guard the block is the group itself.
-        let slot = if guard == 0 { &mut self.group } else { &mut self.block };
+        let slot = if guard == 0 {
+            &mut self.group
+        } else {
+            &mut self.block
+        };
         match slot.take() {
             Some(mut g) => {
                 self.add_to_group(&mut g, &w);
                 g.first.seq_last = seq;
-                if laser_off && !g.first.report.flags.iter().any(|f| f == "laser_off" || f == "laser_off_in_group") {
+                if laser_off
+                    && !g
+                        .first
+                        .report
+                        .flags
+                        .iter()
+                        .any(|f| f == "laser_off" || f == "laser_off_in_group")
+                {
                     g.first.report.flags.push("laser_off_in_group".into());
                 }
-                let slot = if guard == 0 { &mut self.group } else { &mut self.block };
+                let slot = if guard == 0 {
+                    &mut self.group
+                } else {
+                    &mut self.block
+                };
                 *slot = Some(g);
             }
             None => {
                 let g = self.new_group(w);
-                let slot = if guard == 0 { &mut self.group } else { &mut self.block };
+                let slot = if guard == 0 {
+                    &mut self.group
+                } else {
+                    &mut self.block
+                };
                 *slot = Some(g);
             }
         }
@@ -398,7 +458,11 @@ impl Average {
                 self.close_block(out);
             }
         }
-        if self.group.as_ref().is_some_and(|g| g.count() >= self.cfg.frames) {
+        if self
+            .group
+            .as_ref()
+            .is_some_and(|g| g.count() >= self.cfg.frames)
+        {
             let g = self.group.take().expect("checked");
             self.emit_group(g, out, false);
         }
@@ -407,7 +471,9 @@ impl Average {
     /// Tests the finished guard block against the group and merges it, or
     /// ends the group at the change.
     fn close_block(&mut self, out: &mut Vec<Work>) {
-        let Some(mut b) = self.block.take() else { return };
+        let Some(mut b) = self.block.take() else {
+            return;
+        };
         match self.group.take() {
             None => self.group = Some(b),
             Some(mut g) => {
@@ -431,7 +497,14 @@ impl Average {
                     g.t_sum_s += b.t_sum_s;
                     g.t_count += b.t_count;
                     g.first.seq_last = b.first.seq_last;
-                    g.first.report.flags.extend(b.first.report.flags.iter().filter(|f| *f == "laser_off_in_group").cloned());
+                    g.first.report.flags.extend(
+                        b.first
+                            .report
+                            .flags
+                            .iter()
+                            .filter(|f| *f == "laser_off_in_group")
+                            .cloned(),
+                    );
                     self.group = Some(g);
                 }
             }
@@ -440,7 +513,14 @@ impl Average {
 
     /// The return in `newer` differs from the one in `older` (both mean stop
     /// volts of frames shaped like `w`).
-    fn changed(&mut self, w: &Work, older: &[f64], newer: &[f64], n_older: u32, n_newer: u32) -> bool {
+    fn changed(
+        &mut self,
+        w: &Work,
+        older: &[f64],
+        newer: &[f64],
+        n_older: u32,
+        n_newer: u32,
+    ) -> bool {
         let _ = (n_older, n_newer);
         let dt = w.frame.sample_interval_s;
         let shape = Shape::from_config(&self.return_pulse, dt);
@@ -453,23 +533,39 @@ impl Average {
         let quiet = self.gates.quiet_ranges(w);
         let a = PeakFit::new(older, &h, peak_idx, e, &gates.range, &quiet);
         let b = PeakFit::new(newer, &h, peak_idx, e, &gates.range, &quiet);
-        let (Some(a), Some(b)) = (a, b) else { return false };
+        let (Some(a), Some(b)) = (a, b) else {
+            return false;
+        };
         let sig = |p: &PeakFit| p.amplitude > 6.0 * p.sigma;
         if !sig(&a) && !sig(&b) {
             return false;
         }
         // Amplitudes at the stronger peak's position.
-        let at = if a.amplitude / a.sigma >= b.amplitude / b.sigma { a.position } else { b.position };
-        let (aa, ab) = (a.amplitude_at(older, &h, peak_idx, e, at), b.amplitude_at(newer, &h, peak_idx, e, at));
+        let at = if a.amplitude / a.sigma >= b.amplitude / b.sigma {
+            a.position
+        } else {
+            b.position
+        };
+        let (aa, ab) = (
+            a.amplitude_at(older, &h, peak_idx, e, at),
+            b.amplitude_at(newer, &h, peak_idx, e, at),
+        );
         let noise = 4.0 * (a.sigma * a.sigma + b.sigma * b.sigma).sqrt();
-        let amp_changed = (aa - ab).abs() > noise.max(self.cfg.stationarity_max_amplitude_change * aa.abs().max(ab.abs()));
-        let moved = sig(&a) && sig(&b) && (a.position - b.position).abs() * dt > self.cfg.stationarity_max_shift_s;
+        let amp_changed = (aa - ab).abs()
+            > noise.max(self.cfg.stationarity_max_amplitude_change * aa.abs().max(ab.abs()));
+        let moved = sig(&a)
+            && sig(&b)
+            && (a.position - b.position).abs() * dt > self.cfg.stationarity_max_shift_s;
         amp_changed || moved
     }
 
     /// Robust or sliding: frames kept, statistic at each report.
     fn process_kept(&mut self, w: Work, out: &mut Vec<Work>) {
-        if self.kept.front().is_some_and(|k| !Self::matches(&k.work, &w)) {
+        if self
+            .kept
+            .front()
+            .is_some_and(|k| !Self::matches(&k.work, &w))
+        {
             if self.cfg.mode == AveragingMode::Block {
                 self.emit_kept(out, true);
             }
@@ -488,7 +584,12 @@ impl Average {
         });
         self.scratch = raw;
         let var = self.gate_variance(&w, &stop);
-        self.kept.push_back(Kept { work: w, stop, start, var });
+        self.kept.push_back(Kept {
+            work: w,
+            stop,
+            start,
+            var,
+        });
         self.since_report += 1;
         let n = self.cfg.frames as usize;
         let guard = self.cfg.stationarity_block as usize;
@@ -531,14 +632,20 @@ impl Average {
 
     /// Reports the kept frames' statistic (the window stays for sliding).
     fn report_window(&mut self, out: &mut Vec<Work>, partial: bool) {
-        let Some(front) = self.kept.front() else { return };
+        let Some(front) = self.kept.front() else {
+            return;
+        };
         let mut first = front.work.clone();
         let seq_last = self.kept.back().map_or(first.seq_last, |k| k.work.seq_last);
         first.report.seq_first = front.work.report.seq_first;
         first.report.time_s = front.work.report.time_s;
         let count = self.kept.len() as u32;
         let var_sum: f64 = self.kept.iter().map(|k| k.var).sum();
-        let t_var_sum: f64 = self.kept.iter().map(|k| k.work.t_ref_sigma_s * k.work.t_ref_sigma_s).sum();
+        let t_var_sum: f64 = self
+            .kept
+            .iter()
+            .map(|k| k.work.t_ref_sigma_s * k.work.t_ref_sigma_s)
+            .sum();
         let trim = match self.cfg.method {
             AveragingMethod::Mean => 0.0,
             AveragingMethod::TrimmedMean => self.cfg.trim_fraction,
@@ -551,13 +658,27 @@ impl Average {
             o
         };
         let stop = stat(self.kept.iter().map(|k| k.stop.as_slice()).collect());
-        let start = first.start.map(|_| stat(self.kept.iter().filter_map(|k| k.start.as_deref()).collect()));
+        let start = first.start.map(|_| {
+            stat(
+                self.kept
+                    .iter()
+                    .filter_map(|k| k.start.as_deref())
+                    .collect(),
+            )
+        });
         if self.kept.iter().any(|k| k.work.frame.laser_off) && !first.frame.laser_off {
             first.report.flags.push("laser_off_in_group".into());
         }
-        let starts: Vec<f64> = self.kept.iter().filter(|k| has_start_pulse(&k.work)).map(|k| k.work.t_ref_s).collect();
+        let starts: Vec<f64> = self
+            .kept
+            .iter()
+            .filter(|k| has_start_pulse(&k.work))
+            .map(|k| k.work.t_ref_s)
+            .collect();
         let mean_t = (!starts.is_empty()).then(|| starts.iter().sum::<f64>() / starts.len() as f64);
-        let mut w = self.finish(first, stop, start, count, var_sum, t_var_sum, mean_t, seq_last);
+        let mut w = self.finish(
+            first, stop, start, count, var_sum, t_var_sum, mean_t, seq_last,
+        );
         if partial {
             w.report.flags.push("partial_average".into());
         }
@@ -608,7 +729,14 @@ struct PeakFit {
 }
 
 impl PeakFit {
-    fn new(x: &[f64], h: &[f64], peak_idx: usize, e: f64, range: &Range<usize>, quiet: &[Range<usize>]) -> Option<PeakFit> {
+    fn new(
+        x: &[f64],
+        h: &[f64],
+        peak_idx: usize,
+        e: f64,
+        range: &Range<usize>,
+        quiet: &[Range<usize>],
+    ) -> Option<PeakFit> {
         let mut m = Moments::default();
         for r in quiet {
             x[r.clone()].iter().for_each(|&v| m.push(v));
@@ -623,7 +751,13 @@ impl PeakFit {
             if lo < 0 || lo as usize + h.len() > x.len() {
                 return None;
             }
-            Some(h.iter().zip(&x[lo as usize..]).map(|(a, b)| a * (b - mean)).sum::<f64>() / e)
+            Some(
+                h.iter()
+                    .zip(&x[lo as usize..])
+                    .map(|(a, b)| a * (b - mean))
+                    .sum::<f64>()
+                    / e,
+            )
         };
         let mut noise = Moments::default();
         for r in quiet {
@@ -633,12 +767,31 @@ impl PeakFit {
                 }
             }
         }
-        let sigma = if noise.count() >= 8 { noise.variance().sqrt() } else { (m.variance() / e).sqrt() };
-        let (p, a) = range.clone().filter_map(|p| mf(p as isize).map(|v| (p, v))).max_by(|a, b| a.1.total_cmp(&b.1))?;
-        let (l, r) = (mf(p as isize - 1).unwrap_or(a), mf(p as isize + 1).unwrap_or(a));
+        let sigma = if noise.count() >= 8 {
+            noise.variance().sqrt()
+        } else {
+            (m.variance() / e).sqrt()
+        };
+        let (p, a) = range
+            .clone()
+            .filter_map(|p| mf(p as isize).map(|v| (p, v)))
+            .max_by(|a, b| a.1.total_cmp(&b.1))?;
+        let (l, r) = (
+            mf(p as isize - 1).unwrap_or(a),
+            mf(p as isize + 1).unwrap_or(a),
+        );
         let den = l - 2.0 * a + r;
-        let delta = if den < 0.0 { (0.5 * (l - r) / den).clamp(-0.5, 0.5) } else { 0.0 };
-        Some(PeakFit { position: p as f64 + delta, amplitude: a, sigma: sigma.max(f64::MIN_POSITIVE), mean_v: mean })
+        let delta = if den < 0.0 {
+            (0.5 * (l - r) / den).clamp(-0.5, 0.5)
+        } else {
+            0.0
+        };
+        Some(PeakFit {
+            position: p as f64 + delta,
+            amplitude: a,
+            sigma: sigma.max(f64::MIN_POSITIVE),
+            mean_v: mean,
+        })
     }
 
     /// Amplitude at (the nearest sample to) `position` in `x`.
@@ -649,7 +802,11 @@ impl PeakFit {
             return 0.0;
         }
         let mean = self.mean_v;
-        h.iter().zip(&x[lo as usize..]).map(|(a, b)| a * (b - mean)).sum::<f64>() / e
+        h.iter()
+            .zip(&x[lo as usize..])
+            .map(|(a, b)| a * (b - mean))
+            .sum::<f64>()
+            / e
     }
 }
 

@@ -8,7 +8,7 @@
 
 use super::{FrameError, Stage, Work};
 use crate::detect::gates::{GateInputs, Gates};
-use crate::dsp::baseline::{robust_offset, DriftTracker, OffsetEstimator};
+use crate::dsp::baseline::{DriftTracker, OffsetEstimator, robust_offset};
 use crate::dsp::pulse::Shape;
 use crate::scene::{BaselineConfig, BaselineEstimator, Scene};
 use std::ops::Range;
@@ -23,7 +23,10 @@ pub(crate) struct GatePlacer {
 
 impl GatePlacer {
     pub(crate) fn new(scene: &Scene) -> GatePlacer {
-        GatePlacer { scene: scene.clone(), pulse: None }
+        GatePlacer {
+            scene: scene.clone(),
+            pulse: None,
+        }
     }
 
     /// Gates of `w` (its time reference must be set: the start stage has run).
@@ -61,7 +64,10 @@ impl GatePlacer {
             return vec![0..w.frame.len()];
         }
         let g = self.place(w);
-        [g.pre, g.beyond].into_iter().filter(|r| !r.is_empty()).collect()
+        [g.pre, g.beyond]
+            .into_iter()
+            .filter(|r| !r.is_empty())
+            .collect()
     }
 }
 

@@ -23,9 +23,15 @@ use crate::scene::{DenoiseConfig, DenoiseMethod, Scene};
 #[derive(Debug)]
 enum State {
     /// Collecting noise gates; the frames wait here.
-    Learning { learner: BurstLearner, held: Vec<Work> },
+    Learning {
+        learner: BurstLearner,
+        held: Vec<Work>,
+    },
     /// Cancelling with a learned template (planned per frame length).
-    Cancelling { template: BurstTemplate, canceller: Option<BurstCanceller> },
+    Cancelling {
+        template: BurstTemplate,
+        canceller: Option<BurstCanceller>,
+    },
     /// Learning found nothing to cancel.
     Idle,
     /// Plain filtering, planned per sampling period.
@@ -53,24 +59,40 @@ impl Denoise {
     /// From the scene's `[denoise]` section.
     pub fn new(scene: &Scene, cfg: &DenoiseConfig) -> Denoise {
         let state = match cfg.method {
-            DenoiseMethod::Template => State::Learning { learner: BurstLearner::new(1, 0.0), held: Vec::new() },
+            DenoiseMethod::Template => State::Learning {
+                learner: BurstLearner::new(1, 0.0),
+                held: Vec::new(),
+            },
             DenoiseMethod::Notch | DenoiseMethod::Highpass => State::Filtering(None),
         };
-        Denoise { cfg: cfg.clone(), gates: GatePlacer::new(scene), state, last: None, volts: Vec::new() }
+        Denoise {
+            cfg: cfg.clone(),
+            gates: GatePlacer::new(scene),
+            state,
+            last: None,
+            volts: Vec::new(),
+        }
     }
 
     fn learner_for(&self, w: &Work) -> BurstLearner {
         let dt = w.frame.sample_interval_s;
-        BurstLearner::new((self.cfg.max_burst_s / dt).ceil() as usize, self.cfg.bandwidth_hz * dt)
+        BurstLearner::new(
+            (self.cfg.max_burst_s / dt).ceil() as usize,
+            self.cfg.bandwidth_hz * dt,
+        )
     }
 
     /// Ends learning: plans the canceller (or gives up) and runs the held frames.
     fn finish_learning(&mut self, out: &mut Vec<Work>) {
-        let State::Learning { learner, held } = std::mem::replace(&mut self.state, State::Idle) else {
+        let State::Learning { learner, held } = std::mem::replace(&mut self.state, State::Idle)
+        else {
             return;
         };
         self.state = match learner.finish() {
-            Some(template) => State::Cancelling { template, canceller: None },
+            Some(template) => State::Cancelling {
+                template,
+                canceller: None,
+            },
             None => State::Idle,
         };
         for w in held {
@@ -83,7 +105,10 @@ impl Denoise {
             State::Idle => {
                 w.report.flags.push("no_interference_learned".into());
             }
-            State::Cancelling { template, canceller } => {
+            State::Cancelling {
+                template,
+                canceller,
+            } => {
                 let n = w.frame.len();
                 if canceller.as_ref().is_none_or(|c| c.frame_len() != n) {
                     *canceller = Some(BurstCanceller::new(template.clone(), n, self.cfg.pfa));
@@ -117,13 +142,20 @@ impl Denoise {
                 let dt = w.frame.sample_interval_s;
                 if plan.as_ref().is_none_or(|p| p.0 != dt) {
                     let f = match self.cfg.method {
-                        DenoiseMethod::Notch => ZeroPhaseFilter::notches(&self.cfg.notch_frequencies_hz, self.cfg.notch_q, dt),
+                        DenoiseMethod::Notch => ZeroPhaseFilter::notches(
+                            &self.cfg.notch_frequencies_hz,
+                            self.cfg.notch_q,
+                            dt,
+                        ),
                         _ => ZeroPhaseFilter::highpass(self.cfg.highpass_hz, dt),
                     };
                     *plan = Some((dt, f));
                 }
                 w.frame.channels[w.stop].volts_into(&mut self.volts);
-                plan.as_ref().expect("planned above").1.apply(&mut self.volts);
+                plan.as_ref()
+                    .expect("planned above")
+                    .1
+                    .apply(&mut self.volts);
                 let ch = &w.frame.channels[w.stop];
                 let new = Channel::from_volts(ch.name.clone(), ch.role, self.volts.clone());
                 w.frame.channels[w.stop] = new;
@@ -145,7 +177,9 @@ impl Stage for Denoise {
             let fresh = held.is_empty().then(|| self.learner_for(&w));
             let ranges = self.gates.quiet_ranges(&w);
             w.frame.channels[w.stop].volts_into(&mut self.volts);
-            let State::Learning { learner, held } = &mut self.state else { unreachable!("matched above") };
+            let State::Learning { learner, held } = &mut self.state else {
+                unreachable!("matched above")
+            };
             if let Some(l) = fresh {
                 *learner = l;
             }

@@ -485,7 +485,6 @@ impl Average {
                     self.emit_group(g, out, true);
                     // The block's frames were aligned to the same reference.
                     self.reference_s = r;
-                    self.nonstationary = true;
                     self.group = Some(b);
                 } else {
                     g.stop.merge(&mut b.stop);
@@ -607,9 +606,10 @@ impl Average {
                     self.reference_s = r;
                     self.kept.extend(rest);
                 } else {
+                    // The window restarts at the change; its next report says so.
                     self.kept.drain(..split);
+                    self.nonstationary = true;
                 }
-                self.nonstationary = true;
             }
         }
         match self.cfg.mode {

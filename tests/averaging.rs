@@ -396,3 +396,80 @@ fn sliding_window_reports_every_hop() {
         vec![0, 4, 8, 12, 16, 20, 24]
     );
 }
+
+#[test]
+fn scene_keys_are_validated_by_name_and_the_default_pipeline_is_unchanged() {
+    let base = tofwave::scene::DEFAULT_SCENE_TOML;
+    let cases = [
+        (
+            format!("{base}\n[baseline]\nsmoothing = 0.0\n"),
+            "baseline.smoothing",
+        ),
+        (format!("{base}\n[denoise]\npfa = 2.0\n"), "denoise.pfa"),
+        (
+            format!("{base}\n[denoise]\nmethod = \"notch\"\n"),
+            "denoise.notch_frequencies_hz",
+        ),
+        (base.replace("hop = 1", "hop = 0"), "averaging.hop"),
+        (
+            base.replace("stationarity_block = 0", "stationarity_block = 5"),
+            "averaging.stationarity_block",
+        ),
+        (
+            format!("{base}\n[denoise]\nmethd = \"template\"\n"),
+            "methd",
+        ),
+    ];
+    for (text, field) in cases {
+        let e = Scene::from_toml_str(&text, "x.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains(field), "{field}: {e}");
+    }
+    let names = Pipeline::new(&Scene::default_scene(), "d").stage_names();
+    assert!(
+        !names
+            .iter()
+            .any(|n| ["baseline", "denoise", "average"].contains(n)),
+        "{names:?}"
+    );
+}
+
+#[test]
+fn baseline_stage_removes_a_drifting_offset() {
+    let mut scene = Scene::default_scene();
+    scene.baseline = Some(tofwave::scene::BaselineConfig {
+        smoothing: 0.5,
+        ..Default::default()
+    });
+    let synth = Synth {
+        returns: vec![(100e-9, 0.3)],
+        quantise_8bit: None,
+        ..Synth::prototype()
+    };
+    let mut r = rng(12);
+    let mut p = Pipeline::new(&scene, "base");
+    let mut out = Vec::new();
+    for k in 0..50u64 {
+        let mut s = synth.clone();
+        // 0.2 V offset drifting by 1 mV per frame.
+        s.noise_mean_v = 0.2 + 1e-3 * k as f64;
+        p.push(s.frame(&scene, k, &mut r), &mut out).unwrap();
+    }
+    assert!(out.iter().all(|r| r.stages.iter().any(|s| s == "baseline")));
+    // Steady state of the smoothed offset lags a ramp by slope (1 − α)/α = 1 mV.
+    let late: Vec<f64> = out[20..].iter().map(|r| r.noise.mean_v).collect();
+    let mean = late.iter().sum::<f64>() / late.len() as f64;
+    println!("offset left after baseline removal: {:.3} mV", mean * 1e3);
+    assert!((mean - 1e-3).abs() < 0.5e-3, "{mean}");
+    // The return's amplitude is measured above the removed offset.
+    let amps: Vec<Vec<f64>> = out
+        .iter()
+        .map(|r| r.returns.iter().map(|x| x.amplitude_v).collect())
+        .collect();
+    assert!(
+        amps.iter()
+            .all(|a| a.iter().any(|x| (x - 0.3).abs() < 0.05)),
+        "{amps:?}"
+    );
+}

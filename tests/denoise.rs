@@ -17,6 +17,14 @@ fn scene(name: &str) -> Scene {
     Scene::load(&path).unwrap()
 }
 
+/// What the observer keeps of one unit of work: sequence, stop volts, range gate, noise gates.
+type Seen = (
+    u64,
+    Vec<f64>,
+    std::ops::Range<usize>,
+    Vec<std::ops::Range<usize>>,
+);
+
 /// A matched filter with a fixed threshold set on burst-free frames (the
 /// source's set-up: one noise model from a long laser-off record), applied to
 /// the stop waveform each pipeline hands to its detector. Bursts are not
@@ -63,16 +71,7 @@ fn run_fixed(
     det: Option<&FixedDetector>,
 ) -> (Vec<Report>, Vec<Truth>, Fixed, Moments) {
     let mut p = Pipeline::new(scene, "denoise-test");
-    let seen: Arc<
-        Mutex<
-            Vec<(
-                u64,
-                Vec<f64>,
-                std::ops::Range<usize>,
-                Vec<std::ops::Range<usize>>,
-            )>,
-        >,
-    > = Arc::default();
+    let seen: Arc<Mutex<Vec<Seen>>> = Arc::default();
     let sink = seen.clone();
     p.set_observer(Box::new(move |w| {
         let g = &w.gates;

@@ -740,14 +740,18 @@ impl BurstCanceller {
         gates: &[Range<usize>],
         predicted_lag: Option<i64>,
     ) -> Option<Cancelled> {
-        if x.len() != self.n || self.template.values.is_empty() || !(self.template.sigma_v > 0.0) {
+        // A zero (or NaN) sigma means learning saw no noise: nothing to scale by.
+        if x.len() != self.n
+            || self.template.values.is_empty()
+            || self.template.sigma_v.is_nan()
+            || self.template.sigma_v <= 0.0
+        {
             return None;
         }
         self.set_mask(gates);
         let off = self.template.offset_v;
-        for i in 0..self.n {
-            let v = if x[i].is_finite() { x[i] - off } else { 0.0 };
-            self.y[i] = v * self.mask[i];
+        for ((y, &v), &m) in self.y.iter_mut().zip(x.iter()).zip(&self.mask) {
+            *y = if v.is_finite() { (v - off) * m } else { 0.0 };
         }
         let scale = self.template.sigma_v * self.colour.sqrt();
         let z_of = |c: f64, e: f64| if e > 0.0 { c / (scale * e.sqrt()) } else { 0.0 };
@@ -834,9 +838,9 @@ impl BurstCanceller {
         self.slice(lag, delta);
         let seg = &self.seg[SHIFT_HALF_LEN..SHIFT_HALF_LEN + self.n];
         let (mut num, mut den) = (0.0, 0.0);
-        for i in 0..self.n {
-            num += self.y[i] * seg[i];
-            den += seg[i] * seg[i] * self.mask[i];
+        for ((y, s), m) in self.y.iter().zip(seg).zip(&self.mask) {
+            num += y * s;
+            den += s * s * m;
         }
         if den > 0.0 {
             amplitude = num / den;

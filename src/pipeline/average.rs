@@ -525,7 +525,7 @@ impl Average {
         let shape = Shape::from_config(&self.return_pulse, dt);
         let (h, peak_idx) = shape.template();
         let e: f64 = h.iter().map(|v| v * v).sum();
-        if !(e > 0.0) {
+        if e.is_nan() || e <= 0.0 {
             return false;
         }
         let gates = self.gates.place(w);
@@ -592,7 +592,7 @@ impl Average {
         self.since_report += 1;
         let n = self.cfg.frames as usize;
         let guard = self.cfg.stationarity_block as usize;
-        if guard > 0 && self.kept.len() > guard && self.kept.len() % guard == 0 {
+        if guard > 0 && self.kept.len() > guard && self.kept.len().is_multiple_of(guard) {
             let split = self.kept.len() - guard;
             let older = mean_of(self.kept.iter().take(split).map(|k| k.stop.as_slice()));
             let newer = mean_of(self.kept.iter().skip(split).map(|k| k.stop.as_slice()));

@@ -61,7 +61,7 @@ impl GatePlacer {
     /// else the noise gates.
     pub(crate) fn quiet_ranges(&mut self, w: &Work) -> Vec<Range<usize>> {
         if w.frame.laser_off {
-            return vec![0..w.frame.len()];
+            return std::iter::once(0..w.frame.len()).collect();
         }
         let g = self.place(w);
         [g.pre, g.beyond]

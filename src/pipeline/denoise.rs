@@ -30,7 +30,7 @@ enum State {
     /// Cancelling with a learned template (planned per frame length).
     Cancelling {
         template: BurstTemplate,
-        canceller: Option<BurstCanceller>,
+        canceller: Option<Box<BurstCanceller>>,
     },
     /// Learning found nothing to cancel.
     Idle,
@@ -111,7 +111,11 @@ impl Denoise {
             } => {
                 let n = w.frame.len();
                 if canceller.as_ref().is_none_or(|c| c.frame_len() != n) {
-                    *canceller = Some(BurstCanceller::new(template.clone(), n, self.cfg.pfa));
+                    *canceller = Some(Box::new(BurstCanceller::new(
+                        template.clone(),
+                        n,
+                        self.cfg.pfa,
+                    )));
                 }
                 let c = canceller.as_mut().expect("planned above");
                 let ranges = self.gates.quiet_ranges(&w);

@@ -136,7 +136,6 @@ impl Denoise {
                         let ch = &w.frame.channels[w.stop];
                         let new = Channel::from_volts(ch.name.clone(), ch.role, self.volts.clone());
                         w.frame.channels[w.stop] = new;
-                        w.lsb_v = 0.0;
                         w.report.flags.push("interference_cancelled".into());
                     }
                     None => self.last = None,
@@ -163,7 +162,6 @@ impl Denoise {
                 let ch = &w.frame.channels[w.stop];
                 let new = Channel::from_volts(ch.name.clone(), ch.role, self.volts.clone());
                 w.frame.channels[w.stop] = new;
-                w.lsb_v = 0.0;
             }
             State::Learning { .. } => unreachable!("learning frames are held, not cancelled"),
         }

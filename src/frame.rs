@@ -307,4 +307,9 @@ pub struct Report {
     pub t_start_sigma_s: f64,
     /// Frame-level flags ("no_start_pulse", "laser_off", "noise_gate_small", ...).
     pub flags: Vec<String>,
+    /// Averaged reports: realised SNR gain of the average, dB: the noise-gate
+    /// sigma of the single frames (rms) over that of the averaged frame, for a
+    /// return that adds coherently (aligned, stationary). Absent without averaging.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub snr_gain_db: Option<f64>,
 }

@@ -88,6 +88,12 @@ pub struct Scene {
     /// Ensemble averaging.
     #[serde(default)]
     pub averaging: AveragingConfig,
+    /// Baseline (offset) removal; absent: no baseline stage.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub baseline: Option<BaselineConfig>,
+    /// Structured-interference cancellation; absent: no denoise stage.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub denoise: Option<DenoiseConfig>,
     /// System delay.
     #[serde(default)]
     pub calibration: CalibrationConfig,
@@ -427,17 +433,264 @@ impl Default for TimingConfig {
     }
 }
 
+/// How frames are grouped for averaging.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AveragingMode {
+    /// N consecutive frames per report (one report per N frames).
+    Block,
+    /// The last N frames, one report every `hop` frames.
+    Sliding,
+}
+
+/// The per-sample statistic of an averaged group.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AveragingMethod {
+    /// Arithmetic mean (exact integer accumulation for integer codes).
+    Mean,
+    /// Mean after dropping `trim_fraction` of the smallest and largest values
+    /// per sample: rejects sporadic bursts at a small cost in noise.
+    TrimmedMean,
+    /// Per-sample median.
+    Median,
+}
+
+/// How frames are aligned before they are averaged.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AveragingAlign {
+    /// Shift every frame (sub-sample, fractional-delay filter) so its start
+    /// pulse lands where the group's first frame had it; frames without a
+    /// start pulse are averaged as they are.
+    Start,
+    /// Average the samples as they are.
+    None,
+}
+
 /// Averaging configuration.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct AveragingConfig {
     /// Frames per report.
     pub frames: u32,
+    /// Block (N consecutive frames) or sliding window.
+    pub mode: AveragingMode,
+    /// Sliding window: frames between reports.
+    pub hop: u32,
+    /// Mean, trimmed mean or median.
+    pub method: AveragingMethod,
+    /// Trimmed mean: fraction dropped at each end per sample.
+    pub trim_fraction: f64,
+    /// Start-pulse alignment.
+    pub align: AveragingAlign,
+    /// Stationarity guard: frames per test block (0: no guard).
+    pub stationarity_block: u32,
+    /// Stationarity guard: a return moving more than this between blocks splits the group, s.
+    pub stationarity_max_shift_s: f64,
+    /// Stationarity guard: a relative amplitude change larger than this splits the group.
+    pub stationarity_max_amplitude_change: f64,
 }
 
 impl Default for AveragingConfig {
     fn default() -> Self {
-        AveragingConfig { frames: 1 }
+        AveragingConfig {
+            frames: 1,
+            mode: AveragingMode::Block,
+            hop: 1,
+            method: AveragingMethod::Mean,
+            trim_fraction: 0.1,
+            align: AveragingAlign::Start,
+            stationarity_block: 0,
+            stationarity_max_shift_s: 2e-9,
+            stationarity_max_amplitude_change: 0.3,
+        }
+    }
+}
+
+/// Robust estimator of a frame's offset.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum BaselineEstimator {
+    /// Median of the noise-gate samples.
+    Median,
+    /// Trimmed mean of the noise-gate samples (`trim_fraction` at each end).
+    TrimmedMean,
+}
+
+/// `[baseline]`: per-frame offset from the noise gate, tracked across frames.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct BaselineConfig {
+    /// Robust estimator of the offset.
+    pub estimator: BaselineEstimator,
+    /// Trimmed mean: fraction dropped at each end.
+    pub trim_fraction: f64,
+    /// Weight of the newest frame in the exponentially smoothed offset, (0, 1]:
+    /// 1 removes each frame's own offset, smaller values track a slow drift
+    /// with less noise (time constant ~1/smoothing frames).
+    pub smoothing: f64,
+}
+
+impl Default for BaselineConfig {
+    fn default() -> Self {
+        BaselineConfig {
+            estimator: BaselineEstimator::Median,
+            trim_fraction: 0.1,
+            smoothing: 1.0,
+        }
+    }
+}
+
+/// Interference-cancellation methods.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DenoiseMethod {
+    /// Learn the burst waveform from the noise gates, detect each occurrence
+    /// by correlation, subtract it (amplitude and sub-sample shift fitted).
+    Template,
+    /// Zero-phase notch filters at `notch_frequencies_hz` (the plain alternative).
+    Notch,
+    /// Zero-phase high-pass filter at `highpass_hz` (the plain alternative).
+    Highpass,
+}
+
+/// `[denoise]`: cancellation of a structured, repeating interference burst.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct DenoiseConfig {
+    /// Template (learned burst), notch or high-pass.
+    pub method: DenoiseMethod,
+    /// Template: frames whose noise gates teach the burst waveform (held back
+    /// until the template is learned, then cancelled like every later frame).
+    pub learn_frames: u32,
+    /// Template: longest burst to learn, s.
+    pub max_burst_s: f64,
+    /// Template: probability per frame of detecting a burst that is not there.
+    pub pfa: f64,
+    /// Template: the learned waveform is low-passed to this band, Hz (the
+    /// burst's modes lie below it; the cut removes the noise averaged into it).
+    pub bandwidth_hz: f64,
+    /// Template: once a burst is found, look for it in the next frame where
+    /// the trigger times put it before searching the whole template.
+    pub predict: bool,
+    /// Notch: centre frequencies, Hz.
+    pub notch_frequencies_hz: Vec<f64>,
+    /// Notch: quality factor (centre / -3 dB bandwidth).
+    pub notch_q: f64,
+    /// High-pass: -3 dB corner, Hz (second-order Butterworth, run forward and backward).
+    pub highpass_hz: f64,
+}
+
+impl Default for DenoiseConfig {
+    fn default() -> Self {
+        DenoiseConfig {
+            method: DenoiseMethod::Template,
+            learn_frames: 2000,
+            max_burst_s: 60e-6,
+            pfa: 1e-3,
+            bandwidth_hz: 12e6,
+            predict: true,
+            notch_frequencies_hz: Vec::new(),
+            notch_q: 5.0,
+            highpass_hz: 10e6,
+        }
+    }
+}
+
+impl Scene {
+    /// Checks the averaging, baseline and denoise sections.
+    fn validate_denoise_and_averaging(&self, origin: &str) -> Result<(), SceneError> {
+        let bad = |field: &'static str, value: String, allowed: &'static str| SceneError::Invalid {
+            origin: origin.to_string(),
+            field,
+            value,
+            allowed,
+        };
+        let a = &self.averaging;
+        if a.frames == 0 || a.frames > 10_000_000 {
+            return Err(bad("averaging.frames", a.frames.to_string(), "[1, 10000000]"));
+        }
+        let stored = a.mode == AveragingMode::Sliding || a.method != AveragingMethod::Mean;
+        if stored && a.frames > 65_536 {
+            return Err(bad(
+                "averaging.frames",
+                a.frames.to_string(),
+                "[1, 65536] with mode = \"sliding\" or a robust method (they keep every frame of the window)",
+            ));
+        }
+        if a.hop == 0 || a.hop > a.frames {
+            return Err(bad("averaging.hop", a.hop.to_string(), "[1, averaging.frames]"));
+        }
+        if !(a.trim_fraction >= 0.0 && a.trim_fraction < 0.5) {
+            return Err(bad("averaging.trim_fraction", a.trim_fraction.to_string(), "[0, 0.5)"));
+        }
+        if a.stationarity_block > a.frames {
+            return Err(bad(
+                "averaging.stationarity_block",
+                a.stationarity_block.to_string(),
+                "0 (no guard) or [1, averaging.frames]",
+            ));
+        }
+        if !(a.stationarity_max_shift_s.is_finite() && a.stationarity_max_shift_s > 0.0 && a.stationarity_max_shift_s <= 1e-3) {
+            return Err(bad(
+                "averaging.stationarity_max_shift_s",
+                a.stationarity_max_shift_s.to_string(),
+                "(0, 1e-3] s",
+            ));
+        }
+        if !(a.stationarity_max_amplitude_change.is_finite() && a.stationarity_max_amplitude_change > 0.0) {
+            return Err(bad(
+                "averaging.stationarity_max_amplitude_change",
+                a.stationarity_max_amplitude_change.to_string(),
+                "(0, inf)",
+            ));
+        }
+        if let Some(b) = &self.baseline {
+            if !(b.trim_fraction >= 0.0 && b.trim_fraction < 0.5) {
+                return Err(bad("baseline.trim_fraction", b.trim_fraction.to_string(), "[0, 0.5)"));
+            }
+            if !(b.smoothing > 0.0 && b.smoothing <= 1.0) {
+                return Err(bad("baseline.smoothing", b.smoothing.to_string(), "(0, 1]"));
+            }
+        }
+        if let Some(d) = &self.denoise {
+            if d.learn_frames == 0 || d.learn_frames > 1_000_000 {
+                return Err(bad("denoise.learn_frames", d.learn_frames.to_string(), "[1, 1000000]"));
+            }
+            if !(d.max_burst_s.is_finite() && d.max_burst_s > 0.0 && d.max_burst_s <= 1e-2) {
+                return Err(bad("denoise.max_burst_s", d.max_burst_s.to_string(), "(0, 1e-2] s"));
+            }
+            if !(d.pfa > 0.0 && d.pfa <= 0.5) {
+                return Err(bad("denoise.pfa", d.pfa.to_string(), "(0, 0.5]"));
+            }
+            if !(d.bandwidth_hz.is_finite() && d.bandwidth_hz > 0.0) {
+                return Err(bad("denoise.bandwidth_hz", d.bandwidth_hz.to_string(), "(0, inf) Hz"));
+            }
+            if d.method == DenoiseMethod::Notch && d.notch_frequencies_hz.is_empty() {
+                return Err(bad("denoise.notch_frequencies_hz", "[]".into(), "at least one frequency with method = \"notch\""));
+            }
+            if let Some(f) = d.notch_frequencies_hz.iter().find(|f| !(f.is_finite() && **f > 0.0)) {
+                return Err(bad("denoise.notch_frequencies_hz", f.to_string(), "positive, finite Hz below the Nyquist frequency"));
+            }
+            if !(d.notch_q.is_finite() && d.notch_q > 0.0 && d.notch_q <= 1e4) {
+                return Err(bad("denoise.notch_q", d.notch_q.to_string(), "(0, 10000]"));
+            }
+            if !(d.highpass_hz.is_finite() && d.highpass_hz > 0.0) {
+                return Err(bad("denoise.highpass_hz", d.highpass_hz.to_string(), "(0, inf) Hz below the Nyquist frequency"));
+            }
+            let dt = self.digitiser.sample_interval_s;
+            if dt > 0.0 {
+                let nyquist = 0.5 / dt;
+                if let Some(f) = d.notch_frequencies_hz.iter().find(|f| **f >= nyquist) {
+                    return Err(bad("denoise.notch_frequencies_hz", f.to_string(), "positive, finite Hz below the Nyquist frequency"));
+                }
+                if d.highpass_hz >= nyquist {
+                    return Err(bad("denoise.highpass_hz", d.highpass_hz.to_string(), "(0, inf) Hz below the Nyquist frequency"));
+                }
+            }
+        }
+        Ok(())
     }
 }
 
@@ -714,13 +967,7 @@ impl Scene {
         if !(t.leading_edge_v.is_finite() && t.leading_edge_v > 0.0) {
             return Err(bad("timing.leading_edge_v", t.leading_edge_v.to_string(), "(0, inf) V"));
         }
-        if self.averaging.frames == 0 || self.averaging.frames > 10_000_000 {
-            return Err(bad(
-                "averaging.frames",
-                self.averaging.frames.to_string(),
-                "[1, 10000000]",
-            ));
-        }
+        self.validate_denoise_and_averaging(origin)?;
         if !self.calibration.delay_s.is_finite() || self.calibration.delay_s.abs() > 1.0 {
             return Err(bad(
                 "calibration.delay_s",

@@ -14,3 +14,9 @@ pub mod mlfit;
 pub mod average;
 /// Fractional-delay (sub-sample shift) filter.
 pub mod fracdelay;
+/// Robust per-frame baseline offset and its drift tracking across frames.
+pub mod baseline;
+/// Learning, detection and subtraction of a structured interference burst.
+pub mod interference;
+/// Zero-phase notch and high-pass filters (the plain alternative to cancellation).
+pub mod notch;

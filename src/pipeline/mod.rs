@@ -7,6 +7,8 @@
 //! stages that ran.
 
 mod average;
+mod baseline;
+mod denoise;
 mod detect;
 mod noise;
 mod start;
@@ -132,11 +134,20 @@ impl std::fmt::Debug for Pipeline {
 impl Pipeline {
     /// Builds the stages `scene` needs (the scene is already validated).
     pub fn new(scene: &Scene, sensor: &str) -> Pipeline {
-        let mut stages: Vec<Box<dyn Stage>> = Vec::new();
-        if scene.averaging.frames > 1 {
-            stages.push(Box::new(average::Average::new(scene.averaging.frames)));
+        // validate → start → baseline → denoise → average → noise → detect → timing.
+        // The start stage runs first: the noise gates the baseline and denoise
+        // stages work on, and the alignment of averaged frames, need each
+        // frame's own time reference.
+        let mut stages: Vec<Box<dyn Stage>> = vec![Box::new(start::Start::new(scene))];
+        if let Some(b) = &scene.baseline {
+            stages.push(Box::new(baseline::Baseline::new(scene, b)));
         }
-        stages.push(Box::new(start::Start::new(scene)));
+        if let Some(d) = &scene.denoise {
+            stages.push(Box::new(denoise::Denoise::new(scene, d)));
+        }
+        if scene.averaging.frames > 1 {
+            stages.push(Box::new(average::Average::new(scene)));
+        }
         stages.push(Box::new(noise::Noise::new(scene)));
         stages.push(Box::new(detect::Detect::new(scene)));
         stages.push(Box::new(timing::Timing::new(scene)));

@@ -54,7 +54,12 @@ impl Synth {
         let make = |pulses: &[(f64, f64, &Pulse)], rng: &mut ChaCha8Rng| -> Vec<f64> {
             (0..self.samples)
                 .map(|k| {
-                    let mut v = self.noise_mean_v + if self.noise_sigma_v > 0.0 { normal.sample(rng) } else { 0.0 };
+                    let mut v = self.noise_mean_v
+                        + if self.noise_sigma_v > 0.0 {
+                            normal.sample(rng)
+                        } else {
+                            0.0
+                        };
                     for &(peak, amp, p) in pulses {
                         v += amp * p.value_and_slope(k as f64 - peak).0;
                     }
@@ -68,14 +73,29 @@ impl Synth {
         let rets: Vec<(f64, f64, &Pulse)> = self
             .returns
             .iter()
-            .map(|&(tof, a)| (idx(self.start_time_s + tof) - stop_p.half_rise_offset(), a, &stop_p))
+            .map(|&(tof, a)| {
+                (
+                    idx(self.start_time_s + tof) - stop_p.half_rise_offset(),
+                    a,
+                    &stop_p,
+                )
+            })
             .collect();
         let stop = make(&rets, rng);
         let chan = |name: &str, role, v: Vec<f64>| match self.quantise_8bit {
             Some((lo, hi)) => {
                 let lsb = (hi - lo) / 256.0;
-                let codes = v.iter().map(|x| (((x - lo) / lsb).floor().clamp(0.0, 255.0) as i16 - 128) as i8).collect();
-                Channel { name: name.into(), role, samples: Samples::I8(codes), volts_per_code: lsb, offset_v: lo + 128.0 * lsb + 0.5 * lsb }
+                let codes = v
+                    .iter()
+                    .map(|x| (((x - lo) / lsb).floor().clamp(0.0, 255.0) as i16 - 128) as i8)
+                    .collect();
+                Channel {
+                    name: name.into(),
+                    role,
+                    samples: Samples::I8(codes),
+                    volts_per_code: lsb,
+                    offset_v: lo + 128.0 * lsb + 0.5 * lsb,
+                }
             }
             None => Channel::from_volts(name, role, v),
         };

@@ -115,7 +115,7 @@ impl BenchConfig {
             roc_reports: 400,
             reference_frames: 2000,
             reference_snr_db: 20.0,
-            service_frames: 20_000,
+            service_frames: 4000,
         }
     }
 
@@ -129,7 +129,7 @@ impl BenchConfig {
             roc_snr_db: vec![6.0, 8.0, 10.0, 12.0, 14.0],
             roc_reports: 3000,
             reference_frames: 10_000,
-            service_frames: 100_000,
+            service_frames: 40_000,
             ..BenchConfig::default_run()
         }
     }
@@ -383,16 +383,25 @@ fn score(scene: &Scene, reports: &[Report], truth: &[Truth]) -> Scored {
     s
 }
 
-fn cell_stats(
-    variant: &str,
-    scene: &Scene,
-    setting: &SnrSetting,
+/// What one variant did on one cell's frames.
+struct Run<'a> {
+    variant: &'a str,
+    scene: &'a Scene,
     n: u32,
     frames: usize,
-    reports: &[Report],
-    truth: &[Truth],
+    reports: &'a [Report],
     seconds: f64,
-) -> CellStats {
+}
+
+fn cell_stats(run: &Run, setting: &SnrSetting, truth: &[Truth]) -> CellStats {
+    let Run {
+        variant,
+        scene,
+        n,
+        frames,
+        reports,
+        seconds,
+    } = *run;
     let s = score(scene, reports, truth);
     let count = reports.len().max(1) as f64;
     let e = &s.errors_m;
@@ -449,7 +458,15 @@ pub fn run_grid(base: &Scene, cfg: &BenchConfig, variants: &[Variant], progress:
                 scene.averaging.frames = n;
                 scene.validate(&v.name).map_err(|e| BenchError::Scene(e.to_string()))?;
                 let (out, seconds) = process(&scene, &cell.frames, progress)?;
-                rows.push(cell_stats(&v.name, &scene, &setting, n, cell.frames.len(), &out, &cell.truth, seconds));
+                let run = Run {
+                    variant: &v.name,
+                    scene: &scene,
+                    n,
+                    frames: cell.frames.len(),
+                    reports: &out,
+                    seconds,
+                };
+                rows.push(cell_stats(&run, &setting, &cell.truth));
             }
         }
     }
@@ -503,27 +520,88 @@ pub fn roc(base: &Scene, cfg: &BenchConfig, progress: &ProgressBar) -> Result<Ve
     Ok(out)
 }
 
-/// The reference configuration of the performance targets: ML timing,
-/// matched-filter Neyman–Pearson detection, N = 1, at `cfg.reference_snr_db`.
-pub fn reference_scene(base: &Scene, cfg: &BenchConfig) -> Result<Scene, BenchError> {
-    let (mut scene, _) = snr_scene(base, cfg.amplitude_v, cfg.reference_snr_db)?;
+/// The reference configuration of the performance targets: the embedded
+/// prototype scene (2500 samples at 1 GS/s, start on CH1, stop on CH2) with a
+/// return pulse of 64 template taps, matched-filter Neyman–Pearson detection
+/// (design pfa 1e-6 per report), ML timing, N = 1.
+pub fn reference_scene() -> Scene {
+    let mut scene = Scene::default_scene();
+    // 5.8 ns rise, 19.0 ns FWHM: the prototype's shape scaled to a 64-tap template.
+    scene.return_pulse.rise_time_s = 5.8e-9;
+    scene.return_pulse.fwhm_s = 19.0e-9;
+    scene.digitiser.sample_interval_s = REF_DT_S;
+    scene.digitiser.samples_per_frame = REF_SAMPLES;
     scene.detector.kind = DetectorKind::MatchedFilter;
+    scene.detector.pfa_scope = PfaScope::Report;
+    scene.detector.pfa = 1e-6;
     scene.timing.method = TimingMethod::Ml;
     scene.averaging.frames = 1;
-    Ok(scene)
+    scene
 }
 
-/// Frames of the reference scene (seeded), with truth.
-pub(crate) fn reference_frames(scene: &Scene, seed: u64, count: usize) -> Result<(Vec<Frame>, Vec<Truth>), BenchError> {
-    let sim = Simulator::new(scene).map_err(|e| BenchError::Scene(e.to_string()))?;
-    let c = simulate(&sim, seed, count);
-    Ok((c.frames, c.truth))
+const REF_DT_S: f64 = 1e-9;
+const REF_SAMPLES: usize = 2500;
+/// Samples before the trigger in the reference frames.
+pub(crate) const REF_PRE_TRIGGER: usize = 200;
+/// Volts per code of the reference frames' 12-bit digitiser over ±0.5 V.
+const REF_VOLTS_PER_CODE: f64 = 1.0 / 4096.0;
+
+/// Reference frames: i16 codes, white Gaussian noise, a start pulse at the
+/// trigger (CH1) and one return (CH2) of the scene's return shape at a range
+/// drawn uniformly in 10–140 m, with peak SNR `snr_db` (0.2 V peak).
+/// Returns the frames and each frame's true stop instant (peak of the shape
+/// plus its fraction offset), s from the trigger.
+pub(crate) fn reference_frames(scene: &Scene, snr_db: f64, seed: u64, count: usize) -> (Vec<Frame>, Vec<f64>) {
+    use crate::frame::{Channel, ChannelRole, Samples};
+    use rand::{Rng, SeedableRng};
+    use rand_distr::StandardNormal;
+    let ret = Shape::from_config(&scene.return_pulse, REF_DT_S);
+    let start = Shape::from_config(&scene.start_pulse, REF_DT_S);
+    let amp_v = 0.2;
+    let sigma_v = amp_v / 10f64.powf(snr_db / 20.0);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let code = |v: f64| (v / REF_VOLTS_PER_CODE).round().clamp(-2048.0, 2047.0) as i16;
+    let mut frames = Vec::with_capacity(count);
+    let mut t_stop = Vec::with_capacity(count);
+    for i in 0..count {
+        let range_m: f64 = rng.random_range(10.0..140.0);
+        // Start pulse peak a little after the trigger so its leading edge is in the frame.
+        let start_peak = REF_PRE_TRIGGER as f64 + 10.0 + rng.random_range(0.0..1.0);
+        let stop_peak = start_peak + 2.0 * range_m / scene.c_medium_m_per_s() / REF_DT_S;
+        let mut ch1 = Vec::with_capacity(REF_SAMPLES);
+        let mut ch2 = Vec::with_capacity(REF_SAMPLES);
+        for k in 0..REF_SAMPLES {
+            let n1: f64 = rng.sample(StandardNormal);
+            let n2: f64 = rng.sample(StandardNormal);
+            ch1.push(code(0.4 * start.value_and_slope(k as f64 - start_peak).0 + 0.002 * n1));
+            ch2.push(code(amp_v * ret.value_and_slope(k as f64 - stop_peak).0 + sigma_v * n2));
+        }
+        let first_s = -(REF_PRE_TRIGGER as f64) * REF_DT_S;
+        t_stop.push(first_s + (stop_peak + ret.fraction_offset(scene.timing.fraction)) * REF_DT_S);
+        let channel = |name: &str, role, s| Channel {
+            name: name.into(),
+            role,
+            samples: Samples::I16(s),
+            volts_per_code: REF_VOLTS_PER_CODE,
+            offset_v: 0.0,
+        };
+        frames.push(Frame {
+            sensor_id: "bench".into(),
+            sequence: i as u64,
+            trigger_time_s: i as f64 * 1e-6,
+            sample_interval_s: REF_DT_S,
+            first_sample_offset_s: first_s,
+            channels: vec![channel("CH1", ChannelRole::Start, ch1), channel("CH2", ChannelRole::Stop, ch2)],
+            laser_off: false,
+        });
+    }
+    (frames, t_stop)
 }
 
-/// Offline single-core pipeline throughput on `frames` frames of the reference scene, frames/s
+/// Offline single-core pipeline throughput on `frames` reference frames at `snr_db`, frames/s
 /// (best of three passes, so a neighbour's burst of compilation does not count).
-pub fn offline_throughput(scene: &Scene, frames: usize) -> Result<f64, BenchError> {
-    let (f, _) = reference_frames(scene, 99, frames.max(1))?;
+pub fn offline_throughput(scene: &Scene, snr_db: f64, frames: usize) -> Result<f64, BenchError> {
+    let (f, _) = reference_frames(scene, snr_db, 99, frames.max(1));
     let hidden = ProgressBar::hidden();
     let mut best = f64::INFINITY;
     for _ in 0..3 {

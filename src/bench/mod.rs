@@ -15,7 +15,7 @@ mod service;
 
 pub use grid::{
     BenchConfig, CellStats, RocPoint, SnrSetting, Variant, analytic_crlb_range_m, bench_scene, roc,
-    run_grid, snr_scene, variants,
+    offline_throughput, reference_scene, run_grid, snr_scene, variants,
 };
 pub use membw::{Bandwidth, measure_bandwidth};
 pub use output::{CSV_COLUMNS, ROC_COLUMNS, write_csv, write_roc_csv};
@@ -113,8 +113,8 @@ pub fn run(
     let roc_points = roc(base, cfg, progress)?;
 
     progress.set_message("reference throughput");
-    let reference = grid::reference_scene(base, cfg)?;
-    let offline_frames_per_s = grid::offline_throughput(&reference, cfg.reference_frames)?;
+    let reference = grid::reference_scene();
+    let offline_frames_per_s = grid::offline_throughput(&reference, cfg.reference_snr_db, cfg.reference_frames)?;
 
     let peer = if opts.peer {
         progress.set_message("numpy/scipy peer");
@@ -128,7 +128,7 @@ pub fn run(
     });
     let service_result = if opts.service {
         progress.set_message("loopback service");
-        Some(measure_service(&reference, cfg.service_frames).map_err(|e| e.to_string()))
+        Some(measure_service(&reference, cfg.reference_snr_db, cfg.service_frames).map_err(|e| e.to_string()))
     } else {
         None
     };

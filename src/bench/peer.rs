@@ -6,7 +6,7 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use super::grid::{BenchConfig, process_frames, reference_frames};
+use super::grid::{BenchConfig, REF_PRE_TRIGGER, process_frames, reference_frames};
 use crate::dsp::pulse::{PulseShape, Shape};
 use crate::frame::{Report, Samples};
 use crate::scene::Scene;
@@ -112,8 +112,7 @@ fn try_run(scene: &Scene, cfg: &BenchConfig, repo_root: &Path) -> Result<PeerCom
     let dir = repo_root.join("target/peer-exchange");
     std::fs::create_dir_all(&dir).map_err(|e| format!("{}: {e}", dir.display()))?;
 
-    let (frames, _truth) = reference_frames(scene, 4242, cfg.reference_frames.max(1)).map_err(|e| e.to_string())?;
-    let sim = scene.simulation.as_ref().ok_or("the scene has no [simulation] section")?;
+    let (frames, _truth) = reference_frames(scene, cfg.reference_snr_db, 4242, cfg.reference_frames.max(1));
     let stop_key = crate::frame::channel_key(&scene.channels.stop);
     let mut codes: Vec<u8> = Vec::new();
     let (mut vpc, mut off, mut dt, mut len) = (1.0, 0.0, 0.0, 0usize);
@@ -144,7 +143,7 @@ fn try_run(scene: &Scene, cfg: &BenchConfig, repo_root: &Path) -> Result<PeerCom
     let steps = ((hi - lo) * 16.0).ceil() as usize;
     let shape_t: Vec<f64> = (0..=steps).map(|k| lo + (hi - lo) * k as f64 / steps as f64).collect();
     let shape_v: Vec<f64> = shape_t.iter().map(|&t| shape.value_and_slope(t).0).collect();
-    let trig = sim.digitiser.pre_trigger_samples;
+    let trig = REF_PRE_TRIGGER;
     let guard = (scene.noise_gate.guard_s / dt).ceil() as usize;
     let tof = |m: f64| 2.0 * m / scene.c_medium_m_per_s() / dt;
     let search = [

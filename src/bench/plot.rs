@@ -57,10 +57,10 @@ fn work_precision(cells: &[CellStats], path: &Path) -> Result<(), BenchError> {
     let snrs = unique(cells.iter().map(|c| c.snr_db));
     let mut picks: Vec<f64> = Vec::new();
     for want in [10.0, 20.0, 30.0] {
-        if let Some(s) = snrs.iter().copied().min_by(|a, b| (a - want).abs().total_cmp(&(b - want).abs())) {
-            if !picks.contains(&s) {
-                picks.push(s);
-            }
+        if let Some(s) = snrs.iter().copied().min_by(|a, b| (a - want).abs().total_cmp(&(b - want).abs()))
+            && !picks.contains(&s)
+        {
+            picks.push(s);
         }
     }
     let variants = unique(cells.iter().map(|c| c.variant.clone()));

@@ -43,9 +43,9 @@ pub struct ServiceThroughput {
     pub latency_p99_s: f64,
 }
 
-/// Pushes `frames` frames of `scene` (as sensor "bench") through a server on
+/// Pushes `frames` reference frames at `snr_db` (as sensor "bench", scene `scene`) through a server on
 /// 127.0.0.1 and measures ingest, processing and latency.
-pub fn measure_service(scene: &Scene, frames: usize) -> Result<ServiceThroughput, BenchError> {
+pub fn measure_service(scene: &Scene, snr_db: f64, frames: usize) -> Result<ServiceThroughput, BenchError> {
     let err = |e: &dyn std::fmt::Display| BenchError::Service(e.to_string());
     let rt = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
@@ -53,7 +53,7 @@ pub fn measure_service(scene: &Scene, frames: usize) -> Result<ServiceThroughput
         .map_err(|e| err(&e))?;
     // The load generator pre-encodes its frames (a digitiser hands over ready buffers).
     let count = frames.max(1);
-    let (domain, _) = reference_frames(scene, 31337, count.min(2048))?;
+    let (domain, _) = reference_frames(scene, snr_db, 31337, count.min(2048));
     let samples_per_frame = domain.first().map_or(0, |f| f.len());
     let channels = domain.first().map_or(0, |f| f.channels.len());
     let wire: Vec<proto::Frame> = (0..count)

@@ -14,12 +14,12 @@ use rand_distr::{Distribution, StandardNormal};
 use tofwave::detect::detector::{local_maxima, upcrossings};
 use tofwave::detect::noise::NoiseFitter;
 use tofwave::dsp::average::{CodeAccumulator, add_codes_i16, add_f64};
-use tofwave::dsp::{crossing, interp};
-use tofwave::frame::{Channel, ChannelRole, Samples};
 use tofwave::dsp::correlate::{CorrelationMethod, Correlator};
 use tofwave::dsp::fracdelay::FractionalDelay;
 use tofwave::dsp::mlfit::fit_delay;
 use tofwave::dsp::pulse::{Pulse, PulseShape};
+use tofwave::dsp::{crossing, interp};
+use tofwave::frame::{Channel, ChannelRole, Samples};
 use tofwave::scene::Scene;
 
 const FRAME: usize = 2500;
@@ -108,7 +108,10 @@ fn fracdelay(c: &mut Criterion) {
 
 /// i16 codes of a 2500-sample frame: ~3000 codes of noise.
 fn codes(seed: u64) -> Vec<i16> {
-    noise(FRAME, seed).iter().map(|v| (v * 3000.0) as i16).collect()
+    noise(FRAME, seed)
+        .iter()
+        .map(|v| (v * 3000.0) as i16)
+        .collect()
 }
 
 fn decode(c: &mut Criterion) {
@@ -147,7 +150,9 @@ fn threshold_scan(c: &mut Criterion) {
             black_box(peaks.len())
         })
     });
-    c.bench_function("threshold/upcrossings_2500", |b| b.iter(|| black_box(upcrossings(black_box(&y), 0..FRAME, 2.0))));
+    c.bench_function("threshold/upcrossings_2500", |b| {
+        b.iter(|| black_box(upcrossings(black_box(&y), 0..FRAME, 2.0)))
+    });
 }
 
 fn interpolation(c: &mut Criterion) {
@@ -157,17 +162,39 @@ fn interpolation(c: &mut Criterion) {
         .map(|v| (0.8 + 0.05 * v[0], 1.0, 0.7 + 0.05 * v[2]))
         .collect();
     c.bench_function("interp/parabolic_x1000", |b| {
-        b.iter(|| black_box(&t).iter().map(|&(m, z, p)| interp::parabolic(m, z, p).0).sum::<f64>())
+        b.iter(|| {
+            black_box(&t)
+                .iter()
+                .map(|&(m, z, p)| interp::parabolic(m, z, p).0)
+                .sum::<f64>()
+        })
     });
     c.bench_function("interp/gaussian_x1000", |b| {
-        b.iter(|| black_box(&t).iter().map(|&(m, z, p)| interp::gaussian(m, z, p).0).sum::<f64>())
+        b.iter(|| {
+            black_box(&t)
+                .iter()
+                .map(|&(m, z, p)| interp::gaussian(m, z, p).0)
+                .sum::<f64>()
+        })
     });
     let shape = Pulse::from_config(&Scene::default_scene().return_pulse, 1e-9);
-    let x: Vec<f64> = (0..FRAME).map(|k| shape.value_and_slope(k as f64 - 1234.4).0).collect();
+    let x: Vec<f64> = (0..FRAME)
+        .map(|k| shape.value_and_slope(k as f64 - 1234.4).0)
+        .collect();
     c.bench_function("crossing/rising_before_half", |b| {
         b.iter(|| black_box(crossing::rising_before(black_box(&x), 0.5, 1150, 1234)))
     });
 }
 
-criterion_group!(benches, decode, baseline, average, correlate, threshold_scan, interpolation, mlfit, fracdelay);
+criterion_group!(
+    benches,
+    decode,
+    baseline,
+    average,
+    correlate,
+    threshold_scan,
+    interpolation,
+    mlfit,
+    fracdelay
+);
 criterion_main!(benches);

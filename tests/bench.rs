@@ -22,8 +22,15 @@ fn tiny() -> BenchConfig {
 
 fn csv_rows(text: &str) -> (Vec<String>, Vec<Vec<String>>) {
     let mut lines = text.lines();
-    let header = lines.next().expect("header").split(',').map(String::from).collect();
-    let rows = lines.map(|l| l.split(',').map(String::from).collect()).collect();
+    let header = lines
+        .next()
+        .expect("header")
+        .split(',')
+        .map(String::from)
+        .collect();
+    let rows = lines
+        .map(|l| l.split(',').map(String::from).collect())
+        .collect();
     (header, rows)
 }
 
@@ -38,7 +45,14 @@ fn bench_scene_is_valid_and_simulates_i16() {
     assert!((snr - 20.0).abs() < 0.05, "{setting:?}");
     let sim = tofwave::physics::Simulator::new(&s).unwrap();
     let (f, _) = sim.frame(1, 0);
-    assert!(f.channels.iter().all(|c| c.samples.kind() == "i16"), "{:?}", f.channels.iter().map(|c| c.samples.kind()).collect::<Vec<_>>());
+    assert!(
+        f.channels.iter().all(|c| c.samples.kind() == "i16"),
+        "{:?}",
+        f.channels
+            .iter()
+            .map(|c| c.samples.kind())
+            .collect::<Vec<_>>()
+    );
 }
 
 #[test]
@@ -52,9 +66,16 @@ fn tiny_run_writes_columns_and_ml_is_near_the_crlb() {
         repo_root: env!("CARGO_MANIFEST_DIR").into(),
         command: "tests/bench.rs tiny".into(),
     };
-    let res = bench::run(&bench::bench_scene(), &opts, dir.path(), &ProgressBar::hidden()).unwrap();
+    let res = bench::run(
+        &bench::bench_scene(),
+        &opts,
+        dir.path(),
+        &ProgressBar::hidden(),
+    )
+    .unwrap();
 
-    let (header, rows) = csv_rows(&std::fs::read_to_string(dir.path().join("work_precision.csv")).unwrap());
+    let (header, rows) =
+        csv_rows(&std::fs::read_to_string(dir.path().join("work_precision.csv")).unwrap());
     assert_eq!(header, CSV_COLUMNS);
     // 5 methods x 2 depths x 1 SNR.
     assert_eq!(rows.len(), 10);
@@ -66,17 +87,26 @@ fn tiny_run_writes_columns_and_ml_is_near_the_crlb() {
             assert!(x.is_finite(), "{name} = {v} in {r:?}");
         }
     }
-    let (roc_header, roc_rows) = csv_rows(&std::fs::read_to_string(dir.path().join("roc.csv")).unwrap());
+    let (roc_header, roc_rows) =
+        csv_rows(&std::fs::read_to_string(dir.path().join("roc.csv")).unwrap());
     assert_eq!(roc_header, ROC_COLUMNS);
     assert_eq!(roc_rows.len(), 2);
 
     let md = std::fs::read_to_string(dir.path().join("report.md")).unwrap();
-    for needle in ["| method | N | SNR dB | Pd |", "RMSE / CRLB per method", "| ml |", "ROC"] {
+    for needle in [
+        "| method | N | SNR dB | Pd |",
+        "RMSE / CRLB per method",
+        "| ml |",
+        "ROC",
+    ] {
         assert!(md.contains(needle), "report.md lacks {needle:?}");
     }
     for svg in ["work_precision.svg", "rmse_over_crlb.svg", "roc.svg"] {
         let text = std::fs::read_to_string(dir.path().join(svg)).unwrap();
-        assert!(text.starts_with("<svg") && text.contains("polyline"), "{svg}");
+        assert!(
+            text.starts_with("<svg") && text.contains("polyline"),
+            "{svg}"
+        );
     }
 
     for c in &res.cells {
@@ -88,10 +118,31 @@ fn tiny_run_writes_columns_and_ml_is_near_the_crlb() {
     // ~99.7 % (sd/√(2·200) ≈ 5 %, ×3); 2× the bound leaves room for the
     // coloured noise and template mismatch, and a broken estimator (errors of
     // a sample, 15 cm) would be ~30× the bound.
-    let ml = res.cells.iter().find(|c| c.variant == "ml" && c.averaging == 1).unwrap();
-    assert!(ml.sd_m < 2.0 * ml.crlb_m, "ml sd {} vs CRLB {}", ml.sd_m, ml.crlb_m);
-    assert!(ml.sd_m > 0.5 * ml.crlb_m, "ml sd {} below half the CRLB {}: the bound is wrong", ml.sd_m, ml.crlb_m);
+    let ml = res
+        .cells
+        .iter()
+        .find(|c| c.variant == "ml" && c.averaging == 1)
+        .unwrap();
+    assert!(
+        ml.sd_m < 2.0 * ml.crlb_m,
+        "ml sd {} vs CRLB {}",
+        ml.sd_m,
+        ml.crlb_m
+    );
+    assert!(
+        ml.sd_m > 0.5 * ml.crlb_m,
+        "ml sd {} below half the CRLB {}: the bound is wrong",
+        ml.sd_m,
+        ml.crlb_m
+    );
     // Averaging 4 frames halves the error (to within sampling error, ±30 % at 50 reports).
-    let ml4 = res.cells.iter().find(|c| c.variant == "ml" && c.averaging == 4).unwrap();
-    assert!(ml4.crlb_m < 0.6 * ml.crlb_m && ml4.crlb_m > 0.4 * ml.crlb_m, "{ml4:?} vs {ml:?}");
+    let ml4 = res
+        .cells
+        .iter()
+        .find(|c| c.variant == "ml" && c.averaging == 4)
+        .unwrap();
+    assert!(
+        ml4.crlb_m < 0.6 * ml.crlb_m && ml4.crlb_m > 0.4 * ml.crlb_m,
+        "{ml4:?} vs {ml:?}"
+    );
 }

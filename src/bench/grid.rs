@@ -136,12 +136,17 @@ impl BenchConfig {
 
     /// Reports simulated for a cell with averaging depth `n`.
     pub fn reports_for(&self, n: u32) -> usize {
-        (self.frames_per_cell / n.max(1) as usize).clamp(self.min_reports, self.max_reports.max(self.min_reports))
+        (self.frames_per_cell / n.max(1) as usize)
+            .clamp(self.min_reports, self.max_reports.max(self.min_reports))
     }
 
     /// Pipeline frames the grid and ROC push (the progress bar's length).
     pub fn total_work(&self) -> u64 {
-        let per_snr: usize = self.depths.iter().map(|&n| self.reports_for(n) * n as usize).sum();
+        let per_snr: usize = self
+            .depths
+            .iter()
+            .map(|&n| self.reports_for(n) * n as usize)
+            .sum();
         let grid = per_snr * self.snr_db.len() * variants().len();
         let roc = self.roc_snr_db.len() * self.roc_pfa.len() * self.roc_reports;
         (grid + roc) as u64
@@ -162,7 +167,11 @@ pub struct SnrSetting {
 /// `base` with the first target's reflectivity scaled to give a noise-free
 /// peak of `amplitude_v` and the thermal noise set so that the stationary noise
 /// σ gives `snr_db`. The leading-edge comparator sits at half the peak.
-pub fn snr_scene(base: &Scene, amplitude_v: f64, snr_db: f64) -> Result<(Scene, SnrSetting), BenchError> {
+pub fn snr_scene(
+    base: &Scene,
+    amplitude_v: f64,
+    snr_db: f64,
+) -> Result<(Scene, SnrSetting), BenchError> {
     let scene_err = |e: &dyn std::fmt::Display| BenchError::Scene(e.to_string());
     let mut scene = base.clone();
     let peak = |s: &Scene| -> Result<f64, BenchError> {
@@ -173,12 +182,19 @@ pub fn snr_scene(base: &Scene, amplitude_v: f64, snr_db: f64) -> Result<(Scene, 
             .first()
             .map(|r| r.peak_amplitude_v)
             .filter(|a| *a > 0.0)
-            .ok_or_else(|| BenchError::Scene("the scene's simulation has no return in the frame".into()))
+            .ok_or_else(|| {
+                BenchError::Scene("the scene's simulation has no return in the frame".into())
+            })
     };
     {
-        let sim = scene.simulation.as_mut().ok_or_else(|| BenchError::Scene("the scene has no [simulation] section".into()))?;
+        let sim = scene
+            .simulation
+            .as_mut()
+            .ok_or_else(|| BenchError::Scene("the scene has no [simulation] section".into()))?;
         if sim.targets.is_empty() {
-            return Err(BenchError::Scene("the scene's simulation has no target".into()));
+            return Err(BenchError::Scene(
+                "the scene's simulation has no target".into(),
+            ));
         }
     }
     // The return is linear in the reflectivity below saturation; two passes
@@ -196,13 +212,17 @@ pub fn snr_scene(base: &Scene, amplitude_v: f64, snr_db: f64) -> Result<(Scene, 
         let sim_cfg = scene.simulation.as_mut().expect("checked above");
         let noise = sim_cfg.noise.get_or_insert_with(NoiseConfig::default);
         noise.thermal_sigma_v = Some(thermal_v);
-        let got = Simulator::new(&scene).map_err(|e| scene_err(&e))?.stop_noise_sigma_v();
+        let got = Simulator::new(&scene)
+            .map_err(|e| scene_err(&e))?
+            .stop_noise_sigma_v();
         if got <= 0.0 {
             break;
         }
         thermal_v *= want_sigma_v / got;
     }
-    let sigma_v = Simulator::new(&scene).map_err(|e| scene_err(&e))?.stop_noise_sigma_v();
+    let sigma_v = Simulator::new(&scene)
+        .map_err(|e| scene_err(&e))?
+        .stop_noise_sigma_v();
     scene.timing.leading_edge_v = 0.5 * a;
     Ok((
         scene,
@@ -221,7 +241,12 @@ pub fn snr_scene(base: &Scene, amplitude_v: f64, snr_db: f64) -> Result<(Scene, 
 /// var(τ) ≥ σ² / (A² Σ_k (s'(k−τ) − mean-projection)²): the amplitude
 /// nuisance removes the part of s' that lies along s.
 pub fn analytic_crlb_range_m(scene: &Scene, amplitude_v: f64, sigma_v: f64) -> f64 {
-    let dt = scene.simulation.as_ref().map_or(scene.digitiser.sample_interval_s, |s| s.digitiser.sample_interval_s);
+    let dt = scene
+        .simulation
+        .as_ref()
+        .map_or(scene.digitiser.sample_interval_s, |s| {
+            s.digitiser.sample_interval_s
+        });
     let dt = if dt > 0.0 { dt } else { 1e-9 };
     let shape = Shape::from_config(&scene.return_pulse, dt);
     let (lo, hi) = shape.support();
@@ -303,7 +328,11 @@ fn simulate(sim: &Simulator, seed: u64, count: usize) -> CellFrames {
 
 /// Pushes `frames` through a pipeline of `scene` and returns the reports and
 /// the time spent in `push`/`flush`, seconds.
-fn process(scene: &Scene, frames: &[Frame], progress: &ProgressBar) -> Result<(Vec<Report>, f64), BenchError> {
+fn process(
+    scene: &Scene,
+    frames: &[Frame],
+    progress: &ProgressBar,
+) -> Result<(Vec<Report>, f64), BenchError> {
     let mut pipeline = Pipeline::new(scene, "bench");
     // Copies are made before the clock starts: a digitiser hands frames over by value.
     let owned: Vec<Frame> = frames.to_vec();
@@ -319,7 +348,9 @@ fn process(scene: &Scene, frames: &[Frame], progress: &ProgressBar) -> Result<(V
         let len = chunk.len() as u64;
         let t0 = Instant::now();
         for f in chunk {
-            pipeline.push(f, &mut reports).map_err(|e| BenchError::Scene(e.to_string()))?;
+            pipeline
+                .push(f, &mut reports)
+                .map_err(|e| BenchError::Scene(e.to_string()))?;
         }
         seconds += t0.elapsed().as_secs_f64();
         progress.inc(len);
@@ -355,7 +386,10 @@ fn score(scene: &Scene, reports: &[Report], truth: &[Truth]) -> Scored {
     };
     for r in reports {
         let group = &truth[r.seq_first as usize..=(r.seq_last as usize).min(truth.len() - 1)];
-        let tofs: Vec<f64> = group.iter().filter_map(|t| t.returns.first().map(|x| x.tof_s)).collect();
+        let tofs: Vec<f64> = group
+            .iter()
+            .filter_map(|t| t.returns.first().map(|x| x.tof_s))
+            .collect();
         s.noise_sigma_sum_v += r.noise.sigma_v;
         s.gate_rate_sum += r.false_alarm.rate;
         if tofs.is_empty() {
@@ -365,7 +399,11 @@ fn score(scene: &Scene, reports: &[Report], truth: &[Truth]) -> Scored {
             continue;
         }
         let true_tof_s = tofs.iter().sum::<f64>() / tofs.len() as f64;
-        let errs: Vec<f64> = r.returns.iter().map(|x| (x.tof_s - true_tof_s) * half_c).collect();
+        let errs: Vec<f64> = r
+            .returns
+            .iter()
+            .map(|x| (x.tof_s - true_tof_s) * half_c)
+            .collect();
         let best = errs
             .iter()
             .enumerate()
@@ -411,7 +449,11 @@ fn cell_stats(run: &Run, setting: &SnrSetting, truth: &[Truth]) -> CellStats {
     } else {
         let bias = e.iter().sum::<f64>() / m;
         let ms = e.iter().map(|x| x * x).sum::<f64>() / m;
-        let var = if e.len() > 1 { e.iter().map(|x| (x - bias).powi(2)).sum::<f64>() / (m - 1.0) } else { 0.0 };
+        let var = if e.len() > 1 {
+            e.iter().map(|x| (x - bias).powi(2)).sum::<f64>() / (m - 1.0)
+        } else {
+            0.0
+        };
         (ms.sqrt(), bias, var.sqrt())
     };
     // The σ the pipeline measured in its noise gates is already that of the N-frame mean.
@@ -422,7 +464,8 @@ fn cell_stats(run: &Run, setting: &SnrSetting, truth: &[Truth]) -> CellStats {
         variant: variant.to_string(),
         averaging: n,
         snr_db: setting.snr_db,
-        snr_measured_db: 20.0 * (setting.amplitude_v / (sigma_report_v * (n as f64).sqrt())).log10(),
+        snr_measured_db: 20.0
+            * (setting.amplitude_v / (sigma_report_v * (n as f64).sqrt())).log10(),
         reports: reports.len(),
         frames,
         detected: s.detected,
@@ -434,7 +477,11 @@ fn cell_stats(run: &Run, setting: &SnrSetting, truth: &[Truth]) -> CellStats {
         bias_m: bias,
         sd_m: sd,
         crlb_m: crlb,
-        report_sigma_m: if s.detected > 0 { s.sigma_sum_m / s.detected as f64 } else { f64::NAN },
+        report_sigma_m: if s.detected > 0 {
+            s.sigma_sum_m / s.detected as f64
+        } else {
+            f64::NAN
+        },
         rmse_over_crlb: rmse / crlb,
         ns_per_frame,
         frames_per_s: 1e9 / ns_per_frame,
@@ -444,19 +491,30 @@ fn cell_stats(run: &Run, setting: &SnrSetting, truth: &[Truth]) -> CellStats {
 
 /// Runs every (SNR, N, variant) cell of `cfg` on `base`. The frames of a
 /// (SNR, N) cell are simulated once and every variant processes the same ones.
-pub fn run_grid(base: &Scene, cfg: &BenchConfig, variants: &[Variant], progress: &ProgressBar) -> Result<Vec<CellStats>, BenchError> {
+pub fn run_grid(
+    base: &Scene,
+    cfg: &BenchConfig,
+    variants: &[Variant],
+    progress: &ProgressBar,
+) -> Result<Vec<CellStats>, BenchError> {
     let mut rows = Vec::new();
     for (si, &snr_db) in cfg.snr_db.iter().enumerate() {
         let (scene_snr, setting) = snr_scene(base, cfg.amplitude_v, snr_db)?;
         let sim = Simulator::new(&scene_snr).map_err(|e| BenchError::Scene(e.to_string()))?;
         for &n in &cfg.depths {
             let reports = cfg.reports_for(n);
-            let cell = simulate(&sim, cfg.seed.wrapping_add(1000 * si as u64 + n as u64), reports * n as usize);
+            let cell = simulate(
+                &sim,
+                cfg.seed.wrapping_add(1000 * si as u64 + n as u64),
+                reports * n as usize,
+            );
             for v in variants {
                 let mut scene = scene_snr.clone();
                 (v.apply)(&mut scene);
                 scene.averaging.frames = n;
-                scene.validate(&v.name).map_err(|e| BenchError::Scene(e.to_string()))?;
+                scene
+                    .validate(&v.name)
+                    .map_err(|e| BenchError::Scene(e.to_string()))?;
                 let (out, seconds) = process(&scene, &cell.frames, progress)?;
                 let run = Run {
                     variant: &v.name,
@@ -491,12 +549,20 @@ pub struct RocPoint {
 }
 
 /// Sweeps `detector.pfa` at each ROC SNR (matched filter, parabolic timing, N = 1).
-pub fn roc(base: &Scene, cfg: &BenchConfig, progress: &ProgressBar) -> Result<Vec<RocPoint>, BenchError> {
+pub fn roc(
+    base: &Scene,
+    cfg: &BenchConfig,
+    progress: &ProgressBar,
+) -> Result<Vec<RocPoint>, BenchError> {
     let mut out = Vec::new();
     for (si, &snr_db) in cfg.roc_snr_db.iter().enumerate() {
         let (scene_snr, _) = snr_scene(base, cfg.amplitude_v, snr_db)?;
         let sim = Simulator::new(&scene_snr).map_err(|e| BenchError::Scene(e.to_string()))?;
-        let cell = simulate(&sim, cfg.seed.wrapping_add(77_000 + si as u64), cfg.roc_reports);
+        let cell = simulate(
+            &sim,
+            cfg.seed.wrapping_add(77_000 + si as u64),
+            cfg.roc_reports,
+        );
         for &pfa in &cfg.roc_pfa {
             let mut scene = scene_snr.clone();
             scene.detector.kind = DetectorKind::MatchedFilter;
@@ -551,7 +617,12 @@ const REF_VOLTS_PER_CODE: f64 = 1.0 / 4096.0;
 /// drawn uniformly in 10–140 m, with peak SNR `snr_db` (0.2 V peak).
 /// Returns the frames and each frame's true stop instant (peak of the shape
 /// plus its fraction offset), s from the trigger.
-pub(crate) fn reference_frames(scene: &Scene, snr_db: f64, seed: u64, count: usize) -> (Vec<Frame>, Vec<f64>) {
+pub(crate) fn reference_frames(
+    scene: &Scene,
+    snr_db: f64,
+    seed: u64,
+    count: usize,
+) -> (Vec<Frame>, Vec<f64>) {
     use crate::frame::{Channel, ChannelRole, Samples};
     use rand::{Rng, SeedableRng};
     use rand_distr::StandardNormal;
@@ -573,8 +644,12 @@ pub(crate) fn reference_frames(scene: &Scene, snr_db: f64, seed: u64, count: usi
         for k in 0..REF_SAMPLES {
             let n1: f64 = rng.sample(StandardNormal);
             let n2: f64 = rng.sample(StandardNormal);
-            ch1.push(code(0.4 * start.value_and_slope(k as f64 - start_peak).0 + 0.002 * n1));
-            ch2.push(code(amp_v * ret.value_and_slope(k as f64 - stop_peak).0 + sigma_v * n2));
+            ch1.push(code(
+                0.4 * start.value_and_slope(k as f64 - start_peak).0 + 0.002 * n1,
+            ));
+            ch2.push(code(
+                amp_v * ret.value_and_slope(k as f64 - stop_peak).0 + sigma_v * n2,
+            ));
         }
         let first_s = -(REF_PRE_TRIGGER as f64) * REF_DT_S;
         t_stop.push(first_s + (stop_peak + ret.fraction_offset(scene.timing.fraction)) * REF_DT_S);
@@ -591,7 +666,10 @@ pub(crate) fn reference_frames(scene: &Scene, snr_db: f64, seed: u64, count: usi
             trigger_time_s: i as f64 * 1e-6,
             sample_interval_s: REF_DT_S,
             first_sample_offset_s: first_s,
-            channels: vec![channel("CH1", ChannelRole::Start, ch1), channel("CH2", ChannelRole::Stop, ch2)],
+            channels: vec![
+                channel("CH1", ChannelRole::Start, ch1),
+                channel("CH2", ChannelRole::Stop, ch2),
+            ],
             laser_off: false,
         });
     }
@@ -612,6 +690,9 @@ pub fn offline_throughput(scene: &Scene, snr_db: f64, frames: usize) -> Result<f
 }
 
 /// Runs `scene` on `frames` and returns (reports, seconds); used by the peer comparison.
-pub(crate) fn process_frames(scene: &Scene, frames: &[Frame]) -> Result<(Vec<Report>, f64), BenchError> {
+pub(crate) fn process_frames(
+    scene: &Scene,
+    frames: &[Frame],
+) -> Result<(Vec<Report>, f64), BenchError> {
     process(scene, frames, &ProgressBar::hidden())
 }

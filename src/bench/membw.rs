@@ -33,7 +33,9 @@ impl Bandwidth {
 /// samples is 20 MB).
 pub fn measure_bandwidth(len: usize, frames: usize) -> Bandwidth {
     let mut rng = ChaCha8Rng::seed_from_u64(5);
-    let stream: Vec<i16> = (0..len * frames).map(|_| rng.random_range(-2000..2000)).collect();
+    let stream: Vec<i16> = (0..len * frames)
+        .map(|_| rng.random_range(-2000..2000))
+        .collect();
     let mut dst = vec![0i16; stream.len()];
     let bytes = std::mem::size_of_val(stream.as_slice());
     let best = |f: &mut dyn FnMut()| {

@@ -14,8 +14,8 @@ mod plot;
 mod service;
 
 pub use grid::{
-    BenchConfig, CellStats, RocPoint, SnrSetting, Variant, analytic_crlb_range_m, bench_scene, roc,
-    offline_throughput, reference_scene, run_grid, snr_scene, variants,
+    BenchConfig, CellStats, RocPoint, SnrSetting, Variant, analytic_crlb_range_m, bench_scene,
+    offline_throughput, reference_scene, roc, run_grid, snr_scene, variants,
 };
 pub use membw::{Bandwidth, measure_bandwidth};
 pub use output::{CSV_COLUMNS, ROC_COLUMNS, write_csv, write_roc_csv};
@@ -114,7 +114,8 @@ pub fn run(
 
     progress.set_message("reference throughput");
     let reference = grid::reference_scene();
-    let offline_frames_per_s = grid::offline_throughput(&reference, cfg.reference_snr_db, cfg.reference_frames)?;
+    let offline_frames_per_s =
+        grid::offline_throughput(&reference, cfg.reference_snr_db, cfg.reference_frames)?;
 
     let peer = if opts.peer {
         progress.set_message("numpy/scipy peer");
@@ -128,7 +129,10 @@ pub fn run(
     });
     let service_result = if opts.service {
         progress.set_message("loopback service");
-        Some(measure_service(&reference, cfg.reference_snr_db, cfg.service_frames).map_err(|e| e.to_string()))
+        Some(
+            measure_service(&reference, cfg.reference_snr_db, cfg.service_frames)
+                .map_err(|e| e.to_string()),
+        )
     } else {
         None
     };

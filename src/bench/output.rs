@@ -33,10 +33,21 @@ pub const CSV_COLUMNS: [&str; 21] = [
 ];
 
 /// Columns of `roc.csv`, in order.
-pub const ROC_COLUMNS: [&str; 6] = ["snr_db", "pfa_design", "reports", "pd", "pfa_report", "pfa_gate_cell"];
+pub const ROC_COLUMNS: [&str; 6] = [
+    "snr_db",
+    "pfa_design",
+    "reports",
+    "pd",
+    "pfa_report",
+    "pfa_gate_cell",
+];
 
 fn num(x: f64) -> String {
-    if x.is_finite() { format!("{x:.6e}") } else { "nan".into() }
+    if x.is_finite() {
+        format!("{x:.6e}")
+    } else {
+        "nan".into()
+    }
 }
 
 /// Writes the grid rows as CSV (header [`CSV_COLUMNS`]).
@@ -158,10 +169,17 @@ pub fn markdown(res: &BenchResults, opts: &RunOptions) -> String {
             );
         }
         Some(PeerOutcome::Failed(why)) => {
-            let _ = writeln!(md, "| ≥ 25× faster than numpy/scipy peer | peer did not run: {} | not measured |", why.replace('|', "/").replace('\n', " "));
+            let _ = writeln!(
+                md,
+                "| ≥ 25× faster than numpy/scipy peer | peer did not run: {} | not measured |",
+                why.replace('|', "/").replace('\n', " ")
+            );
         }
         None => {
-            let _ = writeln!(md, "| ≥ 25× faster than numpy/scipy peer | skipped (--no-peer) | not measured |");
+            let _ = writeln!(
+                md,
+                "| ≥ 25× faster than numpy/scipy peer | skipped (--no-peer) | not measured |"
+            );
         }
     }
     if let Some(b) = &res.bandwidth {
@@ -187,7 +205,11 @@ pub fn markdown(res: &BenchResults, opts: &RunOptions) -> String {
             );
         }
         Some(Err(e)) => {
-            let _ = writeln!(md, "| gRPC ingest + processing ≥ 50 % of offline | failed: {} | not measured |", e.replace('|', "/"));
+            let _ = writeln!(
+                md,
+                "| gRPC ingest + processing ≥ 50 % of offline | failed: {} | not measured |",
+                e.replace('|', "/")
+            );
         }
         None => {}
     }
@@ -204,7 +226,12 @@ pub fn markdown(res: &BenchResults, opts: &RunOptions) -> String {
                     p.frames, p.peer_versions
                 );
                 let _ = writeln!(md, "| | tofwave | peer |\n|---|---|---|");
-                let _ = writeln!(md, "| time per frame | {:.2} µs | {:.1} µs |", p.rust_ns_per_frame / 1e3, p.peer_ns_per_frame / 1e3);
+                let _ = writeln!(
+                    md,
+                    "| time per frame | {:.2} µs | {:.1} µs |",
+                    p.rust_ns_per_frame / 1e3,
+                    p.peer_ns_per_frame / 1e3
+                );
                 let _ = writeln!(md, "| returns | {} | {} |", p.rust_returns, p.peer_returns);
                 let _ = writeln!(
                     md,
@@ -217,11 +244,18 @@ pub fn markdown(res: &BenchResults, opts: &RunOptions) -> String {
                     p.max_abs_delta_s * 1e9,
                     p.max_delta_over_sigma,
                     100.0 * p.within_3_sigma_fraction,
-                    if p.agree() { "ranges agree within the estimators' precision" } else { "**ranges disagree**" }
+                    if p.agree() {
+                        "ranges agree within the estimators' precision"
+                    } else {
+                        "**ranges disagree**"
+                    }
                 );
             }
             PeerOutcome::Failed(why) => {
-                let _ = writeln!(md, "The peer did not run, so there are no peer numbers: {why}\n");
+                let _ = writeln!(
+                    md,
+                    "The peer did not run, so there are no peer numbers: {why}\n"
+                );
             }
         }
     }
@@ -260,7 +294,10 @@ pub fn markdown(res: &BenchResults, opts: &RunOptions) -> String {
     for v in &variants {
         let _ = write!(md, "| {v} |");
         for s in &snrs {
-            let c = res.cells.iter().find(|c| &c.variant == v && c.averaging == 1 && c.snr_db == *s);
+            let c = res
+                .cells
+                .iter()
+                .find(|c| &c.variant == v && c.averaging == 1 && c.snr_db == *s);
             match c {
                 Some(c) if c.rmse_over_crlb.is_finite() => {
                     let _ = write!(md, " {:.2} |", c.rmse_over_crlb);
@@ -288,7 +325,11 @@ pub fn markdown(res: &BenchResults, opts: &RunOptions) -> String {
             fmt_m(c.rmse_m),
             fmt_m(c.bias_m),
             fmt_m(c.crlb_m),
-            if c.rmse_over_crlb.is_finite() { format!("{:.2}", c.rmse_over_crlb) } else { "–".into() },
+            if c.rmse_over_crlb.is_finite() {
+                format!("{:.2}", c.rmse_over_crlb)
+            } else {
+                "–".into()
+            },
             fmt_m(c.report_sigma_m),
             c.ns_per_frame,
             c.frames_per_s
@@ -296,9 +337,16 @@ pub fn markdown(res: &BenchResults, opts: &RunOptions) -> String {
     }
 
     let _ = writeln!(md, "\n## ROC (matched filter, N = 1)\n");
-    let _ = writeln!(md, "| SNR dB | design pfa | Pd | pfa/report | gate pfa/cell |\n|---|---|---|---|---|");
+    let _ = writeln!(
+        md,
+        "| SNR dB | design pfa | Pd | pfa/report | gate pfa/cell |\n|---|---|---|---|---|"
+    );
     for p in &res.roc {
-        let _ = writeln!(md, "| {} | {:.0e} | {:.3} | {:.3} | {:.2e} |", p.snr_db, p.pfa_design, p.pd, p.pfa_report, p.pfa_gate_cell);
+        let _ = writeln!(
+            md,
+            "| {} | {:.0e} | {:.3} | {:.3} | {:.2e} |",
+            p.snr_db, p.pfa_design, p.pd, p.pfa_report, p.pfa_gate_cell
+        );
     }
     let _ = writeln!(
         md,

@@ -57,7 +57,10 @@ fn work_precision(cells: &[CellStats], path: &Path) -> Result<(), BenchError> {
     let snrs = unique(cells.iter().map(|c| c.snr_db));
     let mut picks: Vec<f64> = Vec::new();
     for want in [10.0, 20.0, 30.0] {
-        if let Some(s) = snrs.iter().copied().min_by(|a, b| (a - want).abs().total_cmp(&(b - want).abs()))
+        if let Some(s) = snrs
+            .iter()
+            .copied()
+            .min_by(|a, b| (a - want).abs().total_cmp(&(b - want).abs()))
             && !picks.contains(&s)
         {
             picks.push(s);
@@ -89,14 +92,18 @@ fn work_precision(cells: &[CellStats], path: &Path) -> Result<(), BenchError> {
             let color = PALETTE[i % PALETTE.len()];
             let pts: Vec<(f64, f64)> = cells
                 .iter()
-                .filter(|c| &c.variant == v && c.snr_db == *snr && c.rmse_m.is_finite() && c.rmse_m > 0.0)
+                .filter(|c| {
+                    &c.variant == v && c.snr_db == *snr && c.rmse_m.is_finite() && c.rmse_m > 0.0
+                })
                 .map(|c| (c.ns_per_report, c.rmse_m))
                 .collect();
             chart
                 .draw_series(LineSeries::new(pts.clone(), color.stroke_width(2)))
                 .map_err(|e| err(path, e))?
                 .label(v.clone())
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], color.stroke_width(2)));
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 16, y)], color.stroke_width(2))
+                });
             chart
                 .draw_series(pts.iter().map(|&p| Circle::new(p, 3, color.filled())))
                 .map_err(|e| err(path, e))?;
@@ -117,8 +124,16 @@ fn rmse_over_crlb(cells: &[CellStats], path: &Path) -> Result<(), BenchError> {
     let n1: Vec<&CellStats> = cells.iter().filter(|c| c.averaging == 1).collect();
     let root = SVGBackend::new(path, (640, 440)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| err(path, e))?;
-    let (xlo, xhi) = n1.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), c| (a.min(c.snr_db), b.max(c.snr_db)));
-    let (xlo, xhi) = if xlo.is_finite() && xhi > xlo { (xlo, xhi) } else { (0.0, 40.0) };
+    let (xlo, xhi) = n1
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), c| {
+            (a.min(c.snr_db), b.max(c.snr_db))
+        });
+    let (xlo, xhi) = if xlo.is_finite() && xhi > xlo {
+        (xlo, xhi)
+    } else {
+        (0.0, 40.0)
+    };
     let yr = log_range(n1.iter().map(|c| c.rmse_over_crlb).chain([1.0]));
     let mut chart = ChartBuilder::on(&root)
         .caption("range RMSE / CRLB (N = 1)", ("sans-serif", 16))
@@ -144,13 +159,18 @@ fn rmse_over_crlb(cells: &[CellStats], path: &Path) -> Result<(), BenchError> {
             .draw_series(LineSeries::new(pts.clone(), color.stroke_width(2)))
             .map_err(|e| err(path, e))?
             .label(v.clone())
-            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], color.stroke_width(2)));
+            .legend(move |(x, y)| {
+                PathElement::new(vec![(x, y), (x + 16, y)], color.stroke_width(2))
+            });
         chart
             .draw_series(pts.iter().map(|&p| Circle::new(p, 3, color.filled())))
             .map_err(|e| err(path, e))?;
     }
     chart
-        .draw_series(LineSeries::new(vec![(xlo, 1.0), (xhi, 1.0)], BLACK.stroke_width(1)))
+        .draw_series(LineSeries::new(
+            vec![(xlo, 1.0), (xhi, 1.0)],
+            BLACK.stroke_width(1),
+        ))
         .map_err(|e| err(path, e))?
         .label("CRLB")
         .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], BLACK));
@@ -172,7 +192,10 @@ fn roc(res: &BenchResults, path: &Path) -> Result<(), BenchError> {
     let floor = |p: &super::grid::RocPoint| p.pfa_report.max(0.5 / p.reports.max(1) as f64);
     let xr = log_range(res.roc.iter().map(floor).chain([1.0]));
     let mut chart = ChartBuilder::on(&root)
-        .caption("ROC: matched filter, N = 1, sweeping detector.pfa", ("sans-serif", 16))
+        .caption(
+            "ROC: matched filter, N = 1, sweeping detector.pfa",
+            ("sans-serif", 16),
+        )
         .margin(10)
         .x_label_area_size(36)
         .y_label_area_size(48)
@@ -186,13 +209,20 @@ fn roc(res: &BenchResults, path: &Path) -> Result<(), BenchError> {
         .map_err(|e| err(path, e))?;
     for (i, s) in snrs.iter().enumerate() {
         let color = PALETTE[i % PALETTE.len()];
-        let mut pts: Vec<(f64, f64)> = res.roc.iter().filter(|p| p.snr_db == *s).map(|p| (floor(p), p.pd)).collect();
+        let mut pts: Vec<(f64, f64)> = res
+            .roc
+            .iter()
+            .filter(|p| p.snr_db == *s)
+            .map(|p| (floor(p), p.pd))
+            .collect();
         pts.sort_by(|a, b| a.0.total_cmp(&b.0));
         chart
             .draw_series(LineSeries::new(pts.clone(), color.stroke_width(2)))
             .map_err(|e| err(path, e))?
             .label(format!("{s} dB"))
-            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], color.stroke_width(2)));
+            .legend(move |(x, y)| {
+                PathElement::new(vec![(x, y), (x + 16, y)], color.stroke_width(2))
+            });
         chart
             .draw_series(pts.iter().map(|&p| Circle::new(p, 3, color.filled())))
             .map_err(|e| err(path, e))?;

@@ -45,7 +45,11 @@ pub struct ServiceThroughput {
 
 /// Pushes `frames` reference frames at `snr_db` (as sensor "bench", scene `scene`) through a server on
 /// 127.0.0.1 and measures ingest, processing and latency.
-pub fn measure_service(scene: &Scene, snr_db: f64, frames: usize) -> Result<ServiceThroughput, BenchError> {
+pub fn measure_service(
+    scene: &Scene,
+    snr_db: f64,
+    frames: usize,
+) -> Result<ServiceThroughput, BenchError> {
     let err = |e: &dyn std::fmt::Display| BenchError::Service(e.to_string());
     let rt = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
@@ -67,7 +71,9 @@ pub fn measure_service(scene: &Scene, snr_db: f64, frames: usize) -> Result<Serv
     drop(domain);
     let scene = scene.clone();
     rt.block_on(async move {
-        let listener = TcpListener::bind("127.0.0.1:0").await.map_err(|e| err(&e))?;
+        let listener = TcpListener::bind("127.0.0.1:0")
+            .await
+            .map_err(|e| err(&e))?;
         let url = format!("http://{}", listener.local_addr().map_err(|e| err(&e))?);
         let config = ServerConfig {
             scene,
@@ -80,10 +86,13 @@ pub fn measure_service(scene: &Scene, snr_db: f64, frames: usize) -> Result<Serv
         let server = tokio::spawn(run(listener, config, async move {
             let _ = stop_rx.await;
         }));
-        let mut clients = client::connect(&url, &ClientOptions::default()).await.map_err(|e| err(&e))?;
-        let mut events = client::subscribe(&mut clients.reports, proto::SubscribeRequest::default())
+        let mut clients = client::connect(&url, &ClientOptions::default())
             .await
             .map_err(|e| err(&e))?;
+        let mut events =
+            client::subscribe(&mut clients.reports, proto::SubscribeRequest::default())
+                .await
+                .map_err(|e| err(&e))?;
 
         let sent_at: Arc<Mutex<Vec<Option<Instant>>>> = Arc::new(Mutex::new(vec![None; count]));
         let collector = tokio::spawn(async move {
@@ -123,11 +132,15 @@ pub fn measure_service(scene: &Scene, snr_db: f64, frames: usize) -> Result<Serv
                 }
             }
         });
-        let summary = client::push(&mut clients.ingest, ReceiverStream::new(rx), |_| {}).await.map_err(|e| err(&e))?;
+        let summary = client::push(&mut clients.ingest, ReceiverStream::new(rx), |_| {})
+            .await
+            .map_err(|e| err(&e))?;
         let ingest_s = t0.elapsed().as_secs_f64();
         let _ = producer.await;
         let got = collector.await.map_err(|e| err(&e))?;
-        let last_report_s = got.last().map_or(ingest_s, |(_, t)| t.duration_since(t0).as_secs_f64());
+        let last_report_s = got
+            .last()
+            .map_or(ingest_s, |(_, t)| t.duration_since(t0).as_secs_f64());
         let _ = stop_tx.send(());
         let _ = tokio::time::timeout(Duration::from_secs(30), server).await;
         if got.len() < count {
@@ -139,10 +152,20 @@ pub fn measure_service(scene: &Scene, snr_db: f64, frames: usize) -> Result<Serv
         let stamps = sent_at.lock().expect("no panics while holding the lock");
         let mut lat: Vec<f64> = got
             .iter()
-            .filter_map(|(seq, t)| stamps.get(*seq as usize).copied().flatten().map(|s| t.saturating_duration_since(s).as_secs_f64()))
+            .filter_map(|(seq, t)| {
+                stamps
+                    .get(*seq as usize)
+                    .copied()
+                    .flatten()
+                    .map(|s| t.saturating_duration_since(s).as_secs_f64())
+            })
             .collect();
         lat.sort_by(f64::total_cmp);
-        let q = |p: f64| lat.get(((lat.len() as f64 - 1.0) * p).round() as usize).copied().unwrap_or(f64::NAN);
+        let q = |p: f64| {
+            lat.get(((lat.len() as f64 - 1.0) * p).round() as usize)
+                .copied()
+                .unwrap_or(f64::NAN)
+        };
         let total_samples = (count * samples_per_frame * channels) as f64;
         Ok(ServiceThroughput {
             frames: count,

@@ -50,7 +50,9 @@ enum Command {
 #[derive(Args, Debug)]
 struct BenchArgs {
     /// Scene with a [simulation] section holding one target (its reflectivity and thermal noise
-    /// are set per SNR). Default: the embedded bench scene (weak-32m set-up, 14-bit digitiser).
+    /// are set per SNR) for the work-precision grid and ROC; the performance targets always use the
+    /// reference frames (64-tap template, white noise). Default: the embedded bench scene (weak-32m
+    /// set-up, 14-bit digitiser).
     #[arg(long, value_name = "FILE")]
     scene: Option<PathBuf>,
     /// Directory for report.md, work_precision.csv, roc.csv and the SVG plots (created).

@@ -113,20 +113,29 @@ fn tiny_run_writes_columns_and_ml_is_near_the_crlb() {
         assert!(c.pd > 0.95, "{c:?}");
         assert!(c.ns_per_frame > 0.0 && c.frames_per_s > 0.0, "{c:?}");
     }
-    // ML at 30 dB, N = 1: the spread must be within a sane multiple of the
-    // CRLB. With 200 reports the sample sd is within ±15 % of the true sd at
-    // ~99.7 % (sd/√(2·200) ≈ 5 %, ×3); 2× the bound leaves room for the
-    // coloured noise and template mismatch, and a broken estimator (errors of
-    // a sample, 15 cm) would be ~30× the bound.
+    // ML at 30 dB, N = 1, against the CRLB (stop pulse, white noise, ~1 mm
+    // here). The spread: with 200 reports the sample sd is within ±15 % of
+    // the true sd at ~99.7 % (sd/√(2·200) ≈ 5 %, ×3); the committed default
+    // run measured sd ≈ 1.8 × CRLB (coloured receiver noise and the start
+    // pulse's own jitter are not in the bound), so 3× leaves room for those
+    // and sampling error. The RMSE adds the bias of the bigaussian template
+    // against the simulated pulse (≈ 3 mm, 3.6 × CRLB in total measured); 6×
+    // bounds it. A broken estimator (a sample of error, 15 cm) is > 100×.
     let ml = res
         .cells
         .iter()
         .find(|c| c.variant == "ml" && c.averaging == 1)
         .unwrap();
     assert!(
-        ml.sd_m < 2.0 * ml.crlb_m,
+        ml.sd_m < 3.0 * ml.crlb_m,
         "ml sd {} vs CRLB {}",
         ml.sd_m,
+        ml.crlb_m
+    );
+    assert!(
+        ml.rmse_m < 6.0 * ml.crlb_m,
+        "ml RMSE {} vs CRLB {}",
+        ml.rmse_m,
         ml.crlb_m
     );
     assert!(

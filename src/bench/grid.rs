@@ -617,7 +617,7 @@ const REF_VOLTS_PER_CODE: f64 = 1.0 / 4096.0;
 /// drawn uniformly in 10–140 m, with peak SNR `snr_db` (0.2 V peak).
 /// Returns the frames and each frame's true stop instant (peak of the shape
 /// plus its fraction offset), s from the trigger.
-pub(crate) fn reference_frames(
+pub fn reference_frames(
     scene: &Scene,
     snr_db: f64,
     seed: u64,

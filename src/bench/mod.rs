@@ -15,7 +15,7 @@ mod service;
 
 pub use grid::{
     BenchConfig, CellStats, RocPoint, SnrSetting, Variant, analytic_crlb_range_m, bench_scene,
-    offline_throughput, reference_scene, roc, run_grid, snr_scene, variants,
+    offline_throughput, reference_frames, reference_scene, roc, run_grid, snr_scene, variants,
 };
 pub use membw::{Bandwidth, measure_bandwidth};
 pub use output::{CSV_COLUMNS, ROC_COLUMNS, write_csv, write_roc_csv};

@@ -613,8 +613,10 @@ pub(crate) const REF_PRE_TRIGGER: usize = 200;
 const REF_VOLTS_PER_CODE: f64 = 1.0 / 4096.0;
 
 /// Reference frames: i16 codes, white Gaussian noise, a start pulse at the
-/// trigger (CH1) and one return (CH2) of the scene's return shape at a range
-/// drawn uniformly in 10–140 m, with peak SNR `snr_db` (0.2 V peak).
+/// trigger (CH1) and one return (CH2) of the scene's return shape at 32.1 m
+/// (the source's weak target), with peak SNR `snr_db` (0.2 V peak). The
+/// laser fires at a uniformly random sub-sample phase of the sample clock,
+/// so every frame samples the pulses differently but frames still average.
 /// Returns the frames and each frame's true stop instant (peak of the shape
 /// plus its fraction offset), s from the trigger.
 pub fn reference_frames(
@@ -635,7 +637,7 @@ pub fn reference_frames(
     let mut frames = Vec::with_capacity(count);
     let mut t_stop = Vec::with_capacity(count);
     for i in 0..count {
-        let range_m: f64 = rng.random_range(10.0..140.0);
+        let range_m = 32.1147;
         // Start pulse peak a little after the trigger so its leading edge is in the frame.
         let start_peak = REF_PRE_TRIGGER as f64 + 10.0 + rng.random_range(0.0..1.0);
         let stop_peak = start_peak + 2.0 * range_m / scene.c_medium_m_per_s() / REF_DT_S;

@@ -145,7 +145,7 @@ pub fn markdown(res: &BenchResults, opts: &RunOptions) -> String {
         md,
         "Reference frames: the embedded prototype scene with a 64-tap return template (5.8 ns rise, \
          19 ns FWHM), 2500 samples of i16 codes (12-bit, ±0.5 V) at 1 GS/s on two channels, white \
-         Gaussian noise, one return per frame at {} dB peak SNR; matched-filter Neyman–Pearson \
+         Gaussian noise, one return per frame at 32.1 m and {} dB peak SNR, random sub-sample phase; matched-filter Neyman–Pearson \
          detection (pfa 1e-6 per report), ML timing, N = 1.\n",
         cfg.reference_snr_db
     );

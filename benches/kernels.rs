@@ -1,5 +1,7 @@
 //! Criterion benches of the DSP kernels at the prototype's frame size
-//! (2500 samples at 1 GS/s). Run: `cargo bench --bench kernels` (add
+//! (2500 samples at 1 GS/s), in pipeline order: decode, baseline (noise
+//! gate), average, matched filter (FIR and FFT), threshold scan,
+//! interpolation, ML refinement. Run: `cargo bench --bench kernels` (add
 //! `-- --quick` for a fast pass).
 
 use std::hint::black_box;
@@ -9,11 +11,15 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 
+use tofwave::detect::detector::{local_maxima, upcrossings};
+use tofwave::detect::noise::NoiseFitter;
 use tofwave::dsp::average::{CodeAccumulator, add_codes_i16, add_f64};
 use tofwave::dsp::correlate::{CorrelationMethod, Correlator};
 use tofwave::dsp::fracdelay::FractionalDelay;
 use tofwave::dsp::mlfit::fit_delay;
 use tofwave::dsp::pulse::{Pulse, PulseShape};
+use tofwave::dsp::{crossing, interp};
+use tofwave::frame::{Channel, ChannelRole, Samples};
 use tofwave::scene::Scene;
 
 const FRAME: usize = 2500;
@@ -100,5 +106,95 @@ fn fracdelay(c: &mut Criterion) {
     });
 }
 
-criterion_group!(benches, correlate, mlfit, average, fracdelay);
+/// i16 codes of a 2500-sample frame: ~3000 codes of noise.
+fn codes(seed: u64) -> Vec<i16> {
+    noise(FRAME, seed)
+        .iter()
+        .map(|v| (v * 3000.0) as i16)
+        .collect()
+}
+
+fn decode(c: &mut Criterion) {
+    let ch = Channel {
+        name: "CH2".into(),
+        role: ChannelRole::Stop,
+        samples: Samples::I16(codes(7)),
+        volts_per_code: 2.5 / 8192.0,
+        offset_v: -1e-3,
+    };
+    let mut out = Vec::with_capacity(FRAME);
+    c.bench_function("decode/i16_to_volts_2500", |b| {
+        b.iter(|| {
+            black_box(&ch).volts_into(&mut out);
+            black_box(out.len())
+        })
+    });
+}
+
+fn baseline(c: &mut Criterion) {
+    // The prototype's gates: ~230 pre-trigger samples and ~1200 beyond the range gate.
+    let x = noise(FRAME, 8);
+    let mut fitter = NoiseFitter::default();
+    c.bench_function("baseline/noise_fit_230+1200", |b| {
+        b.iter(|| black_box(fitter.fit(&[black_box(&x[..230]), black_box(&x[1300..])], 1e-3)))
+    });
+}
+
+fn threshold_scan(c: &mut Criterion) {
+    let y = noise(FRAME, 9);
+    let mut peaks = Vec::with_capacity(64);
+    // Q^-1(1e-6 / 1000) ≈ 5.6 sigma: a noise-only frame (the common case).
+    c.bench_function("threshold/local_maxima_2500", |b| {
+        b.iter(|| {
+            local_maxima(black_box(&y), 0..FRAME, 5.6, &mut peaks);
+            black_box(peaks.len())
+        })
+    });
+    c.bench_function("threshold/upcrossings_2500", |b| {
+        b.iter(|| black_box(upcrossings(black_box(&y), 0..FRAME, 2.0)))
+    });
+}
+
+fn interpolation(c: &mut Criterion) {
+    // 1000 peak triples, so the loop overhead of criterion does not dominate.
+    let t: Vec<(f64, f64, f64)> = noise(3000, 10)
+        .chunks_exact(3)
+        .map(|v| (0.8 + 0.05 * v[0], 1.0, 0.7 + 0.05 * v[2]))
+        .collect();
+    c.bench_function("interp/parabolic_x1000", |b| {
+        b.iter(|| {
+            black_box(&t)
+                .iter()
+                .map(|&(m, z, p)| interp::parabolic(m, z, p).0)
+                .sum::<f64>()
+        })
+    });
+    c.bench_function("interp/gaussian_x1000", |b| {
+        b.iter(|| {
+            black_box(&t)
+                .iter()
+                .map(|&(m, z, p)| interp::gaussian(m, z, p).0)
+                .sum::<f64>()
+        })
+    });
+    let shape = Pulse::from_config(&Scene::default_scene().return_pulse, 1e-9);
+    let x: Vec<f64> = (0..FRAME)
+        .map(|k| shape.value_and_slope(k as f64 - 1234.4).0)
+        .collect();
+    c.bench_function("crossing/rising_before_half", |b| {
+        b.iter(|| black_box(crossing::rising_before(black_box(&x), 0.5, 1150, 1234)))
+    });
+}
+
+criterion_group!(
+    benches,
+    decode,
+    baseline,
+    average,
+    correlate,
+    threshold_scan,
+    interpolation,
+    mlfit,
+    fracdelay
+);
 criterion_main!(benches);

@@ -123,7 +123,14 @@ impl Channel {
     pub fn volts_into(&self, out: &mut Vec<f64>) {
         out.clear();
         let (g, o) = (self.volts_per_code, self.offset_v);
-        out.extend((0..self.samples.len()).map(|i| self.samples.raw(i) * g + o));
+        // One loop per sample type (not a `match` per sample), so each vectorises.
+        match &self.samples {
+            Samples::I8(v) => out.extend(v.iter().map(|&x| x as f64 * g + o)),
+            Samples::I16(v) => out.extend(v.iter().map(|&x| x as f64 * g + o)),
+            Samples::I32(v) => out.extend(v.iter().map(|&x| x as f64 * g + o)),
+            Samples::F32(v) => out.extend(v.iter().map(|&x| x as f64 * g + o)),
+            Samples::F64(v) => out.extend(v.iter().map(|&x| x * g + o)),
+        }
     }
 
     /// The channel in volts.

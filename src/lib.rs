@@ -22,3 +22,5 @@ pub mod capture;
 pub mod service;
 /// Metric names and recording functions; tracing set-up.
 pub mod telemetry;
+/// Work-precision report, numpy/scipy peer, service throughput and bandwidth yardstick (`tofwave bench`).
+pub mod bench;

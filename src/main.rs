@@ -41,6 +41,41 @@ enum Command {
     /// Learn the return pulse shape (and the start pulse shape, when the captures have a start channel) from captures (equivalent-time alignment of many shots)
     /// and write a scene that uses it.
     Template(TemplateArgs),
+    /// Work-precision report on simulated frames with truth: range RMSE, bias, CRLB, Pd and pfa
+    /// against run time per timing method, averaging depth and SNR; the numpy/scipy peer side by
+    /// side; loopback gRPC throughput; copy-loop vs averaging bandwidth. Writes report.md, CSV and SVG.
+    Bench(BenchArgs),
+}
+
+#[derive(Args, Debug)]
+struct BenchArgs {
+    /// Scene with a [simulation] section holding one target (its reflectivity and thermal noise
+    /// are set per SNR) for the work-precision grid and ROC; the performance targets always use the
+    /// reference frames (64-tap template, white noise). Default: the embedded bench scene (weak-32m
+    /// set-up, 14-bit digitiser).
+    #[arg(long, value_name = "FILE")]
+    scene: Option<PathBuf>,
+    /// Directory for report.md, work_precision.csv, roc.csv and the SVG plots (created).
+    #[arg(long, default_value = "bench-out", value_name = "DIR")]
+    out: PathBuf,
+    /// The long run: SNR every 2.5 dB from 0 to 40 dB and about eight times the trials (tens of minutes).
+    #[arg(long)]
+    long: bool,
+    /// Run the numpy/scipy peer (the default; creates target/peer-venv with pip when missing).
+    #[arg(long, overrides_with = "no_peer")]
+    peer: bool,
+    /// Skip the numpy/scipy peer.
+    #[arg(long)]
+    no_peer: bool,
+    /// Skip the loopback gRPC throughput test.
+    #[arg(long)]
+    no_service: bool,
+    /// Skip the copy-loop and averaging bandwidth measurement (a 20 MB stream).
+    #[arg(long)]
+    no_bandwidth: bool,
+    /// Random seed of the simulated frames (the same seed gives the same frames).
+    #[arg(long, value_name = "S")]
+    seed: Option<u64>,
 }
 
 #[derive(Args, Debug)]
@@ -186,6 +221,7 @@ fn main() {
         Command::Calibrate(a) => calibrate(a),
         Command::Scene(a) => scene(a),
         Command::Template(a) => template(a),
+        Command::Bench(a) => bench(a),
     };
     match result {
         Ok(code) => std::process::exit(code),
@@ -194,6 +230,50 @@ fn main() {
             std::process::exit(2);
         }
     }
+}
+
+fn bench(a: BenchArgs) -> Result<i32> {
+    use tofwave::bench::{self, BenchConfig, RunOptions};
+    let scene = match &a.scene {
+        Some(p) => Scene::load(p)?,
+        None => bench::bench_scene(),
+    };
+    let mut config = if a.long { BenchConfig::long_run() } else { BenchConfig::default_run() };
+    if let Some(s) = a.seed {
+        config.seed = s;
+    }
+    // bench/peer lives in the repository: the working directory when run with
+    // `cargo run` from the checkout, else the checkout this binary was built from.
+    let cwd = std::env::current_dir().context("no working directory")?;
+    let repo_root = if cwd.join("bench/peer/peer.py").exists() {
+        cwd
+    } else {
+        PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+    };
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let opts = RunOptions {
+        config,
+        peer: !a.no_peer || a.peer,
+        service: !a.no_service,
+        bandwidth: !a.no_bandwidth,
+        repo_root,
+        command: format!("tofwave {}", args.join(" ")),
+    };
+    let bar = indicatif::ProgressBar::new(0).with_style(
+        indicatif::ProgressStyle::with_template("{msg:28} {bar:40} {pos}/{len} frames {per_sec} eta {eta}")
+            .expect("static template"),
+    );
+    let res = bench::run(&scene, &opts, &a.out, &bar)?;
+    if let Some(bench::PeerOutcome::Failed(why)) = &res.peer {
+        eprintln!("tofwave bench: the numpy/scipy peer did not run: {why}");
+    }
+    eprintln!(
+        "tofwave bench: {} cells, {} ROC points -> {}",
+        res.cells.len(),
+        res.roc.len(),
+        a.out.join("report.md").display()
+    );
+    Ok(0)
 }
 
 fn block_on(f: impl std::future::Future<Output = Result<()>>) -> Result<i32> {

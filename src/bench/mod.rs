@@ -1,0 +1,152 @@
+//! The work-precision report: range error and detection statistics against
+//! run time, per timing method and averaging depth, on simulated frames with
+//! ground truth; the numpy/scipy peer side by side; service throughput; and
+//! the memory-bandwidth yardstick for averaging.
+//!
+//! Everything here is driven by [`run`] (what `tofwave bench` calls); the
+//! pieces are public so that tests can run a tiny grid.
+
+mod grid;
+mod membw;
+mod output;
+mod peer;
+mod plot;
+mod service;
+
+pub use grid::{
+    BenchConfig, CellStats, RocPoint, SnrSetting, Variant, analytic_crlb_range_m, bench_scene,
+    offline_throughput, reference_frames, reference_scene, roc, run_grid, snr_scene, variants,
+};
+pub use membw::{Bandwidth, measure_bandwidth};
+pub use output::{CSV_COLUMNS, ROC_COLUMNS, write_csv, write_roc_csv};
+pub use peer::{PeerComparison, PeerOutcome, run_peer};
+pub use service::{ServiceThroughput, measure_service};
+
+use std::path::{Path, PathBuf};
+
+/// What can stop the bench.
+#[derive(Debug, thiserror::Error)]
+pub enum BenchError {
+    /// The base scene cannot be simulated or a variant made it invalid.
+    #[error("scene: {0}")]
+    Scene(String),
+    /// Writing an output file failed.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// A plot could not be drawn.
+    #[error("plot {path}: {message}")]
+    Plot {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        message: String,
+    },
+    /// The loopback service run failed.
+    #[error("service: {0}")]
+    Service(String),
+}
+
+impl BenchError {
+    fn io(path: &Path, source: std::io::Error) -> BenchError {
+        BenchError::Io {
+            path: path.to_path_buf(),
+            source,
+        }
+    }
+}
+
+/// Which optional sections `run` includes.
+#[derive(Debug, Clone)]
+pub struct RunOptions {
+    /// The grid, ROC and repetition counts.
+    pub config: BenchConfig,
+    /// Run the numpy/scipy peer (creates its venv when missing).
+    pub peer: bool,
+    /// Run the loopback gRPC throughput test.
+    pub service: bool,
+    /// Measure copy and averaging bandwidth.
+    pub bandwidth: bool,
+    /// Repository root: where `bench/peer/` is and `target/peer-venv` goes.
+    pub repo_root: PathBuf,
+    /// The command line, written into the report.
+    pub command: String,
+}
+
+/// Everything one bench run measured.
+#[derive(Debug, Clone)]
+pub struct BenchResults {
+    /// One row per (variant, averaging depth, SNR).
+    pub cells: Vec<CellStats>,
+    /// ROC points.
+    pub roc: Vec<RocPoint>,
+    /// Peer comparison (or why there is none).
+    pub peer: Option<PeerOutcome>,
+    /// Loopback service throughput.
+    pub service: Option<Result<ServiceThroughput, String>>,
+    /// Copy-loop and averaging bandwidth.
+    pub bandwidth: Option<Bandwidth>,
+    /// Single-core offline pipeline throughput on the reference configuration
+    /// (ML timing, N = 1, 2500-sample i16 frames), frames/s.
+    pub offline_frames_per_s: f64,
+}
+
+/// Runs the whole bench on `base` and writes `report.md`, the CSVs and the
+/// SVG plots into `out_dir`. `progress` is advanced by one per pipeline
+/// frame (its length is set here).
+pub fn run(
+    base: &crate::scene::Scene,
+    opts: &RunOptions,
+    out_dir: &Path,
+    progress: &indicatif::ProgressBar,
+) -> Result<BenchResults, BenchError> {
+    std::fs::create_dir_all(out_dir).map_err(|e| BenchError::io(out_dir, e))?;
+    let cfg = &opts.config;
+    progress.set_length(cfg.total_work());
+    progress.set_message("work-precision grid");
+    let cells = run_grid(base, cfg, &variants(), progress)?;
+    progress.set_message("ROC");
+    let roc_points = roc(base, cfg, progress)?;
+
+    progress.set_message("reference throughput");
+    let reference = grid::reference_scene();
+    let offline_frames_per_s =
+        grid::offline_throughput(&reference, cfg.reference_snr_db, cfg.reference_frames)?;
+
+    let peer = if opts.peer {
+        progress.set_message("numpy/scipy peer");
+        Some(run_peer(&reference, cfg, &opts.repo_root, out_dir))
+    } else {
+        None
+    };
+    let bandwidth = opts.bandwidth.then(|| {
+        progress.set_message("memory bandwidth");
+        measure_bandwidth(2500, 4096)
+    });
+    let service_result = if opts.service {
+        progress.set_message("loopback service");
+        Some(
+            measure_service(&reference, cfg.reference_snr_db, cfg.service_frames)
+                .map_err(|e| e.to_string()),
+        )
+    } else {
+        None
+    };
+    progress.finish_and_clear();
+
+    let results = BenchResults {
+        cells,
+        roc: roc_points,
+        peer,
+        service: service_result,
+        bandwidth,
+        offline_frames_per_s,
+    };
+    output::write_all(&results, opts, out_dir)?;
+    plot::write_all(&results, out_dir)?;
+    Ok(results)
+}

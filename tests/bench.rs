@@ -1,0 +1,157 @@
+//! The bench library on a tiny grid: the outputs have the promised columns
+//! and finite values, and ML timing at high SNR is near the Cramér–Rao bound.
+
+use indicatif::ProgressBar;
+use tofwave::bench::{self, BenchConfig, CSV_COLUMNS, ROC_COLUMNS, RunOptions};
+
+fn tiny() -> BenchConfig {
+    BenchConfig {
+        snr_db: vec![30.0],
+        depths: vec![1, 4],
+        max_reports: 200,
+        frames_per_cell: 200,
+        min_reports: 50,
+        roc_snr_db: vec![11.0],
+        roc_pfa: vec![0.1, 1e-3],
+        roc_reports: 60,
+        reference_frames: 50,
+        service_frames: 64,
+        ..BenchConfig::default_run()
+    }
+}
+
+fn csv_rows(text: &str) -> (Vec<String>, Vec<Vec<String>>) {
+    let mut lines = text.lines();
+    let header = lines
+        .next()
+        .expect("header")
+        .split(',')
+        .map(String::from)
+        .collect();
+    let rows = lines
+        .map(|l| l.split(',').map(String::from).collect())
+        .collect();
+    (header, rows)
+}
+
+#[test]
+fn bench_scene_is_valid_and_simulates_i16() {
+    let scene = bench::bench_scene();
+    scene.validate("bench").unwrap();
+    let (s, setting) = bench::snr_scene(&scene, 0.5, 20.0).unwrap();
+    // Reflectivity and thermal noise are set so that the requested SNR holds.
+    assert!((setting.amplitude_v - 0.5).abs() < 0.01, "{setting:?}");
+    let snr = 20.0 * (setting.amplitude_v / setting.sigma_v).log10();
+    assert!((snr - 20.0).abs() < 0.05, "{setting:?}");
+    let sim = tofwave::physics::Simulator::new(&s).unwrap();
+    let (f, _) = sim.frame(1, 0);
+    assert!(
+        f.channels.iter().all(|c| c.samples.kind() == "i16"),
+        "{:?}",
+        f.channels
+            .iter()
+            .map(|c| c.samples.kind())
+            .collect::<Vec<_>>()
+    );
+}
+
+#[test]
+fn tiny_run_writes_columns_and_ml_is_near_the_crlb() {
+    let dir = tempfile::tempdir().unwrap();
+    let opts = RunOptions {
+        config: tiny(),
+        peer: false,
+        service: false,
+        bandwidth: false,
+        repo_root: env!("CARGO_MANIFEST_DIR").into(),
+        command: "tests/bench.rs tiny".into(),
+    };
+    let res = bench::run(
+        &bench::bench_scene(),
+        &opts,
+        dir.path(),
+        &ProgressBar::hidden(),
+    )
+    .unwrap();
+
+    let (header, rows) =
+        csv_rows(&std::fs::read_to_string(dir.path().join("work_precision.csv")).unwrap());
+    assert_eq!(header, CSV_COLUMNS);
+    // 5 methods x 2 depths x 1 SNR.
+    assert_eq!(rows.len(), 10);
+    for r in &rows {
+        assert_eq!(r.len(), CSV_COLUMNS.len());
+        for (name, v) in CSV_COLUMNS.iter().zip(r).skip(1) {
+            let x: f64 = v.parse().unwrap_or_else(|_| panic!("{name} = {v}"));
+            // At 30 dB every method detects the target, so every statistic is defined.
+            assert!(x.is_finite(), "{name} = {v} in {r:?}");
+        }
+    }
+    let (roc_header, roc_rows) =
+        csv_rows(&std::fs::read_to_string(dir.path().join("roc.csv")).unwrap());
+    assert_eq!(roc_header, ROC_COLUMNS);
+    assert_eq!(roc_rows.len(), 2);
+
+    let md = std::fs::read_to_string(dir.path().join("report.md")).unwrap();
+    for needle in [
+        "| method | N | SNR dB | Pd |",
+        "RMSE / CRLB per method",
+        "| ml |",
+        "ROC",
+    ] {
+        assert!(md.contains(needle), "report.md lacks {needle:?}");
+    }
+    for svg in ["work_precision.svg", "rmse_over_crlb.svg", "roc.svg"] {
+        let text = std::fs::read_to_string(dir.path().join(svg)).unwrap();
+        assert!(
+            text.starts_with("<svg") && text.contains("polyline"),
+            "{svg}"
+        );
+    }
+
+    for c in &res.cells {
+        assert!(c.pd > 0.95, "{c:?}");
+        assert!(c.ns_per_frame > 0.0 && c.frames_per_s > 0.0, "{c:?}");
+    }
+    // ML at 30 dB, N = 1, against the CRLB (stop pulse, white noise, ~1 mm
+    // here). The spread: with 200 reports the sample sd is within ±15 % of
+    // the true sd at ~99.7 % (sd/√(2·200) ≈ 5 %, ×3); the committed default
+    // run measured sd ≈ 1.8 × CRLB (coloured receiver noise and the start
+    // pulse's own jitter are not in the bound), so 3× leaves room for those
+    // and sampling error. The RMSE adds the bias of the bigaussian template
+    // against the simulated pulse (≈ 3 mm, 3.6 × CRLB in total measured); 6×
+    // bounds it. A broken estimator (a sample of error, 15 cm) is > 100×.
+    let ml = res
+        .cells
+        .iter()
+        .find(|c| c.variant == "ml" && c.averaging == 1)
+        .unwrap();
+    assert!(
+        ml.sd_m < 3.0 * ml.crlb_m,
+        "ml sd {} vs CRLB {}",
+        ml.sd_m,
+        ml.crlb_m
+    );
+    assert!(
+        ml.rmse_m < 6.0 * ml.crlb_m,
+        "ml RMSE {} vs CRLB {}",
+        ml.rmse_m,
+        ml.crlb_m
+    );
+    assert!(
+        ml.sd_m > 0.5 * ml.crlb_m,
+        "ml sd {} below half the CRLB {}: the bound is wrong",
+        ml.sd_m,
+        ml.crlb_m
+    );
+    // Averaging 4 frames halves the error (to within sampling error, ±30 % at 50 reports).
+    let ml4 = res
+        .cells
+        .iter()
+        .find(|c| c.variant == "ml" && c.averaging == 4)
+        .unwrap();
+    assert!(
+        ml4.crlb_m < 0.6 * ml.crlb_m && ml4.crlb_m > 0.4 * ml.crlb_m,
+        "{ml4:?} vs {ml:?}"
+    );
+}

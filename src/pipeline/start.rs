@@ -69,14 +69,11 @@ impl Stage for Start {
             if n > 0 { sum / n as f64 } else { 0.0 }
         };
         x.iter_mut().filter(|v| !v.is_finite()).for_each(|v| *v = finite_mean);
-        // The start pulse occupies a small part of the channel: the median
-        // locates the baseline, the largest excursion the pulse; the noise is
-        // then measured on the samples well away from the pulse.
-        self.scratch.clear();
-        self.scratch.extend_from_slice(x);
-        let n = self.scratch.len();
-        let median = *self.scratch.select_nth_unstable_by(n / 2, |a, b| a.total_cmp(b)).1;
-        let robust_sigma = mad_sigma(&mut self.scratch);
+        // The start pulse occupies a small part of the channel: the largest
+        // excursion locates the pulse, and the baseline and noise are
+        // measured on the samples well away from it (the median and MAD of
+        // the whole channel when too few are left).
+        let n = x.len();
         let peak = (0..n).max_by(|&a, &b| x[a].total_cmp(&x[b])).unwrap_or(0);
         if self.plan.as_ref().is_none_or(|p| p.0 != dt || p.2.len() > n + 1) {
             let pulse = Shape::from_config(&self.pulse_cfg, dt);
@@ -96,7 +93,10 @@ impl Stage for Start {
         let (baseline, sigma) = if m.count() >= 8 {
             (m.mean(), m.variance().sqrt())
         } else {
-            (median, robust_sigma)
+            self.scratch.clear();
+            self.scratch.extend_from_slice(x);
+            let median = *self.scratch.select_nth_unstable_by(n / 2, |a, b| a.total_cmp(b)).1;
+            (median, mad_sigma(&mut self.scratch))
         };
         // A start pulse far larger than its noise is timed on samples whose
         // quantisation error is not dithered away: its edge sweeps through
@@ -115,15 +115,21 @@ impl Stage for Start {
         let (_, pulse, plan) = self.plan.as_mut().expect("built above");
         // The detector output peak is searched near the raw peak: the template may not match exactly.
         let norm = plan.norm();
-        let y = plan.run(x, baseline);
+        // Only the neighbourhood of the pulse is filtered and timed: four
+        // template lengths either side hold everything every method reads.
+        let reach = 4 * plan.len() + 8;
+        let a = peak.saturating_sub(reach);
+        let b = (peak + reach + 1).min(n);
+        let xw = &x[a..b];
+        let y = plan.run(xw, baseline);
         let w_half = (pulse.fwhm() * 0.5).ceil() as usize + 1;
-        let lo = peak.saturating_sub(w_half);
-        let hi = (peak + w_half + 1).min(n);
-        let y_peak = (lo..hi).max_by(|&a, &b| y[a].total_cmp(&y[b])).unwrap_or(peak);
+        let lo = (peak - a).saturating_sub(w_half);
+        let hi = (peak - a + w_half + 1).min(xw.len());
+        let y_peak = (lo..hi).max_by(|&i, &j| y[i].total_cmp(&y[j])).unwrap_or(peak - a);
         let mut timed = time_pulse(
             self.method,
             &TimingInput {
-                x,
+                x: xw,
                 mean_v: baseline,
                 sigma_v: sigma,
                 y,
@@ -134,6 +140,8 @@ impl Stage for Start {
                 leading_edge_v: self.leading_edge_v,
             },
         );
+        timed.index += a as f64;
+        timed.peak_index += a as f64;
         if let Some(pb) = &self.phase {
             if pb.is_smooth() {
                 timed.index = pb.correct(timed.index);

@@ -33,6 +33,8 @@ pub struct NoiseColour {
     frames: u64,
     /// Frames whose samples were added (halved with the sums).
     added: f64,
+    /// Changes whenever the sums do (callers cache what they derive).
+    version: u64,
 }
 
 /// Pooled samples beyond which old sums are halved, so that the estimate
@@ -52,7 +54,13 @@ impl NoiseColour {
             centring: vec![0.0; max_lag + 1],
             frames: 0,
             added: 0.0,
+            version: 0,
         }
+    }
+
+    /// A number that changes whenever the estimate does.
+    pub fn version(&self) -> u64 {
+        self.version
     }
 
     /// Largest lag estimated.
@@ -74,6 +82,7 @@ impl NoiseColour {
             self.added *= 0.5;
         }
         self.added += 1.0;
+        self.version += 1;
         let lags = self.sums.len();
         let segments: Vec<&[f64]> = segments.into_iter().collect();
         let total = segments.iter().map(|s| s.len()).sum::<usize>() as f64;
@@ -171,13 +180,9 @@ pub struct OutputColour {
 /// estimate that is not positive definite) falls back to white noise.
 pub fn output_gain(taps: &[f64], rho: &[f64]) -> OutputColour {
     let len = taps.len() as isize;
-    let a = |j: isize| -> f64 {
-        let j = j.unsigned_abs();
-        if j >= taps.len() {
-            return 0.0;
-        }
-        taps[..taps.len() - j].iter().zip(&taps[j..]).map(|(x, y)| x * y).sum()
-    };
+    // The taps' autocorrelation A_h(j), once.
+    let acf: Vec<f64> = (0..taps.len()).map(|j| taps[..taps.len() - j].iter().zip(&taps[j..]).map(|(x, y)| x * y).sum()).collect();
+    let a = |j: isize| -> f64 { acf.get(j.unsigned_abs()).copied().unwrap_or(0.0) };
     let kmax = (rho.len() as isize - 1).min(len);
     let r = |m: isize| -> f64 {
         (-kmax..=kmax)

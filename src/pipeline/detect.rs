@@ -93,6 +93,8 @@ pub struct Detect {
     thresholds: Vec<((usize, i32), ReportThreshold)>,
     /// Noise colour pooled over the noise gates: sets the output sigma and correlation.
     colour: Option<NoiseColour>,
+    /// What the colour estimate gave at its version: output colour, τ, ρ.
+    colour_cache: Option<(u64, crate::detect::colour::OutputColour, f64, Vec<f64>)>,
     whiten: Option<WhitenState>,
     cfar: Option<CfarState>,
     /// Normalised gate outputs, for the empirical threshold mode.
@@ -116,6 +118,7 @@ impl Detect {
             plan: None,
             thresholds: Vec::new(),
             colour: None,
+            colour_cache: None,
             whiten: scene.detector.whiten.then(|| {
                 let n = scene.noise_gate.forgetting_frames;
                 WhitenState {
@@ -189,6 +192,7 @@ impl Stage for Detect {
             };
             // Lags up to the template length are all the output's sigma depends on.
             self.colour = Some(NoiseColour::new(plan.len()));
+            self.colour_cache = None;
             self.plan = Some((dt, n, shape, plan));
             if let Some(ws) = &mut self.whiten {
                 ws.plan = None;
@@ -215,9 +219,15 @@ impl Stage for Detect {
         let (out_gain, rho1, tau) = match (&self.whiten, whitened) {
             (Some(ws), true) => (1.0, ws.plan.as_ref().expect("whitened").1.rho1(), 1.0),
             _ => {
-                let oc = colour.output(self.plan.as_ref().expect("built above").3.taps());
-                w.noise_rho = colour.rho().unwrap_or_default();
-                (oc.variance_gain.sqrt(), oc.rho1, colour.correlation_time())
+                // Derived once per change of the pooled estimate.
+                if self.colour_cache.as_ref().is_none_or(|c| c.0 != colour.version()) {
+                    let oc = colour.output(self.plan.as_ref().expect("built above").3.taps());
+                    let rho = colour.rho().unwrap_or_default();
+                    self.colour_cache = Some((colour.version(), oc, colour.correlation_time(), rho));
+                }
+                let (_, oc, tau, rho) = self.colour_cache.as_ref().expect("set above");
+                w.noise_rho.clone_from(rho);
+                (oc.variance_gain.sqrt(), oc.rho1, *tau)
             }
         };
         w.out_gain = out_gain;

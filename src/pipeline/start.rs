@@ -5,7 +5,7 @@
 
 use super::{FrameError, Stage, Work};
 use crate::detect::detector::DetectorPlan;
-use crate::detect::noise::{mad_sigma, Moments};
+use crate::detect::noise::mad_sigma;
 use crate::detect::phase::PhaseBias;
 use crate::detect::timing::{time_pulse, TimingInput};
 use crate::dsp::pulse::Shape;
@@ -84,14 +84,17 @@ impl Stage for Start {
         let (lo, hi) = self.plan.as_ref().expect("built above").1.support();
         let away_lo = (peak as f64 + 2.0 * lo).floor();
         let away_hi = (peak as f64 + 2.0 * hi).ceil();
-        let mut m = Moments::default();
-        for (k, &v) in x.iter().enumerate() {
-            if (k as f64) < away_lo || (k as f64) > away_hi {
-                m.push(v);
-            }
-        }
-        let (baseline, sigma) = if m.count() >= 8 {
-            (m.mean(), m.variance().sqrt())
+        // Two passes over the samples away from the pulse (mean, then the
+        // sum of squared deviations): exact in f64 and vectorisable, unlike
+        // a division per sample.
+        let a = (away_lo.max(0.0) as usize).min(n);
+        let b = ((away_hi + 1.0).max(0.0) as usize).min(n).max(a);
+        let (left, right) = (&x[..a], &x[b..]);
+        let count = left.len() + right.len();
+        let (baseline, sigma) = if count >= 8 {
+            let mean = (left.iter().sum::<f64>() + right.iter().sum::<f64>()) / count as f64;
+            let ss: f64 = left.iter().chain(right).map(|v| (v - mean) * (v - mean)).sum();
+            (mean, (ss / (count - 1) as f64).sqrt())
         } else {
             self.scratch.clear();
             self.scratch.extend_from_slice(x);

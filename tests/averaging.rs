@@ -145,12 +145,10 @@ fn weak_far_return_is_ranged_after_256_shots_and_not_single_shot() {
     let tof = truth.returns[0].tof_s;
     scene.calibration.delay_s = tof - 2.0 * range_m / scene.c_medium_m_per_s();
     scene.detector.pfa = 1e-6;
-    // The simulated receiver noise is coloured (19.5 MHz TIA): a Gaussian
-    // threshold that assumes white noise at the matched-filter output sits
-    // too low (it reports ~25 % of single shots and ~1 spurious return per
-    // averaged report). The empirical threshold (quantile of the detector
-    // output on the noise gates) holds the design pfa on this noise.
-    scene.detector.threshold_mode = tofwave::scene::ThresholdMode::Empirical;
+    // The simulated receiver noise is coloured (19.5 MHz TIA); the Gaussian
+    // threshold sizes the matched filter's output sigma from the noise
+    // colour pooled over the gates (detect::colour), so the scene's own
+    // threshold mode holds the design pfa here.
     let near = |r: &Report| {
         r.returns
             .iter()

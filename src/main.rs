@@ -541,110 +541,38 @@ fn calibrate(a: CalibrateArgs) -> Result<i32> {
 }
 
 fn template(a: TemplateArgs) -> Result<i32> {
-    use std::sync::{Arc, Mutex};
-    use tofwave::detect::template::TemplateLearner;
-    use tofwave::dsp::pulse::{PulseShape, Shape};
+    use tofwave::pipeline::learn::{learn_shapes, LearnOptions};
     if !(1..=64).contains(&a.oversample) {
         bail!("--oversample {}: allowed 1..=64 grid points per sample", a.oversample);
     }
-    let mut scene = load_scene(&a.common)?;
-    // The first pass times shots by the matched-filter peak: a model-based
-    // fit with a shape that does not match yet would split and flag the
-    // returns it is meant to learn from. Later passes fit the learned shape.
-    // The scene written keeps the user's own method.
-    let user_method = scene.timing.method;
+    let scene = load_scene(&a.common)?;
     let opts = ReadOptions { format: a.common.format, sensor_id: a.common.sensor.clone() };
     let frames = capture::read_paths(&a.common.input, &opts)?;
-    for pass in 0..a.passes.max(1) {
-        scene.timing.method = if pass == 0 { TimingMethod::PeakParabolic } else { TimingMethod::Ml };
-        let dt = frames.first().map(|f| f.sample_interval_s).unwrap_or(1e-9);
-        let (lo, hi) = Shape::from_config(&scene.return_pulse, dt).support();
-        let learner = Arc::new(Mutex::new(TemplateLearner::new(a.oversample, 1.5 * lo, 1.5 * hi)));
-        // The start pulse's shape is learned the same way, aligned on the
-        // start timing: a start shape that does not match the pulse makes its
-        // timing depend on the sample phase, which no calibration removes.
-        let start_shape = Shape::from_config(&scene.start_pulse, dt);
-        let (slo, shi) = start_shape.support();
-        let start_learner = Arc::new(Mutex::new(TemplateLearner::new(a.oversample, 1.5 * slo, 1.5 * shi)));
-        let sl = start_learner.clone();
-        let start_offset = start_shape.fraction_offset(scene.timing.fraction);
-        let mut start_v = Vec::new();
-        let mut pipeline = Pipeline::new(&scene, &a.common.sensor);
-        let l = learner.clone();
-        let min_snr = a.min_snr_db;
-        let shape = Shape::from_config(&scene.return_pulse, dt);
-        let mut cleaned = Vec::new();
-        pipeline.set_observer(Box::new(move |w| {
-            let peak_of = |r: &tofwave::frame::Return| (r.t_peak_s - w.frame.first_sample_offset_s) / w.frame.sample_interval_s;
-            let timed_start = !w.report.flags.iter().any(|f| f.starts_with("no_start") || f == "start_timing_fallback");
-            if let (Some(s), true) = (w.start, timed_start) {
-                w.frame.channels[s].volts_into(&mut start_v);
-                let mut sorted = start_v.clone();
-                sorted.sort_by(f64::total_cmp);
-                let baseline = sorted[sorted.len() / 2];
-                let amplitude = sorted[sorted.len() - 1] - baseline;
-                let peak = (w.t_ref_s - w.frame.first_sample_offset_s) / w.frame.sample_interval_s - start_offset;
-                sl.lock().expect("not poisoned").add(&start_v, baseline, peak, amplitude);
+    let learn = LearnOptions { oversample: a.oversample, min_snr_db: a.min_snr_db, passes: a.passes };
+    let scene = learn_shapes(
+        &scene,
+        &a.common.sensor,
+        &frames,
+        &learn,
+        |p| {
+            if p.start_shots > 0 {
+                eprintln!(
+                    "tofwave template: pass {}: start pulse from {} shots, FWHM {:.3} ns",
+                    p.pass,
+                    p.start_shots,
+                    p.start_fwhm_s * 1e9
+                );
             }
-            // Noise that fails the normality test (e.g. coarse quantisation) does not spoil a shot.
-            let clean = |r: &tofwave::frame::Return| r.flags.iter().all(|f| f == "non_gaussian_noise");
-            for (i, r) in w.report.returns.iter().enumerate() {
-                if !(clean(r) && r.snr_db >= min_snr) {
-                    continue;
-                }
-                // Every other return in the frame is subtracted with the
-                // current shape, so a neighbour inside the learning window does
-                // not become a bump in the template; the next pass subtracts
-                // with the better shape.
-                cleaned.clear();
-                cleaned.extend_from_slice(&w.stop_v);
-                for (j, o) in w.report.returns.iter().enumerate() {
-                    if j == i {
-                        continue;
-                    }
-                    let p = peak_of(o);
-                    let (lo, hi) = shape.support();
-                    let a = (p + lo).floor().max(0.0) as usize;
-                    let b = ((p + hi).ceil().max(0.0) as usize).min(cleaned.len().saturating_sub(1));
-                    for k in a..=b.min(cleaned.len().saturating_sub(1)) {
-                        cleaned[k] -= o.amplitude_v * shape.value_and_slope(k as f64 - p).0;
-                    }
-                }
-                l.lock().expect("not poisoned").add(&cleaned, w.noise.mean_v, peak_of(r), r.amplitude_v);
-            }
-        }));
-        let mut reports = Vec::new();
-        for f in frames.iter().cloned() {
-            if let Err(e) = pipeline.push(f, &mut reports) {
-                eprintln!("refused: {e}");
-            }
-        }
-        pipeline.flush(&mut reports);
-        let learner = learner.lock().expect("not poisoned");
-        scene.return_pulse = learner.finish(dt).with_context(|| format!("pass {}", pass + 1))?;
-        let start_learner = start_learner.lock().expect("not poisoned");
-        if start_learner.shots() > 0 {
-            scene.start_pulse = start_learner
-                .finish(dt)
-                .with_context(|| format!("pass {}: learning the start pulse", pass + 1))?;
-            let s = Shape::from_config(&scene.start_pulse, dt);
             eprintln!(
-                "tofwave template: pass {}: start pulse from {} shots, FWHM {:.3} ns",
-                pass + 1,
-                start_learner.shots(),
-                s.fwhm() * dt * 1e9
+                "tofwave template: pass {}: {} shots, FWHM {:.3} ns, half-rise {:.3} ns before the peak",
+                p.pass,
+                p.shots,
+                p.fwhm_s * 1e9,
+                p.half_rise_s * 1e9
             );
-        }
-        let shape = Shape::from_config(&scene.return_pulse, dt);
-        eprintln!(
-            "tofwave template: pass {}: {} shots, FWHM {:.3} ns, half-rise {:.3} ns before the peak",
-            pass + 1,
-            learner.shots(),
-            shape.fwhm() * dt * 1e9,
-            -shape.half_rise_offset() * dt * 1e9
-        );
-    }
-    scene.timing.method = user_method;
+        },
+        |e| eprintln!("refused: {e}"),
+    )?;
     scene.validate("learned scene")?;
     let text = format!(
         "# tofwave scene with the return (and start) pulse shapes learned by `tofwave template` from {}\n{}",

@@ -10,6 +10,8 @@ mod average;
 mod baseline;
 mod denoise;
 mod detect;
+/// Learning the return and start pulse shapes from frames (`tofwave template`).
+pub mod learn;
 mod noise;
 mod start;
 mod timing;

@@ -73,6 +73,10 @@ struct BenchArgs {
     /// Skip the copy-loop and averaging bandwidth measurement (a 20 MB stream).
     #[arg(long)]
     no_bandwidth: bool,
+    /// Time with the scene's parametric pulse shapes instead of shapes learned
+    /// from 400 simulated shots at 35 dB (what `tofwave template` does).
+    #[arg(long)]
+    no_learn: bool,
     /// Random seed of the simulated frames (the same seed gives the same frames).
     #[arg(long, value_name = "S")]
     seed: Option<u64>,
@@ -256,6 +260,7 @@ fn bench(a: BenchArgs) -> Result<i32> {
         peer: !a.no_peer || a.peer,
         service: !a.no_service,
         bandwidth: !a.no_bandwidth,
+        learn_template: !a.no_learn,
         repo_root,
         command: format!("tofwave {}", args.join(" ")),
     };

@@ -63,6 +63,7 @@ fn tiny_run_writes_columns_and_ml_is_near_the_crlb() {
         peer: false,
         service: false,
         bandwidth: false,
+        learn_template: false,
         repo_root: env!("CARGO_MANIFEST_DIR").into(),
         command: "tests/bench.rs tiny".into(),
     };

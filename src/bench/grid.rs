@@ -234,6 +234,15 @@ pub fn snr_scene(
     ))
 }
 
+/// FWHM of the scene's return pulse, s, whatever its model (a learned
+/// table has no `fwhm_s` of its own).
+pub fn pulse_fwhm_s(scene: &Scene) -> f64 {
+    let dt = scene.simulation.as_ref().map_or(scene.digitiser.sample_interval_s, |s| s.digitiser.sample_interval_s);
+    let dt = if dt > 0.0 { dt } else { 1e-9 };
+    Shape::from_config(&scene.return_pulse, dt).fwhm() * dt
+}
+
+
 /// Cramér–Rao bound on the range of a known pulse shape of peak
 /// `amplitude_v` in white Gaussian noise of σ `sigma_v` per sample, with the
 /// amplitude also unknown, averaged over the sub-sample phase; metres.
@@ -375,7 +384,7 @@ struct Scored {
 fn score(scene: &Scene, reports: &[Report], truth: &[Truth]) -> Scored {
     let half_c = 0.5 * scene.c_medium_m_per_s();
     // A return within 1.5 FWHM of the true time of flight is the target.
-    let window_m = 1.5 * scene.return_pulse.fwhm_s * half_c;
+    let window_m = 1.5 * pulse_fwhm_s(scene) * half_c;
     let mut s = Scored {
         errors_m: Vec::new(),
         detected: 0,

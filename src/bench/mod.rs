@@ -71,10 +71,35 @@ pub struct RunOptions {
     pub service: bool,
     /// Measure copy and averaging bandwidth.
     pub bandwidth: bool,
+    /// Learn the return and start pulse shapes from simulated shots first
+    /// (as `tofwave template` does) instead of timing with the scene's
+    /// parametric shapes.
+    pub learn_template: bool,
     /// Repository root: where `bench/peer/` is and `target/peer-venv` goes.
     pub repo_root: PathBuf,
     /// The command line, written into the report.
     pub command: String,
+}
+
+/// Shots simulated at 35 dB for [`learned_scene`].
+pub const LEARN_SHOTS: u64 = 400;
+
+/// `base` with its return and start pulse shapes learned, as `tofwave
+/// template` learns them, from [`LEARN_SHOTS`] shots simulated at 35 dB peak
+/// SNR (three passes): model-based timing needs the shape the receiver
+/// actually produces.
+pub fn learned_scene(base: &crate::scene::Scene, cfg: &BenchConfig) -> Result<crate::scene::Scene, BenchError> {
+    use crate::pipeline::learn::{learn_shapes, LearnOptions};
+    let (sc, _) = snr_scene(base, cfg.amplitude_v, 35.0)?;
+    let sim = crate::physics::Simulator::new(&sc).map_err(|e| BenchError::Scene(e.to_string()))?;
+    let frames: Vec<crate::frame::Frame> = (0..LEARN_SHOTS).map(|i| sim.frame(cfg.seed ^ 0x5eed, i).0).collect();
+    let opts = LearnOptions { passes: 3, ..Default::default() };
+    let learned = learn_shapes(&sc, "bench", &frames, &opts, |_| {}, |_| {})
+        .map_err(|e| BenchError::Scene(format!("learning the template: {e}")))?;
+    let mut out = base.clone();
+    out.return_pulse = learned.return_pulse;
+    out.start_pulse = learned.start_pulse;
+    Ok(out)
 }
 
 /// Everything one bench run measured.
@@ -107,6 +132,14 @@ pub fn run(
     std::fs::create_dir_all(out_dir).map_err(|e| BenchError::io(out_dir, e))?;
     let cfg = &opts.config;
     progress.set_length(cfg.total_work());
+    let learned;
+    let base = if opts.learn_template {
+        progress.set_message("learning the template");
+        learned = learned_scene(base, cfg)?;
+        &learned
+    } else {
+        base
+    };
     progress.set_message("work-precision grid");
     let cells = run_grid(base, cfg, &variants(), progress)?;
     progress.set_message("ROC");

@@ -131,13 +131,24 @@ pub fn markdown(res: &BenchResults, opts: &RunOptions) -> String {
          averaging N frames raises it by 10·log10(N) dB. Seed {}. Range errors are against the \
          simulator's true time of flight (50 % leading-edge crossing, start to stop); a return \
          within 1.5 FWHM of the truth is the target, any other return is a false alarm. \
+         Pulse shapes: {}. \
          CRLB: analytic bound for the scene's pulse template with amplitude unknown and the \
          noise σ the pipeline measured, white-noise assumption, stop pulse only: the simulated \
-         receiver noise is coloured, the start pulse's own timing noise adds to every range, and \
-         the bigaussian template only approximates the simulated pulse, so RMSE/CRLB has a floor \
-         above 1 that shows at high SNR. Times are single-core wall \
-         time in `Pipeline::push` (frames copied before the clock starts).\n",
-        cfg.amplitude_v, cfg.seed
+         receiver noise is coloured and the start pulse's own timing noise \
+         adds to every range, so RMSE/CRLB has a floor above 1 that shows at high \
+         SNR; the pipeline's own `range_sigma_m` (column `pipeline σ`) includes both. Times are \
+         single-core wall time in `Pipeline::push` (frames copied before the clock starts).\n",
+        cfg.amplitude_v,
+        cfg.seed,
+        if opts.learn_template {
+            format!(
+                "return and start shapes learned from {} shots simulated at 35 dB (`tofwave template`'s \
+                 method), not the scene's parametric ones",
+                crate::bench::LEARN_SHOTS
+            )
+        } else {
+            "the scene's parametric shapes (`--no-learn`)".to_string()
+        }
     );
 
     let _ = writeln!(md, "## Performance targets\n");

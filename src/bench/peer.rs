@@ -259,7 +259,7 @@ fn compare(
     rust_ns: f64,
     versions: String,
 ) -> PeerComparison {
-    let window_s = 1.5 * scene.return_pulse.fwhm_s;
+    let window_s = 1.5 * super::grid::pulse_fwhm_s(scene);
     let to_s = 2.0 / scene.c_medium_m_per_s();
     let mut deltas: Vec<f64> = Vec::new();
     let mut ratios: Vec<f64> = Vec::new();

@@ -72,7 +72,7 @@ impl NoiseColour {
     /// across segments), centred on `mean`.
     pub fn add_frame<'a>(&mut self, segments: impl IntoIterator<Item = &'a [f64]>, mean: f64) {
         self.frames += 1;
-        if self.counts[0] > POOL_CONVERGED && self.frames % 8 != 0 {
+        if self.counts[0] > POOL_CONVERGED && !self.frames.is_multiple_of(8) {
             return;
         }
         if self.counts[0] > POOL_CAP {

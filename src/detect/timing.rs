@@ -162,7 +162,7 @@ fn quadratic_peak(y: &[f64], near: f64) -> Option<f64> {
         return None;
     }
     let t = -a1 / (2.0 * a2);
-    ((t + c - near).abs() <= 1.0).then(|| a0 + a1 * t + a2 * t * t)
+    ((t + c - near).abs() <= 1.0).then_some(a0 + a1 * t + a2 * t * t)
 }
 
 fn search_start(input: &TimingInput, k: usize) -> usize {

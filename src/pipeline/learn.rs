@@ -132,8 +132,8 @@ pub fn learn_shapes(
                     let p = to_index(o.t_peak_s);
                     let a = (p + lo).floor().max(0.0) as usize;
                     let b = ((p + hi).ceil().max(0.0) as usize).min(last);
-                    for k in a..=b {
-                        cleaned[k] -= o.amplitude_v * shape.value_and_slope(k as f64 - p).0;
+                    for (k, v) in cleaned.iter_mut().enumerate().take(b + 1).skip(a) {
+                        *v -= o.amplitude_v * shape.value_and_slope(k as f64 - p).0;
                     }
                 }
                 l.lock().expect("not poisoned").add(&cleaned, w.noise.mean_v, to_index(r.t_peak_s), r.amplitude_v);

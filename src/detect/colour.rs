@@ -35,6 +35,8 @@ pub struct NoiseColour {
     added: f64,
     /// Changes whenever the sums do (callers cache what they derive).
     version: u64,
+    /// Scratch: one segment minus the mean (kept, so frames allocate nothing).
+    centred: Vec<f64>,
 }
 
 /// Pooled samples beyond which old sums are halved, so that the estimate
@@ -55,6 +57,7 @@ impl NoiseColour {
             frames: 0,
             added: 0.0,
             version: 0,
+            centred: Vec::new(),
         }
     }
 
@@ -70,7 +73,7 @@ impl NoiseColour {
 
     /// Adds one frame's noise segments (each contiguous; no products are taken
     /// across segments), centred on `mean`.
-    pub fn add_frame<'a>(&mut self, segments: impl IntoIterator<Item = &'a [f64]>, mean: f64) {
+    pub fn add_frame(&mut self, segments: &[&[f64]], mean: f64) {
         self.frames += 1;
         if self.counts[0] > POOL_CONVERGED && !self.frames.is_multiple_of(8) {
             return;
@@ -84,9 +87,8 @@ impl NoiseColour {
         self.added += 1.0;
         self.version += 1;
         let lags = self.sums.len();
-        let segments: Vec<&[f64]> = segments.into_iter().collect();
         let total = segments.iter().map(|s| s.len()).sum::<usize>() as f64;
-        let mut centred = Vec::new();
+        let mut centred = std::mem::take(&mut self.centred);
         for seg in segments {
             centred.clear();
             centred.extend(seg.iter().map(|v| v - mean));
@@ -100,6 +102,7 @@ impl NoiseColour {
                 self.centring[k] += (n - k) as f64 / total;
             }
         }
+        self.centred = centred;
     }
 
     /// Normalised autocorrelation ρ(0..=K) (ρ(0) = 1; K is `max_lag` or a
@@ -255,7 +258,7 @@ mod tests {
                     x
                 })
                 .collect();
-            est.add_frame([seg.as_slice()], 0.0);
+            est.add_frame(&[seg.as_slice()], 0.0);
         }
         let r = est.rho().expect("data");
         for (k, rk) in r.iter().enumerate() {
@@ -278,7 +281,7 @@ mod tests {
         for _ in 0..5000 {
             let seg: Vec<f64> = (0..200).map(|_| StandardNormal.sample(&mut rng)).collect();
             let mean = seg.iter().sum::<f64>() / 200.0;
-            est.add_frame([seg.as_slice()], mean);
+            est.add_frame(&[seg.as_slice()], mean);
         }
         let r = est.rho().unwrap();
         let tail: f64 = r[1..].iter().sum();
@@ -296,7 +299,7 @@ mod tests {
         for _ in 0..3000 {
             let seg: Vec<f64> = (0..218).map(|_| StandardNormal.sample(&mut rng)).collect();
             let mean = seg.iter().sum::<f64>() / 218.0;
-            est.add_frame([&seg[..190], &seg[190..]], mean);
+            est.add_frame(&[&seg[..190], &seg[190..]], mean);
         }
         assert_eq!(est.rho().unwrap().len(), 55);
         assert!((est.correlation_time() - 1.0).abs() < 0.06, "{}", est.correlation_time());
@@ -308,7 +311,7 @@ mod tests {
         assert!(est.rho().is_none());
         assert_eq!(est.correlation_time(), 1.0);
         let mut z = NoiseColour::new(4);
-        z.add_frame([[0.5; 100].as_slice()], 0.5);
+        z.add_frame(&[[0.5; 100].as_slice()], 0.5);
         assert!(z.rho().is_none());
         let h = unit(&[1.0, 2.0, 1.0]);
         assert!((z.output(&h).variance_gain - 1.0).abs() < 1e-15);

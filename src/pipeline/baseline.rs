@@ -3,8 +3,9 @@
 //! slow drift. The offset is subtracted through the stop channel's
 //! `offset_v`, so integer codes stay integer (exact averaging downstream).
 //!
-//! Also home of [`GatePlacer`]: the stages before `noise` (baseline, denoise,
-//! average) place the same noise gates the noise stage will.
+//! Also home of [`GatePlacer`]: the one place that turns a scene and a
+//! frame's time reference into range and noise gates, for the noise stage
+//! and the stages before it (baseline, denoise, average).
 
 use super::{FrameError, Stage, Work};
 use crate::detect::gates::{GateInputs, Gates};
@@ -13,7 +14,7 @@ use crate::dsp::pulse::Shape;
 use crate::scene::{BaselineConfig, BaselineEstimator, Scene};
 use std::ops::Range;
 
-/// Places a frame's range and noise gates exactly as the noise stage does.
+/// Places a frame's range and noise gates (every stage that needs them calls this).
 #[derive(Debug)]
 pub(crate) struct GatePlacer {
     scene: Scene,
@@ -39,7 +40,7 @@ impl GatePlacer {
         let pulse = &self.pulse.as_ref().expect("set above").1;
         let (lo, hi) = pulse.support();
         Gates::place(&GateInputs {
-            samples: w.frame.len(),
+            samples: w.frame.channels[w.stop].samples.len(),
             dt_s: dt,
             first_sample_offset_s: w.frame.first_sample_offset_s,
             t_ref_s: w.t_ref_s,

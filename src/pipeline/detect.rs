@@ -214,7 +214,7 @@ impl Stage for Detect {
         let colour = self.colour.as_mut().expect("built with the plan");
         if w.noise.samples >= 2 {
             let (pre, beyond) = (&w.stop_v[w.gates.pre.clone()], &w.stop_v[w.gates.beyond.clone()]);
-            colour.add_frame([pre, beyond], w.noise.mean_v);
+            colour.add_frame(&[pre, beyond], w.noise.mean_v);
         }
         let (out_gain, rho1, tau) = match (&self.whiten, whitened) {
             (Some(ws), true) => (1.0, ws.plan.as_ref().expect("whitened").1.rho1(), 1.0),

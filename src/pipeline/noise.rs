@@ -10,9 +10,8 @@
 //! N = 0 (the default) every frame is fitted on its own gates alone.
 
 use super::{FrameError, Stage, Work};
-use crate::detect::gates::{GateInputs, Gates};
+use super::baseline::GatePlacer;
 use crate::detect::noise::{NoiseFitter, NoiseTracker};
-use crate::dsp::pulse::Shape;
 use crate::scene::Scene;
 
 /// Fits the stop channel's noise model.
@@ -20,7 +19,8 @@ use crate::scene::Scene;
 pub struct Noise {
     scene: Scene,
     fitter: NoiseFitter,
-    pulse: Option<(f64, Shape)>,
+    /// Places the range and noise gates (shared with the stages before this one).
+    gates: GatePlacer,
     /// Present when the scene asks for a forgetting noise model.
     tracker: Option<NoiseTracker>,
 }
@@ -32,7 +32,7 @@ impl Noise {
         Noise {
             scene: scene.clone(),
             fitter: NoiseFitter::default(),
-            pulse: None,
+            gates: GatePlacer::new(scene),
             tracker: (n > 0).then(|| NoiseTracker::with_time_constant(n as f64)),
         }
     }
@@ -45,31 +45,9 @@ impl Stage for Noise {
 
     fn process(&mut self, mut w: Work, out: &mut Vec<Work>) -> Result<(), FrameError> {
         let s = &self.scene;
-        let dt = w.frame.sample_interval_s;
-        if self.pulse.as_ref().is_none_or(|p| p.0 != dt) {
-            self.pulse = Some((dt, Shape::from_config(&s.return_pulse, dt)));
-        }
-        let pulse = &self.pulse.as_ref().expect("set above").1;
         let mut stop_v = std::mem::take(&mut w.stop_v);
         w.frame.channels[w.stop].volts_into(&mut stop_v);
-        let (lo, hi) = pulse.support();
-        w.gates = Gates::place(&GateInputs {
-            samples: stop_v.len(),
-            dt_s: dt,
-            first_sample_offset_s: w.frame.first_sample_offset_s,
-            t_ref_s: w.t_ref_s,
-            delay_s: s.calibration.delay_s,
-            c_m_per_s: s.c_medium_m_per_s(),
-            min_range_m: s.range_gate.min_m,
-            max_range_m: s.range_gate.max_m,
-            support_lo: lo,
-            support_hi: hi,
-            timing_offset: pulse.fraction_offset(s.timing.fraction),
-            guard_s: s.noise_gate.guard_s,
-            pre: s.noise_gate.pre_trigger,
-            beyond: s.noise_gate.beyond_range,
-            margin: pulse.fwhm(),
-        });
+        w.gates = self.gates.place(&w);
         // Non-finite samples (a float capture's NaN/Inf) are held at the last
         // finite value so nothing downstream sees them; the report says how many.
         let bad = stop_v.iter().filter(|v| !v.is_finite()).count();

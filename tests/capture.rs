@@ -12,11 +12,8 @@ use tofwave::capture::{
 };
 use tofwave::frame::{Channel, ChannelRole, Frame, Samples};
 
-fn replay(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("replay-data")
-        .join(name)
-}
+mod common;
+use common::replay_path as replay;
 
 fn data(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))

@@ -2,21 +2,14 @@
 //! simulated captures, noise-only captures, malformed files.
 
 mod common;
-use common::{rng, Synth};
+use common::{replay_path, rng, tofwave, Synth};
 use std::path::Path;
 use std::process::Command;
 use tofwave::capture::write_recording;
 use tofwave::scene::Scene;
 
-fn tofwave(args: &[&str]) -> (i32, Vec<serde_json::Value>, String) {
-    let out = Command::new(env!("CARGO_BIN_EXE_tofwave")).args(args).output().expect("runs");
-    let stdout = String::from_utf8(out.stdout).unwrap();
-    let reports = stdout.lines().map(|l| serde_json::from_str(l).expect("JSON line")).collect();
-    (out.status.code().unwrap_or(-1), reports, String::from_utf8(out.stderr).unwrap())
-}
-
 fn data(name: &str) -> String {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("replay-data").join(name).display().to_string()
+    replay_path(name).display().to_string()
 }
 
 #[test]

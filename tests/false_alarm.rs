@@ -3,26 +3,15 @@
 //! mode holds the design rate on it. Fixed seeds; binomial 99 % intervals
 //! from the trial count.
 
+mod common;
+use common::noise_frame;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Gamma, Normal};
-use tofwave::frame::{Channel, ChannelRole, Frame};
 use tofwave::pipeline::Pipeline;
 use tofwave::scene::{DetectorKind, PfaScope, Scene, ThresholdMode};
 
 const SIGMA: f64 = 0.0138;
-
-fn noise_frame(v: Vec<f64>, pre: usize, seq: u64) -> Frame {
-    Frame {
-        sensor_id: "fa".into(),
-        sequence: seq,
-        trigger_time_s: seq as f64 * 1e-3,
-        sample_interval_s: 1e-9,
-        first_sample_offset_s: -(pre as f64) * 1e-9,
-        channels: vec![Channel::from_volts("CH2", ChannelRole::Stop, v)],
-        laser_off: true,
-    }
-}
 
 /// Two-sided 99 % interval for a binomial count: exact enough via the normal
 /// approximation with continuity correction when the expectation is >= 20.
@@ -46,7 +35,7 @@ fn reports_with_returns(pfa: f64, frames: u64, seed: u64) -> u64 {
     for seq in 0..frames {
         let v: Vec<f64> = (0..1000).map(|_| n.sample(&mut rng)).collect();
         out.clear();
-        p.push(noise_frame(v, 300, seq), &mut out).unwrap();
+        p.push(noise_frame("fa", v, 300, seq), &mut out).unwrap();
         if !out[0].returns.is_empty() {
             hits += 1;
         }
@@ -67,10 +56,11 @@ fn matched_filter_false_alarm_rate_matches_design_1e_2() {
 }
 
 #[test]
+#[cfg_attr(
+    debug_assertions,
+    ignore = "60 000 pipeline frames need a release build: cargo test --release"
+)]
 fn matched_filter_false_alarm_rate_matches_design_1e_3() {
-    if cfg!(debug_assertions) {
-        return; // needs release speed; CI runs `cargo test --release`
-    }
     check_rate(1e-3, 60_000, 2);
 }
 
@@ -111,7 +101,7 @@ fn skewed_noise_is_flagged_and_the_empirical_mode_holds_the_rate() {
         for seq in 0..frames {
             let v: Vec<f64> = (0..2500).map(|_| skewed(&mut rng, &g, k)).collect();
             out.clear();
-            p.push(noise_frame(v, 1000, seq), &mut out).unwrap();
+            p.push(noise_frame("fa", v, 1000, seq), &mut out).unwrap();
             let r = &out[0];
             if r.flags.iter().any(|f| f == "non_gaussian_noise") {
                 non_gaussian += 1;

@@ -8,7 +8,6 @@
 //! state), k = 5 unless stated (two-sided ≈ 1 − 6e-7 under normality).
 
 use proptest::prelude::*;
-use std::path::Path;
 use tofwave::frame::{ChannelRole, Frame};
 use tofwave::physics::config::SimulationConfig;
 use tofwave::physics::detector::StateSpace;
@@ -29,11 +28,8 @@ const SCENES: [&str; 8] = [
     "far-150m-1mhz",
 ];
 
-fn scene(name: &str) -> Scene {
-    let path =
-        Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("replay-data/scenes/{name}.toml"));
-    Scene::load(&path).unwrap_or_else(|e| panic!("{name}: {e}"))
-}
+mod common;
+use common::load_scene as scene;
 
 fn sim_of(text: &str) -> Simulator {
     let scene = Scene::from_toml_str(&format!("name = \"t\"\n{text}"), "test").unwrap();

@@ -2,17 +2,12 @@
 //! reported for the simulated lab set-up (six targets of the source's Table
 //! 10.20 along one beam) against the truth file the simulator wrote.
 
+mod common;
+use common::{replay_path, tofwave_ok as run};
 use std::path::Path;
-use std::process::Command;
-
-fn run(args: &[&str]) -> String {
-    let out = Command::new(env!("CARGO_BIN_EXE_tofwave")).args(args).output().expect("runs");
-    assert!(out.status.success(), "tofwave {args:?}: {}", String::from_utf8_lossy(&out.stderr));
-    String::from_utf8(out.stdout).expect("utf-8")
-}
 
 fn scene(name: &str) -> String {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("replay-data/scenes").join(name).display().to_string()
+    replay_path("scenes").join(name).display().to_string()
 }
 
 /// One reported return matched to its true target: (target, error m, reported sigma m).

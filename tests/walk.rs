@@ -7,7 +7,7 @@
 //! Print the numbers with `cargo test --release --test walk -- --nocapture`.
 
 mod common;
-use common::Synth;
+use common::{tofwave, Synth};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
@@ -218,23 +218,6 @@ fn walk_table_is_validated() {
     assert!(e.contains("calibration.walk_delay_s"), "{e}");
     s.calibration.walk_delay_s = vec![0.0, 1e-9];
     s.validate("x").unwrap();
-}
-
-fn tofwave(args: &[&str]) -> (i32, Vec<serde_json::Value>, String) {
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_tofwave"))
-        .args(args)
-        .output()
-        .expect("runs");
-    let stdout = String::from_utf8(out.stdout).unwrap();
-    let reports = stdout
-        .lines()
-        .map(|l| serde_json::from_str(l).expect("JSON line"))
-        .collect();
-    (
-        out.status.code().unwrap_or(-1),
-        reports,
-        String::from_utf8(out.stderr).unwrap(),
-    )
 }
 
 /// Captures of a target at `range_m` with return amplitude `amp`, start pulse

@@ -118,3 +118,62 @@ impl Synth {
 pub fn rng(seed: u64) -> ChaCha8Rng {
     ChaCha8Rng::seed_from_u64(seed)
 }
+
+/// A file under the repository's `replay-data/`.
+pub fn replay_path(name: &str) -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("replay-data")
+        .join(name)
+}
+
+/// The shipped scene `replay-data/scenes/{name}.toml`, loaded and validated.
+pub fn load_scene(name: &str) -> Scene {
+    let path = replay_path(&format!("scenes/{name}.toml"));
+    Scene::load(&path).unwrap_or_else(|e| panic!("{name}: {e}"))
+}
+
+/// Runs the `tofwave` binary: exit code, stdout parsed as JSON lines, stderr.
+pub fn tofwave(args: &[&str]) -> (i32, Vec<serde_json::Value>, String) {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_tofwave"))
+        .args(args)
+        .output()
+        .expect("runs");
+    let stdout = String::from_utf8(out.stdout).unwrap();
+    let reports = stdout
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("JSON line"))
+        .collect();
+    (
+        out.status.code().unwrap_or(-1),
+        reports,
+        String::from_utf8(out.stderr).unwrap(),
+    )
+}
+
+/// Runs the `tofwave` binary, which must succeed: its stdout.
+pub fn tofwave_ok(args: &[&str]) -> String {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_tofwave"))
+        .args(args)
+        .output()
+        .expect("runs");
+    assert!(
+        out.status.success(),
+        "tofwave {args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8(out.stdout).expect("utf-8")
+}
+
+/// A laser-off frame of one stop channel (`v`, volts at 1 GS/s) whose first
+/// `pre` samples lie before the trigger.
+pub fn noise_frame(sensor: &str, v: Vec<f64>, pre: usize, seq: u64) -> Frame {
+    Frame {
+        sensor_id: sensor.into(),
+        sequence: seq,
+        trigger_time_s: seq as f64 * 1e-3,
+        sample_interval_s: 1e-9,
+        first_sample_offset_s: -(pre as f64) * 1e-9,
+        channels: vec![Channel::from_volts("CH2", ChannelRole::Stop, v)],
+        laser_off: true,
+    }
+}

@@ -5,7 +5,7 @@
 //! Layout (one concern per file):
 //! - [`config`]: the `[simulation]` scene section (serde, validated).
 //! - [`link_budget`]: received power, currents, voltages, noise, SNR.
-//! - [`detector`]: state-space receiver models, discretised exactly.
+//! - [`photodetector`]: state-space models of the APD/TIA receiver chain, discretised exactly.
 //! - [`noise`]: coloured/skewed noise with a shot-noise envelope; the mains burst.
 //! - [`digitiser`]: quantisation to codes, clipping, jittered sampling.
 //! - [`simulator`]: [`Simulator`], [`Truth`].
@@ -13,10 +13,10 @@
 //! Plain synchronous Rust: no I/O, no async.
 
 pub mod config;
-pub mod detector;
 pub mod digitiser;
 pub mod link_budget;
 pub mod noise;
+pub mod photodetector;
 pub mod simulator;
 
 pub use config::SimulationConfig;

@@ -25,7 +25,7 @@
 
 use super::PhysicsError;
 use super::config::{PulseShape, RingingConfig, SimulationConfig};
-use super::detector::{Chain, StateSpace, coast, periodic_state, run_chain};
+use super::photodetector::{Chain, StateSpace, coast, periodic_state, run_chain};
 use super::digitiser::{FineWave, Quantiser};
 use super::link_budget::{self, LinkBudgetLine, Q_E};
 use super::noise::{Burst, ColouredNoise, c_for_skew};

@@ -6,7 +6,7 @@
 //! - [`config`]: the `[simulation]` scene section (serde, validated).
 //! - [`link_budget`]: received power, currents, voltages, noise, SNR.
 //! - [`photodetector`]: state-space models of the APD/TIA receiver chain, discretised exactly.
-//! - [`noise`]: coloured/skewed noise with a shot-noise envelope; the mains burst.
+//! - [`noise_source`]: coloured/skewed noise with a shot-noise envelope; the mains burst.
 //! - [`digitiser`]: quantisation to codes, clipping, jittered sampling.
 //! - [`simulator`]: [`Simulator`], [`Truth`].
 //!
@@ -15,7 +15,7 @@
 pub mod config;
 pub mod digitiser;
 pub mod link_budget;
-pub mod noise;
+pub mod noise_source;
 pub mod photodetector;
 pub mod simulator;
 

@@ -28,7 +28,7 @@ use super::config::{PulseShape, RingingConfig, SimulationConfig};
 use super::photodetector::{Chain, StateSpace, coast, periodic_state, run_chain};
 use super::digitiser::{FineWave, Quantiser};
 use super::link_budget::{self, LinkBudgetLine, Q_E};
-use super::noise::{Burst, ColouredNoise, c_for_skew};
+use super::noise_source::{Burst, ColouredNoise, c_for_skew};
 use crate::frame::{Channel, ChannelRole, Frame};
 use crate::scene::Scene;
 use rand::{Rng, SeedableRng};

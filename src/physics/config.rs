@@ -47,10 +47,11 @@ pub struct SimulationConfig {
     pub digitiser: SimDigitiserConfig,
 }
 
-/// Emitted pulse shape.
+/// Shape of the emitted laser pulse (`[simulation.laser] pulse_shape`; not the
+/// receiver-side [`crate::dsp::pulse::PulseShape`] trait).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
-pub enum PulseShape {
+pub enum LaserPulseShape {
     /// Gaussian; `pulse_width_s` is the FWHM; `emission_time_s` is the centre.
     Gaussian,
     /// Rectangular (a current-driven seed laser); `pulse_width_s` is the full
@@ -66,7 +67,7 @@ pub struct LaserConfig {
     pub peak_power_w: f64,
     /// Pulse shape.
     #[serde(default = "default_shape")]
-    pub pulse_shape: PulseShape,
+    pub pulse_shape: LaserPulseShape,
     /// FWHM (gaussian) or full width (rectangular), s.
     pub pulse_width_s: f64,
     /// Pulse repetition frequency, Hz; one frame per shot.
@@ -88,8 +89,8 @@ pub struct LaserConfig {
     pub off: bool,
 }
 
-fn default_shape() -> PulseShape {
-    PulseShape::Gaussian
+fn default_shape() -> LaserPulseShape {
+    LaserPulseShape::Gaussian
 }
 fn default_wavelength() -> f64 {
     1550e-9

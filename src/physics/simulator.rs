@@ -24,7 +24,7 @@
 //! is what `calibrate` learns. `range_m` is the geometric range.
 
 use super::PhysicsError;
-use super::config::{PulseShape, RingingConfig, SimulationConfig};
+use super::config::{LaserPulseShape, RingingConfig, SimulationConfig};
 use super::photodetector::{Chain, StateSpace, coast, periodic_state, run_chain};
 use super::digitiser::{FineWave, Quantiser};
 use super::link_budget::{self, LinkBudgetLine, Q_E};
@@ -104,7 +104,7 @@ struct Event {
 /// The pulse shape of the laser.
 #[derive(Debug, Clone, Copy)]
 struct Pulse {
-    shape: PulseShape,
+    shape: LaserPulseShape,
     width_s: f64,
 }
 
@@ -112,24 +112,24 @@ impl Pulse {
     /// Extent before and after the reference instant, s.
     fn extent(&self) -> (f64, f64) {
         match self.shape {
-            PulseShape::Gaussian => {
+            LaserPulseShape::Gaussian => {
                 let sigma = self.width_s / (8.0 * 2f64.ln()).sqrt();
                 (7.0 * sigma, 7.0 * sigma)
             }
-            PulseShape::Rectangular => (0.0, self.width_s),
+            LaserPulseShape::Rectangular => (0.0, self.width_s),
         }
     }
 
     /// Average of the unit-peak pulse over `[t, t + h]` relative to its reference.
     fn cell_average(&self, t: f64, h: f64) -> f64 {
         match self.shape {
-            PulseShape::Gaussian => {
+            LaserPulseShape::Gaussian => {
                 let sigma = self.width_s / (8.0 * 2f64.ln()).sqrt();
                 let k = 1.0 / (sigma * 2f64.sqrt());
                 let e = statrs::function::erf::erf((t + h) * k) - statrs::function::erf::erf(t * k);
                 e * sigma * (PI / 2.0).sqrt() / h
             }
-            PulseShape::Rectangular => {
+            LaserPulseShape::Rectangular => {
                 let lo = t.max(0.0);
                 let hi = (t + h).min(self.width_s);
                 ((hi - lo) / h).max(0.0)
@@ -548,7 +548,7 @@ impl Simulator {
         let pulse = Pulse {
             shape: laser
                 .as_ref()
-                .map_or(PulseShape::Gaussian, |l| l.pulse_shape),
+                .map_or(LaserPulseShape::Gaussian, |l| l.pulse_shape),
             width_s: laser.as_ref().map_or(1e-9, |l| l.pulse_width_s),
         };
         let c_m = scene.c_medium_m_per_s();

@@ -4,6 +4,7 @@
 //! fails before any frame is processed, with an error naming the field and the
 //! allowed range. The pipeline is built from a validated scene (`pipeline::build`).
 
+use crate::dsp::pulse::{Pulse, Shape, TablePulse};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -197,6 +198,30 @@ fn is_zero(x: &f64) -> bool {
 }
 
 impl PulseConfig {
+    /// The shape at sampling period `dt_s` (units of samples): parametric, or
+    /// the measured table.
+    pub fn shape(&self, dt_s: f64) -> Shape {
+        match self.model {
+            PulseModel::Table => Shape::Table(TablePulse::new(
+                self.table.clone(),
+                self.table_step_s / dt_s,
+                self.table_first_s / dt_s,
+            )),
+            _ => Shape::Parametric(self.pulse(dt_s)),
+        }
+    }
+
+    /// The parametric shape at sampling period `dt_s`; a table model falls
+    /// back to a Gaussian of the table's FWHM.
+    pub fn pulse(&self, dt_s: f64) -> Pulse {
+        match self.model {
+            // The table's FWHM is already in samples: a period of 1 keeps it so.
+            PulseModel::Table => Pulse::gaussian(self.shape(dt_s).fwhm(), 1.0),
+            PulseModel::Gaussian => Pulse::gaussian(self.fwhm_s, dt_s),
+            PulseModel::Bigaussian => Pulse::bigaussian(self.rise_time_s, self.fwhm_s, dt_s),
+        }
+    }
+
     fn default_return() -> Self {
         PulseConfig {
             model: PulseModel::Bigaussian,

@@ -7,6 +7,7 @@
 //! checks every value and names the dotted field and its allowed range.
 
 use super::PhysicsError;
+use crate::scene::FieldError;
 use serde::{Deserialize, Serialize};
 
 /// The whole `[simulation]` section.
@@ -396,11 +397,7 @@ fn default_stop_name() -> String {
 
 /// Validation helper: builds the error naming the field.
 fn bad(field: impl Into<String>, value: impl ToString, allowed: &'static str) -> PhysicsError {
-    PhysicsError::Invalid {
-        field: field.into(),
-        value: value.to_string(),
-        allowed,
-    }
+    PhysicsError::Invalid(FieldError::new(field, value, allowed))
 }
 
 /// `lo < x <= hi` and finite.

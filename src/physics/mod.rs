@@ -26,16 +26,10 @@ pub use simulator::{Simulator, TrueReturn, Truth};
 /// Errors of the physics layer.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum PhysicsError {
-    /// A value out of its allowed range.
-    #[error("{field} = {value} is out of range: allowed {allowed}")]
-    Invalid {
-        /// Dotted field name, e.g. `simulation.targets[1].range_m`.
-        field: String,
-        /// The offending value.
-        value: String,
-        /// The allowed range or set.
-        allowed: &'static str,
-    },
+    /// A value out of its allowed range (the field is dotted, e.g.
+    /// `simulation.targets[1].range_m`).
+    #[error(transparent)]
+    Invalid(#[from] crate::scene::FieldError),
     /// A section an effect depends on is missing.
     #[error("missing [{section}] section: needed by {needed_by}")]
     MissingSection {

@@ -30,7 +30,7 @@ use super::digitiser::{FineWave, Quantiser};
 use super::link_budget::{self, LinkBudgetLine, Q_E};
 use super::noise_source::{Burst, ColouredNoise, c_for_skew};
 use crate::frame::{Channel, ChannelRole, Frame};
-use crate::scene::Scene;
+use crate::scene::{FieldError, Scene};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
@@ -755,11 +755,11 @@ impl Simulator {
                 } else {
                     f64::INFINITY
                 };
-                c_for_skew(needed).ok_or(PhysicsError::Invalid {
-                    field: "simulation.noise.skewness".into(),
-                    value: format!("{g} (needs innovation skewness {needed:.3} through this chain)"),
-                    allowed: "a skewness the chain can deliver: |skewness| < 2.83 x the chain's skew transfer",
-                })?
+                c_for_skew(needed).ok_or(PhysicsError::Invalid(FieldError::new(
+                    "simulation.noise.skewness",
+                    format!("{g} (needs innovation skewness {needed:.3} through this chain)"),
+                    "a skewness the chain can deliver: |skewness| < 2.83 x the chain's skew transfer",
+                )))?
             }
             _ => 0.0,
         };

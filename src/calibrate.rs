@@ -128,3 +128,50 @@ pub fn calibrate(
     };
     Ok(Calibration { file, walk: walk_fit })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frame::Return;
+
+    /// A report holding returns of (time of flight s, amplitude V).
+    fn report(returns: &[(f64, f64)]) -> Report {
+        Report {
+            returns: returns
+                .iter()
+                .map(|&(tof_s, amplitude_v)| Return { tof_s, amplitude_v, ..Default::default() })
+                .collect(),
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn delay_is_the_mean_excess_of_the_strongest_return_without_outliers() {
+        let scene = Scene::default_scene();
+        let range_m = 10.0;
+        let tof_s = 2.0 * range_m / scene.c_medium_m_per_s();
+        let mut reports: Vec<Report> = [5.0e-9, 5.2e-9, 4.8e-9, 5.1e-9, 4.9e-9]
+            .iter()
+            .map(|d| report(&[(tof_s + 30e-9, 0.1), (tof_s + d, 1.0)]))
+            .collect();
+        // A false alarm stronger than the target, and a report without returns.
+        reports.push(report(&[(tof_s + 80e-9, 2.0)]));
+        reports.push(report(&[]));
+        let c = calibrate(&reports, range_m, &scene, false).unwrap();
+        let m = &c.file.measurement;
+        assert!((c.file.calibration.delay_s - 5.0e-9).abs() < 1e-15, "{}", c.file.calibration.delay_s);
+        assert_eq!((m.returns, m.excluded), (5, 2));
+        // Sample variance 0.025 ns² over 5 returns.
+        assert!((m.delay_std_s - 0.025f64.sqrt() * 1e-9).abs() < 1e-15);
+        assert!((m.delay_sem_s - (0.025f64 / 5.0).sqrt() * 1e-9).abs() < 1e-15);
+        assert_eq!(m.mean_amplitude_v, 1.0);
+        assert_eq!(m.timing_method, scene.timing.method);
+        assert!(c.walk.is_none() && c.file.calibration.walk_amplitude_v.is_empty());
+    }
+
+    #[test]
+    fn no_returns_is_an_error() {
+        let e = calibrate(&[report(&[]), report(&[])], 3.0, &Scene::default_scene(), false).unwrap_err();
+        assert_eq!(e.to_string(), "no returns detected in 2 reports: nothing to calibrate on");
+    }
+}

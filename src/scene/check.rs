@@ -147,10 +147,10 @@ impl From<u32> for Value {
 
 /// One row of a check table: field name, value, allowed range, and the
 /// allowed range as the error message states it.
-pub type Row = (&'static str, Value, Range, &'static str);
+pub type Row<'a> = (&'a str, Value, Range, &'static str);
 
 /// Checks the rows in order; the first value outside its range is the error.
-pub fn check(rows: &[Row]) -> Result<(), FieldError> {
+pub fn check(rows: &[Row<'_>]) -> Result<(), FieldError> {
     match rows.iter().find(|(_, v, r, _)| !r.contains(v.as_f64())) {
         Some(&(field, value, _, allowed)) => Err(FieldError::new(field, value, allowed)),
         None => Ok(()),

@@ -3,6 +3,18 @@
 //! Parsed with `deny_unknown_fields` and validated at load, so a bad scene
 //! fails before any frame is processed, with an error naming the field and the
 //! allowed range. The pipeline is built from a validated scene (`pipeline::build`).
+//!
+//! Each section type sits in the file of its group, with its `validate()`
+//! next to it, written as rows for [`check::check`] (field, value, allowed
+//! range, the range as the error states it):
+//! - `digitiser`: `[digitiser]`, `[channels]`;
+//! - `pulse`: `[return_pulse]`, `[start_pulse]`, and their dsp shapes;
+//! - `gates`: `[range_gate]`, `[noise_gate]`;
+//! - `detector`, `timing`, `averaging`, `baseline`, `denoise`: the section of that name;
+//! - `calibration`: `[calibration]` and the calibration file;
+//! - here: [`Scene`], `[medium]`, loading and the order of the checks.
+//!
+//! Every type is re-exported here: its path is `scene::X` whatever file holds it.
 
 mod averaging;
 mod baseline;

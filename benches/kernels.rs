@@ -17,7 +17,7 @@ use tofwave::dsp::average::{CodeAccumulator, add_codes_i16, add_f64};
 use tofwave::dsp::correlate::{CorrelationMethod, Correlator};
 use tofwave::dsp::fracdelay::FractionalDelay;
 use tofwave::dsp::mlfit::fit_delay;
-use tofwave::dsp::pulse::{Pulse, PulseShape};
+use tofwave::dsp::pulse::PulseShape;
 use tofwave::dsp::{crossing, interp};
 use tofwave::frame::{Channel, ChannelRole, Samples};
 use tofwave::scene::Scene;
@@ -52,7 +52,7 @@ fn correlate(c: &mut Criterion) {
 }
 
 fn mlfit(c: &mut Criterion) {
-    let shape = Pulse::from_config(&Scene::default_scene().return_pulse, 1e-9);
+    let shape = Scene::default_scene().return_pulse.pulse(1e-9);
     let delay = 1234.37;
     let n = noise(FRAME, 3);
     let x: Vec<f64> = (0..FRAME)
@@ -177,7 +177,7 @@ fn interpolation(c: &mut Criterion) {
                 .sum::<f64>()
         })
     });
-    let shape = Pulse::from_config(&Scene::default_scene().return_pulse, 1e-9);
+    let shape = Scene::default_scene().return_pulse.pulse(1e-9);
     let x: Vec<f64> = (0..FRAME)
         .map(|k| shape.value_and_slope(k as f64 - 1234.4).0)
         .collect();

@@ -17,6 +17,8 @@ pub mod dsp;
 pub mod detect;
 /// Stage trait, stages built from a scene, per-sensor pipeline.
 pub mod pipeline;
+/// System-delay (and walk-table) calibration from reports of a target at a known range.
+pub mod calibrate;
 /// Link budget, pulse and detector models, scene simulator.
 pub mod physics;
 /// Readers and writers of capture formats; replay source.

@@ -7,7 +7,8 @@ use std::path::PathBuf;
 use tofwave::capture::{self, Format, ReadOptions};
 use tofwave::frame::Report;
 use tofwave::pipeline::{report_json, Pipeline};
-use tofwave::scene::{CalibrationFile, CalibrationMeasurement, Scene, TimingMethod, DEFAULT_SCENE_TOML};
+use tofwave::calibrate::Calibration;
+use tofwave::scene::{CalibrationFile, Scene, TimingMethod, DEFAULT_SCENE_TOML};
 
 /// Waveform processing and detection for direct-detection time-of-flight lidar.
 ///
@@ -446,86 +447,14 @@ fn calibrate(a: CalibrateArgs) -> Result<i32> {
     }
     scene.calibration = tofwave::scene::CalibrationConfig::default();
     let (reports, refused) = run(&scene, &a.common)?;
-    let true_tof_s = 2.0 * r / scene.c_medium_m_per_s();
-    // The strongest return of each report is the calibration target.
-    let mut delays = Vec::new();
-    let mut amplitudes = Vec::new();
-    for rep in &reports {
-        if let Some(ret) = rep.returns.iter().max_by(|x, y| x.amplitude_v.total_cmp(&y.amplitude_v)) {
-            delays.push(ret.tof_s - true_tof_s);
-            amplitudes.push(ret.amplitude_v);
-        }
-    }
-    if delays.is_empty() {
-        bail!("no returns detected in {} reports: nothing to calibrate on", reports.len());
-    }
-    // Outliers (a false alarm taken for the target) are rejected beyond 5 robust sigmas of the median.
-    let mut sorted = delays.clone();
-    sorted.sort_by(f64::total_cmp);
-    let median = sorted[sorted.len() / 2];
-    let mut dev: Vec<f64> = sorted.iter().map(|d| (d - median).abs()).collect();
-    dev.sort_by(f64::total_cmp);
-    let robust = 1.4826 * dev[dev.len() / 2];
-    let keep: Vec<usize> = (0..delays.len())
-        .filter(|&i| robust == 0.0 || (delays[i] - median).abs() <= 5.0 * robust)
-        .collect();
-    let n = keep.len() as f64;
-    let mean = keep.iter().map(|&i| delays[i]).sum::<f64>() / n;
-    let var = if keep.len() > 1 {
-        keep.iter().map(|&i| (delays[i] - mean).powi(2)).sum::<f64>() / (n - 1.0)
-    } else {
-        0.0
-    };
-    let mut mean_amp = keep.iter().map(|&i| amplitudes[i]).sum::<f64>() / n;
-    let mut calibration = tofwave::scene::CalibrationConfig { delay_s: mean, ..Default::default() };
-    let (mut used, mut var, mut n, mut mean) = (keep.len(), var, n, mean);
-    if a.walk {
-        // Walk: group by amplitude (every return; the outlier rejection is per group).
-        let pairs: Vec<(f64, f64)> = amplitudes.iter().copied().zip(delays.iter().copied()).collect();
-        let fit = tofwave::detect::walk::fit_walk(&pairs)?;
-        let table = tofwave::detect::walk::WalkTable::new(&fit.amplitude_v, &fit.walk_delay_s)
-            .expect("fit_walk gives at least two nodes");
-        // Residuals after the table, over the returns the fit kept (within 5 robust sigmas of their node).
-        let residuals: Vec<f64> = pairs
-            .iter()
-            .map(|&(amp, d)| d - fit.delay_s - table.delay_s(amp))
-            .collect();
-        used = fit.counts.iter().sum();
-        n = used as f64;
-        let mut sorted: Vec<f64> = residuals.iter().map(|v| v.abs()).collect();
-        sorted.sort_by(f64::total_cmp);
-        let cut = 5.0 * 1.4826 * sorted[sorted.len() / 2];
-        let kept: Vec<f64> = residuals.iter().copied().filter(|v| cut == 0.0 || v.abs() <= cut).collect();
-        let rm = kept.iter().sum::<f64>() / kept.len() as f64;
-        var = kept.iter().map(|v| (v - rm).powi(2)).sum::<f64>() / (kept.len() as f64 - 1.0).max(1.0);
-        mean = fit.delay_s;
-        mean_amp = fit.amplitude_v.iter().zip(&fit.counts).map(|(a, c)| a * *c as f64).sum::<f64>() / n;
-        calibration = tofwave::scene::CalibrationConfig {
-            delay_s: fit.delay_s,
-            walk_amplitude_v: fit.amplitude_v.clone(),
-            walk_delay_s: fit.walk_delay_s.clone(),
-        };
+    let Calibration { mut file, walk } = tofwave::calibrate::calibrate(&reports, r, &scene, a.walk)?;
+    if let Some(fit) = &walk {
         eprintln!("tofwave calibrate: walk table, {} nodes (amplitude V -> extra delay ns):", fit.amplitude_v.len());
         for ((amp, d), c) in fit.amplitude_v.iter().zip(&fit.walk_delay_s).zip(&fit.counts) {
             eprintln!("  {amp:.4} V -> {:+.4} ns ({c} returns)", d * 1e9);
         }
     }
-    let file = CalibrationFile {
-        calibration,
-        measurement: CalibrationMeasurement {
-            known_range_m: r,
-            returns: used as u64,
-            excluded: (reports.len() - used) as u64,
-            delay_std_s: var.sqrt(),
-            delay_sem_s: (var / n).sqrt(),
-            mean_amplitude_v: mean_amp,
-            timing_method: scene.timing.method,
-            timing_fraction: scene.timing.fraction,
-            leading_edge_v: scene.timing.leading_edge_v,
-            frames_averaged: scene.averaging.frames,
-            inputs: a.common.input.iter().map(|p| p.display().to_string()).collect(),
-        },
-    };
+    file.measurement.inputs = a.common.input.iter().map(|p| p.display().to_string()).collect();
     let text = format!(
         "# tofwave calibration: the fixed start-to-stop delay of the system, seconds.\n\
          # Apply with `tofwave process --calibration {}`.\n{}",
@@ -533,13 +462,14 @@ fn calibrate(a: CalibrateArgs) -> Result<i32> {
         toml::to_string(&file)?
     );
     std::fs::write(&a.out, text).with_context(|| format!("cannot write {}", a.out.display()))?;
+    let m = &file.measurement;
     eprintln!(
         "tofwave calibrate: delay {:.4} ns ± {:.4} ns (standard error; {} returns, std {:.4} ns, {} excluded) -> {}",
-        mean * 1e9,
-        (var / n).sqrt() * 1e9,
-        used,
-        var.sqrt() * 1e9,
-        reports.len() - used,
+        file.calibration.delay_s * 1e9,
+        m.delay_sem_s * 1e9,
+        m.returns,
+        m.delay_std_s * 1e9,
+        m.excluded,
         a.out.display()
     );
     Ok(if refused > 0 { 1 } else { 0 })

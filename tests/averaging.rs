@@ -12,7 +12,8 @@ use tofwave::dsp::fracdelay::FractionalDelay;
 use tofwave::frame::{Channel, ChannelRole, Frame, Report, Samples};
 use tofwave::physics::Simulator;
 use tofwave::pipeline::Pipeline;
-use tofwave::scene::{AveragingAlign, AveragingMethod, AveragingMode, Scene};
+use tofwave::calibrate::calibrate;
+use tofwave::scene::{AveragingAlign, AveragingMethod, AveragingMode, CalibrationConfig, Scene};
 
 /// A stop-only frame whose samples all lie in the pre-trigger noise gate.
 fn gate_frame(seq: u64, samples: Samples) -> Frame {
@@ -131,12 +132,6 @@ fn simulate(scene: &Scene, seed: u64, frames: u64) -> (Vec<Report>, f64) {
 fn weak_far_return_is_ranged_after_256_shots_and_not_single_shot() {
     let mut scene = scene_file("weak-32m");
     let range_m = 32.1147;
-    // Calibrate the chain's fixed delay from the simulator's truth (what
-    // `tofwave calibrate` measures on a known target).
-    let sim = Simulator::new(&scene).unwrap();
-    let truth = sim.frame(1, 0).1;
-    let tof = truth.returns[0].tof_s;
-    scene.calibration.delay_s = tof - 2.0 * range_m / scene.c_medium_m_per_s();
     scene.detector.pfa = 1e-6;
     // The simulated receiver noise is coloured (19.5 MHz TIA); the Gaussian
     // threshold sizes the matched filter's output sigma from the noise
@@ -150,17 +145,18 @@ fn weak_far_return_is_ranged_after_256_shots_and_not_single_shot() {
     };
 
     scene.averaging.frames = 256;
-    // Then calibrate the method's own bias as `tofwave calibrate` does: the
-    // mean range error of an independent calibration run (32 averaged
-    // reports, other seed) at the known range is folded into the delay.
+    // Calibrate as `tofwave calibrate` does: the chain's fixed delay and the
+    // method's own bias, from an independent calibration run (32 averaged
+    // reports, other seed) of the target at its known range.
+    scene.calibration = CalibrationConfig::default();
     let (cal, _) = simulate(&scene, 100, 256 * 32);
-    let cal_err: Vec<f64> = cal.iter().filter_map(near).map(|r| r - range_m).collect();
-    let bias_m = cal_err.iter().sum::<f64>() / cal_err.len() as f64;
-    scene.calibration.delay_s += 2.0 * bias_m / scene.c_medium_m_per_s();
+    let measured = calibrate(&cal, range_m, &scene, false).unwrap().file;
+    scene.calibration = measured.calibration;
     println!(
-        "calibration run: {} of 32 reports ranged, method bias {:+.2} cm",
-        cal_err.len(),
-        bias_m * 100.0
+        "calibration run: {} of 32 reports used, delay {:.4} ns ± {:.4} ns",
+        measured.measurement.returns,
+        scene.calibration.delay_s * 1e9,
+        measured.measurement.delay_sem_s * 1e9
     );
     let groups = 64u64;
     let (avg, _) = simulate(&scene, 7, 256 * groups);

@@ -113,7 +113,7 @@ fn report(label: &str, p: f64, c: &Counts) -> [bool; 2] {
 }
 
 fn shape() -> Shape {
-    Shape::from_config(&Scene::default_scene().return_pulse, 1e-9)
+    Scene::default_scene().return_pulse.shape(1e-9)
 }
 
 fn frames() -> u64 {

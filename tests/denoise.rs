@@ -157,7 +157,7 @@ fn burst_cancellation_removes_spurious_returns_without_weakening_the_return() {
     let seed = 11;
     let (reference, _, _, gate) = run_fixed(&clean, &sim_clean, seed, frames, None);
     let dt = sim.config().digitiser.sample_interval_s;
-    let (h, peak) = Shape::from_config(&with_bursts.return_pulse, dt).template();
+    let (h, peak) = with_bursts.return_pulse.shape(dt).template();
     let energy: f64 = h.iter().map(|v| v * v).sum();
     let mut det = FixedDetector {
         h,

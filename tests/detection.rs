@@ -89,7 +89,7 @@ fn timing_errors(scene: &Scene, truth: &Shape, amp: f64, clip: Option<f64>, tria
 #[test]
 fn ml_timing_reaches_the_cramer_rao_bound_without_walk() {
     let sc = scene(TimingMethod::Ml);
-    let shape = Shape::from_config(&sc.return_pulse, 1e-9);
+    let shape = sc.return_pulse.shape(1e-9);
     let trials = if cfg!(debug_assertions) { 200 } else { 1500 };
     // Peak SNR from 3 dB (20 mV) to just below a 2 V full scale.
     for (i, amp) in [0.02, 0.0776, 0.3, 1.0, 1.95].into_iter().enumerate() {
@@ -118,7 +118,7 @@ fn ml_timing_reaches_the_cramer_rao_bound_without_walk() {
 #[test]
 fn clipped_returns_are_flagged() {
     let sc = scene(TimingMethod::Ml);
-    let shape = Shape::from_config(&sc.return_pulse, 1e-9);
+    let shape = sc.return_pulse.shape(1e-9);
     let mut sc = sc;
     sc.digitiser.full_scale_low_v = -2.0;
     sc.digitiser.full_scale_high_v = 2.0;
@@ -134,7 +134,7 @@ fn learned_template_is_within_twice_the_bound() {
     let truth = Shape::Parametric(tofwave::dsp::pulse::Pulse { sigma_rise: 3.5, sigma_fall: 22.0 });
     let sc = scene(TimingMethod::Ml);
     let mut rng = ChaCha8Rng::seed_from_u64(11);
-    let guess = Shape::from_config(&sc.return_pulse, 1e-9);
+    let guess = sc.return_pulse.shape(1e-9);
     let (lo, hi) = guess.support();
     let mut current = sc.clone();
     for _pass in 0..2 {
@@ -171,7 +171,7 @@ fn learned_template_is_within_twice_the_bound() {
 fn probability_of_detection_follows_theory() {
     use tofwave::detect::detector::DetectorPlan;
     let sc = scene(TimingMethod::PeakParabolic);
-    let shape = Shape::from_config(&sc.return_pulse, 1e-9);
+    let shape = sc.return_pulse.shape(1e-9);
     let mut plan = DetectorPlan::matched_filter(&shape, N);
     let norm = plan.norm();
     let trials = if cfg!(debug_assertions) { 300 } else { 3000 };

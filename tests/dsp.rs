@@ -63,7 +63,7 @@ const Z99_ONE_SIDED: f64 = 2.326_347_874_040_841;
 
 fn default_return_pulse() -> Pulse {
     // The default scene's return pulse on the prototype's 1 GS/s digitiser.
-    Pulse::from_config(&Scene::default_scene().return_pulse, 1e-9)
+    Scene::default_scene().return_pulse.pulse(1e-9)
 }
 
 fn gaussian_vec(rng: &mut ChaCha8Rng, n: usize) -> Vec<f64> {

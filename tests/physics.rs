@@ -10,7 +10,7 @@
 use proptest::prelude::*;
 use tofwave::frame::{ChannelRole, Frame};
 use tofwave::physics::config::SimulationConfig;
-use tofwave::physics::detector::StateSpace;
+use tofwave::physics::photodetector::StateSpace;
 use tofwave::physics::digitiser::Quantiser;
 use tofwave::physics::link_budget::{self, Q_E, excess_noise_factor};
 use tofwave::physics::simulator::peak_response_v;

@@ -95,8 +95,8 @@ fn clipped_pulse_is_flagged_saturated() {
 
 #[test]
 fn pulses_at_the_frame_edges_are_flagged() {
-    use tofwave::dsp::pulse::{Pulse, PulseShape};
-    let pulse = Pulse::from_config(&Scene::default_scene().return_pulse, 1e-9);
+    use tofwave::dsp::pulse::PulseShape;
+    let pulse = Scene::default_scene().return_pulse.pulse(1e-9);
     // Each range gate reaches its frame edge and leaves a noise gate at the other end.
     for (peak, min_m, max_m) in [(0usize, -100.0, 150.0), (2499, 0.0, 400.0)] {
         let scene = Scene { range_gate: tofwave::scene::RangeGateConfig { min_m, max_m }, ..Scene::default_scene() };

@@ -100,7 +100,7 @@ fn mean_sd(v: &[f64]) -> (f64, f64) {
 #[test]
 fn walk_table_removes_leading_edge_walk() {
     let sc = scene();
-    let shape = Shape::from_config(&sc.return_pulse, 1e-9);
+    let shape = sc.return_pulse.shape(1e-9);
     let mut rng = ChaCha8Rng::seed_from_u64(1);
     let shots = if cfg!(debug_assertions) { 40 } else { 200 };
 

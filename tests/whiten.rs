@@ -15,7 +15,7 @@ use tofwave::detect::detector::DetectorPlan;
 use tofwave::detect::finite_gate::detection_probability;
 use tofwave::detect::qfunc::{q, q_inv};
 use tofwave::detect::stats::clopper_pearson;
-use tofwave::dsp::pulse::{PulseShape, Shape};
+use tofwave::dsp::pulse::PulseShape;
 use tofwave::frame::{Channel, ChannelRole, Frame};
 use tofwave::pipeline::Pipeline;
 use tofwave::scene::{RangeGateConfig, Scene, TimingMethod};
@@ -123,7 +123,7 @@ fn whitened_detection_beats_the_plain_matched_filter_and_follows_theory() {
     const PRE: usize = 800;
     const PEAK: usize = 1000;
     let sc = scene(true, 1e-2, 30.0);
-    let shape = Shape::from_config(&sc.return_pulse, 1e-9);
+    let shape = sc.return_pulse.shape(1e-9);
     let (taps, _) = shape.template();
     // True whitener of AR(1): h = (1, −φ)/σ_e; whitened template g = h ∗ s.
     let sigma_e = SIGMA_X * (1.0 - PHI * PHI).sqrt();

@@ -6,7 +6,7 @@ use std::time::Instant;
 use indicatif::ProgressBar;
 
 use super::BenchError;
-use crate::dsp::pulse::{PulseShape, Shape};
+use crate::dsp::pulse::PulseShape;
 use crate::frame::{Frame, Report};
 use crate::physics::Simulator;
 use crate::physics::config::NoiseConfig;
@@ -239,7 +239,7 @@ pub fn snr_scene(
 pub fn pulse_fwhm_s(scene: &Scene) -> f64 {
     let dt = scene.simulation.as_ref().map_or(scene.digitiser.sample_interval_s, |s| s.digitiser.sample_interval_s);
     let dt = if dt > 0.0 { dt } else { 1e-9 };
-    Shape::from_config(&scene.return_pulse, dt).fwhm() * dt
+    scene.return_pulse.shape(dt).fwhm() * dt
 }
 
 
@@ -257,7 +257,7 @@ pub fn analytic_crlb_range_m(scene: &Scene, amplitude_v: f64, sigma_v: f64) -> f
             s.digitiser.sample_interval_s
         });
     let dt = if dt > 0.0 { dt } else { 1e-9 };
-    let shape = Shape::from_config(&scene.return_pulse, dt);
+    let shape = scene.return_pulse.shape(dt);
     let (lo, hi) = shape.support();
     let phases = 16;
     let mut var_sum = 0.0;
@@ -637,8 +637,8 @@ pub fn reference_frames(
     use crate::frame::{Channel, ChannelRole, Samples};
     use rand::{Rng, SeedableRng};
     use rand_distr::StandardNormal;
-    let ret = Shape::from_config(&scene.return_pulse, REF_DT_S);
-    let start = Shape::from_config(&scene.start_pulse, REF_DT_S);
+    let ret = scene.return_pulse.shape(REF_DT_S);
+    let start = scene.start_pulse.shape(REF_DT_S);
     let amp_v = 0.2;
     let sigma_v = amp_v / 10f64.powf(snr_db / 20.0);
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use super::grid::{BenchConfig, REF_PRE_TRIGGER, process_frames, reference_frames};
-use crate::dsp::pulse::{PulseShape, Shape};
+use crate::dsp::pulse::PulseShape;
 use crate::frame::{Report, Samples};
 use crate::scene::Scene;
 
@@ -168,7 +168,7 @@ fn try_run(scene: &Scene, cfg: &BenchConfig, repo_root: &Path) -> Result<PeerCom
         .filter(|p| *p > 0.0)
         .ok_or("tofwave produced no report")?;
 
-    let shape = Shape::from_config(&scene.return_pulse, dt);
+    let shape = scene.return_pulse.shape(dt);
     let (taps, peak_index) = shape.template();
     let (lo, hi) = shape.support();
     let steps = ((hi - lo) * 16.0).ceil() as usize;

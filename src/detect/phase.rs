@@ -145,7 +145,7 @@ mod tests {
     fn removes_the_bias_of_a_fast_pulse_at_every_phase() {
         // The start pulse of the prototype: 1.8 ns rise, 5 ns FWHM at 1 ns sampling.
         let cfg = crate::scene::PulseConfig { rise_time_s: 1.8e-9, fwhm_s: 5e-9, ..Default::default() };
-        let shape = Shape::Parametric(Pulse::from_config(&cfg, 1e-9));
+        let shape = Shape::Parametric(cfg.pulse(1e-9));
         for (method, matched) in [
             (TimingMethod::ConstantFraction, false),
             (TimingMethod::PeakParabolic, true),

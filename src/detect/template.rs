@@ -226,7 +226,7 @@ mod tests {
             l.add(&x, 0.1, peak, 2.0);
         }
         let cfg = l.finish(1e-9).unwrap();
-        let learned = Shape::from_config(&cfg, 1e-9);
+        let learned = cfg.shape(1e-9);
         // Timing uses the half-rise point of the shape it has, so compare the shapes aligned there.
         let shift = learned.half_rise_offset() - truth.half_rise_offset();
         for &t in &[-3.0, -1.0, 0.0, 0.5, 2.0, 6.0] {

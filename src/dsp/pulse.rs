@@ -1,6 +1,7 @@
 //! Parametric pulse shapes in units of samples, peak 1 at t = 0.
-
-use crate::scene::{PulseConfig, PulseModel};
+//!
+//! Built from plain parameters (seconds and a sampling period); the scene's
+//! `PulseConfig` picks the constructor (`PulseConfig::shape`, `PulseConfig::pulse`).
 
 /// sqrt(2 ln 2): half width at half maximum of a unit-sigma Gaussian.
 const HWHM_PER_SIGMA: f64 = 1.177_410_022_515_474_6;
@@ -24,24 +25,19 @@ pub struct Pulse {
 }
 
 impl Pulse {
-    /// Builds the shape from a parametric scene pulse at sampling period `dt_s`
-    /// (a table model is read by [`Shape::from_config`]; here it falls back to its FWHM as a Gaussian).
-    pub fn from_config(cfg: &PulseConfig, dt_s: f64) -> Pulse {
-        match cfg.model {
-            PulseModel::Table => {
-                let s = Shape::from_config(cfg, dt_s).fwhm() / (2.0 * HWHM_PER_SIGMA);
-                Pulse { sigma_rise: s, sigma_fall: s }
-            }
-            PulseModel::Gaussian => {
-                let s = cfg.fwhm_s / (2.0 * HWHM_PER_SIGMA) / dt_s;
-                Pulse { sigma_rise: s, sigma_fall: s }
-            }
-            PulseModel::Bigaussian => {
-                let sr = cfg.rise_time_s / RISE_PER_SIGMA;
-                let sf = (cfg.fwhm_s - HWHM_PER_SIGMA * sr) / HWHM_PER_SIGMA;
-                Pulse { sigma_rise: sr / dt_s, sigma_fall: sf / dt_s }
-            }
-        }
+    /// Symmetric Gaussian of full width at half maximum `fwhm_s` at sampling period `dt_s`.
+    pub fn gaussian(fwhm_s: f64, dt_s: f64) -> Pulse {
+        let s = fwhm_s / (2.0 * HWHM_PER_SIGMA) / dt_s;
+        Pulse { sigma_rise: s, sigma_fall: s }
+    }
+
+    /// Bigaussian with 10-90 % rise time `rise_time_s` and full width at half
+    /// maximum `fwhm_s` at sampling period `dt_s` (the rise must leave a
+    /// positive falling half: `rise_time_s < 1.43 * fwhm_s`).
+    pub fn bigaussian(rise_time_s: f64, fwhm_s: f64, dt_s: f64) -> Pulse {
+        let sr = rise_time_s / RISE_PER_SIGMA;
+        let sf = (fwhm_s - HWHM_PER_SIGMA * sr) / HWHM_PER_SIGMA;
+        Pulse { sigma_rise: sr / dt_s, sigma_fall: sf / dt_s }
     }
 
     /// Time of the 50 % leading-edge crossing relative to the peak, samples (negative).
@@ -165,7 +161,7 @@ impl PulseShape for TablePulse {
     }
 }
 
-/// Any pulse shape a scene can describe.
+/// Any pulse shape a scene can describe: parametric or measured.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Shape {
     /// Bigaussian or Gaussian.
@@ -175,18 +171,6 @@ pub enum Shape {
 }
 
 impl Shape {
-    /// From a scene pulse at sampling period `dt_s`.
-    pub fn from_config(cfg: &PulseConfig, dt_s: f64) -> Shape {
-        match cfg.model {
-            PulseModel::Table => Shape::Table(TablePulse::new(
-                cfg.table.clone(),
-                cfg.table_step_s / dt_s,
-                cfg.table_first_s / dt_s,
-            )),
-            _ => Shape::Parametric(Pulse::from_config(cfg, dt_s)),
-        }
-    }
-
     /// Time where the leading edge reaches `fraction` of the peak, relative to the peak, samples.
     pub fn fraction_offset(&self, fraction: f64) -> f64 {
         match self {
@@ -262,8 +246,7 @@ mod tests {
 
     #[test]
     fn bigaussian_matches_rise_and_fwhm() {
-        let cfg = PulseConfig { model: PulseModel::Bigaussian, rise_time_s: 8.08e-9, fwhm_s: 26.04e-9, ..PulseConfig::default() };
-        let p = Pulse::from_config(&cfg, 1e-9);
+        let p = Pulse::bigaussian(8.08e-9, 26.04e-9, 1e-9);
         assert!((p.fwhm() - 26.04).abs() < 1e-9);
         let t10 = p.fraction_offset(0.1);
         let t90 = p.fraction_offset(0.9);

@@ -7,6 +7,7 @@
 //! checks every value and names the dotted field and its allowed range.
 
 use super::PhysicsError;
+use crate::scene::check::{check, FieldError, Range};
 use serde::{Deserialize, Serialize};
 
 /// The whole `[simulation]` section.
@@ -47,10 +48,11 @@ pub struct SimulationConfig {
     pub digitiser: SimDigitiserConfig,
 }
 
-/// Emitted pulse shape.
+/// Shape of the emitted laser pulse (`[simulation.laser] pulse_shape`; not the
+/// receiver-side [`crate::dsp::pulse::PulseShape`] trait).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
-pub enum PulseShape {
+pub enum LaserPulseShape {
     /// Gaussian; `pulse_width_s` is the FWHM; `emission_time_s` is the centre.
     Gaussian,
     /// Rectangular (a current-driven seed laser); `pulse_width_s` is the full
@@ -66,7 +68,7 @@ pub struct LaserConfig {
     pub peak_power_w: f64,
     /// Pulse shape.
     #[serde(default = "default_shape")]
-    pub pulse_shape: PulseShape,
+    pub pulse_shape: LaserPulseShape,
     /// FWHM (gaussian) or full width (rectangular), s.
     pub pulse_width_s: f64,
     /// Pulse repetition frequency, Hz; one frame per shot.
@@ -88,8 +90,28 @@ pub struct LaserConfig {
     pub off: bool,
 }
 
-fn default_shape() -> PulseShape {
-    PulseShape::Gaussian
+impl LaserConfig {
+    /// Checks `[simulation.laser]`.
+    pub fn validate(&self) -> Result<(), FieldError> {
+        check(&[
+            ("simulation.laser.peak_power_w", self.peak_power_w.into(), Range::positive_max(1e9), "(0, 1e9] W"),
+            ("simulation.laser.pulse_width_s", self.pulse_width_s.into(), Range::positive_max(1e-5), "(0, 1e-5] s"),
+            ("simulation.laser.prf_hz", self.prf_hz.into(), Range::positive_max(1e9), "(0, 1e9] Hz"),
+            ("simulation.laser.wavelength_m", self.wavelength_m.into(), Range::open_closed(1e-7, 2e-5), "(1e-7, 2e-5] m"),
+            ("simulation.laser.emission_time_s", self.emission_time_s.into(), Range::closed(-1e-3, 1e-3), "[-1e-3, 1e-3] s"),
+            (
+                "simulation.laser.beam_divergence_half_angle_rad",
+                self.beam_divergence_half_angle_rad.into(),
+                Range::closed(0.0, 0.5),
+                "[0, 0.5] rad",
+            ),
+            ("simulation.laser.beam_radius_m", self.beam_radius_m.into(), Range::positive_max(1.0), "(0, 1] m"),
+        ])
+    }
+}
+
+fn default_shape() -> LaserPulseShape {
+    LaserPulseShape::Gaussian
 }
 fn default_wavelength() -> f64 {
     1550e-9
@@ -131,6 +153,28 @@ pub struct TargetConfig {
     pub incidence_deg: f64,
 }
 
+impl TargetConfig {
+    /// Checks target `index` of `[[simulation.targets]]`.
+    pub fn validate(&self, index: usize) -> Result<(), FieldError> {
+        let f = |name: &str| format!("simulation.targets[{index}].{name}");
+        check(&[
+            (&f("range_m"), self.range_m.into(), Range::positive_max(1e6), "(0, 1e6] m"),
+            (&f("reflectivity"), self.reflectivity.into(), Range::closed(0.0, 1.0), "[0, 1]"),
+            (&f("incidence_deg"), self.incidence_deg.into(), Range::closed(0.0, 89.9), "[0, 89.9] degrees"),
+        ])?;
+        match (self.kind, self.area_m2) {
+            (TargetKind::Small, None) => Err(FieldError::new(
+                f("area_m2"),
+                "missing",
+                "(0, 1e6] m² (required for kind = \"small\")",
+            )),
+            (TargetKind::Small, Some(a)) => check(&[(&f("area_m2"), a.into(), Range::positive_max(1e6), "(0, 1e6] m²")]),
+            (TargetKind::Extended, Some(a)) => Err(FieldError::new(f("area_m2"), a, "absent for kind = \"extended\"")),
+            _ => Ok(()),
+        }
+    }
+}
+
 fn default_kind() -> TargetKind {
     TargetKind::Extended
 }
@@ -141,6 +185,18 @@ fn default_kind() -> TargetKind {
 pub struct AtmosphereConfig {
     /// Extinction coefficient α, per km (Table 9.5: 0.12 /km); T = exp(−α R) one way.
     pub extinction_per_km: f64,
+}
+
+impl AtmosphereConfig {
+    /// Checks `[simulation.atmosphere]`.
+    pub fn validate(&self) -> Result<(), FieldError> {
+        check(&[(
+            "simulation.atmosphere.extinction_per_km",
+            self.extinction_per_km.into(),
+            Range::closed(0.0, 1e3),
+            "[0, 1000] /km",
+        )])
+    }
 }
 
 /// `[simulation.receiver]`.
@@ -163,6 +219,19 @@ pub struct ReceiverConfig {
     pub filter_bandwidth_m: f64,
 }
 
+impl ReceiverConfig {
+    /// Checks `[simulation.receiver]`.
+    pub fn validate(&self) -> Result<(), FieldError> {
+        check(&[
+            ("simulation.receiver.aperture_diameter_m", self.aperture_diameter_m.into(), Range::positive_max(10.0), "(0, 10] m"),
+            ("simulation.receiver.optics_efficiency", self.optics_efficiency.into(), Range::positive_max(1.0), "(0, 1]"),
+            ("simulation.receiver.fov_half_angle_rad", self.fov_half_angle_rad.into(), Range::positive_max(1.5), "(0, 1.5] rad"),
+            ("simulation.receiver.tx_rx_separation_m", self.tx_rx_separation_m.into(), Range::closed(0.0, 10.0), "[0, 10] m"),
+            ("simulation.receiver.filter_bandwidth_m", self.filter_bandwidth_m.into(), Range::positive_max(1e-5), "(0, 1e-5] m"),
+        ])
+    }
+}
+
 fn default_fov() -> f64 {
     // Table 9.2: 2 mm detector behind f = 25.4 mm gives 2.2546 degrees.
     2.2546_f64.to_radians()
@@ -183,6 +252,21 @@ pub struct BackgroundConfig {
     pub reflectivity: f64,
 }
 
+impl BackgroundConfig {
+    /// Checks `[simulation.background]`.
+    pub fn validate(&self) -> Result<(), FieldError> {
+        check(&[
+            (
+                "simulation.background.spectral_radiance_w_per_m2_sr_nm",
+                self.spectral_radiance_w_per_m2_sr_nm.into(),
+                Range::closed(0.0, 1e3),
+                "[0, 1000] W/(m²·sr·nm)",
+            ),
+            ("simulation.background.reflectivity", self.reflectivity.into(), Range::closed(0.0, 1.0), "[0, 1]"),
+        ])
+    }
+}
+
 fn default_bg_reflectivity() -> f64 {
     0.3
 }
@@ -201,6 +285,18 @@ pub struct ApdConfig {
     /// Primary (unmultiplied) dark current, A.
     #[serde(default)]
     pub dark_current_a: f64,
+}
+
+impl ApdConfig {
+    /// Checks `[simulation.apd]`.
+    pub fn validate(&self) -> Result<(), FieldError> {
+        check(&[
+            ("simulation.apd.responsivity_a_per_w", self.responsivity_a_per_w.into(), Range::positive_max(100.0), "(0, 100] A/W"),
+            ("simulation.apd.gain", self.gain.into(), Range::closed(1.0, 1e4), "[1, 10000]"),
+            ("simulation.apd.ionisation_ratio_k", self.ionisation_ratio_k.into(), Range::closed(0.0, 1.0), "[0, 1]"),
+            ("simulation.apd.dark_current_a", self.dark_current_a.into(), Range::closed(0.0, 1.0), "[0, 1] A"),
+        ])
+    }
 }
 
 fn default_k() -> f64 {
@@ -264,6 +360,45 @@ pub struct TiaConfig {
     pub ringing: Option<RingingConfig>,
 }
 
+impl TiaConfig {
+    /// Checks `[simulation.tia]` and its ringing.
+    pub fn validate(&self) -> Result<(), FieldError> {
+        check(&[
+            ("simulation.tia.gain_ohm", self.gain_ohm.into(), Range::positive_max(1e12), "(0, 1e12] ohm"),
+            ("simulation.tia.bandwidth_hz", self.bandwidth_hz.into(), Range::positive_max(1e12), "(0, 1e12] Hz"),
+            ("simulation.tia.noise_current_a", self.noise_current_a.into(), Range::closed(0.0, 1.0), "[0, 1] A"),
+        ])?;
+        if let Some(s) = self.swing_v {
+            check(&[("simulation.tia.swing_v", s.into(), Range::positive_max(1e3), "(0, 1000] V")])?;
+        }
+        if let Some(tau) = self.ac_coupling_s {
+            check(&[("simulation.tia.ac_coupling_s", tau.into(), Range::positive_max(10.0), "(0, 10] s")])?;
+        }
+        check(&[("simulation.tia.delay_s", self.delay_s.into(), Range::closed(0.0, 1e-3), "[0, 1e-3] s")])?;
+        match &self.ringing {
+            Some(RingingConfig::Resonance {
+                frequency_hz,
+                q,
+                amplitude,
+            }) => check(&[
+                ("simulation.tia.ringing.frequency_hz", (*frequency_hz).into(), Range::positive_max(1e12), "(0, 1e12] Hz"),
+                ("simulation.tia.ringing.q", (*q).into(), Range::closed(0.05, 1e4), "[0.05, 10000]"),
+                ("simulation.tia.ringing.amplitude", (*amplitude).into(), Range::closed(-10.0, 10.0), "[-10, 10]"),
+            ]),
+            Some(RingingConfig::Reflection {
+                coefficient,
+                round_trip_s,
+                echoes,
+            }) => check(&[
+                ("simulation.tia.ringing.coefficient", (*coefficient).into(), Range::open(-1.0, 1.0), "(-1, 1)"),
+                ("simulation.tia.ringing.round_trip_s", (*round_trip_s).into(), Range::positive_max(1e-5), "(0, 1e-5] s"),
+                ("simulation.tia.ringing.echoes", (*echoes).into(), Range::closed(1.0, 100.0), "[1, 100]"),
+            ]),
+            None => Ok(()),
+        }
+    }
+}
+
 /// `[simulation.start]`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -291,6 +426,22 @@ pub struct StartConfig {
     pub dip_delay_s: f64,
 }
 
+impl StartConfig {
+    /// Checks `[simulation.start]`.
+    pub fn validate(&self) -> Result<(), FieldError> {
+        check(&[
+            ("simulation.start.tap_fraction", self.tap_fraction.into(), Range::positive_max(1.0), "(0, 1]"),
+            ("simulation.start.responsivity_a_per_w", self.responsivity_a_per_w.into(), Range::positive_max(100.0), "(0, 100] A/W"),
+            ("simulation.start.gain_ohm", self.gain_ohm.into(), Range::positive_max(1e12), "(0, 1e12] ohm"),
+            ("simulation.start.bandwidth_hz", self.bandwidth_hz.into(), Range::positive_max(1e12), "(0, 1e12] Hz"),
+            ("simulation.start.delay_s", self.delay_s.into(), Range::closed(0.0, 1e-3), "[0, 1e-3] s"),
+            ("simulation.start.noise_sigma_v", self.noise_sigma_v.into(), Range::closed(0.0, 1e3), "[0, 1000] V"),
+            ("simulation.start.dip_fraction", self.dip_fraction.into(), Range::closed(0.0, 1.0), "[0, 1]"),
+            ("simulation.start.dip_delay_s", self.dip_delay_s.into(), Range::closed(0.0, 1e-5), "[0, 1e-5] s"),
+        ])
+    }
+}
+
 /// `[simulation.interference]`: the fixed-shape burst the source traced to the
 /// APD bias supply (modes below 10 MHz, repeating at the mains rate).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -311,6 +462,46 @@ pub struct InterferenceConfig {
     /// bursts hit random frames instead of a pattern locked to the PRF.
     #[serde(default = "default_wander")]
     pub wander_s: f64,
+}
+
+impl InterferenceConfig {
+    /// Checks `[simulation.interference]`: bursts must not overlap.
+    pub fn validate(&self) -> Result<(), FieldError> {
+        check(&[
+            ("simulation.interference.amplitude_v", self.amplitude_v.into(), Range::closed(0.0, 1e3), "[0, 1000] V"),
+            ("simulation.interference.rate_hz", self.rate_hz.into(), Range::positive_max(1e6), "(0, 1e6] Hz"),
+        ])?;
+        if !(Range::positive_max(1.0).contains(self.duration_s) && self.duration_s * self.rate_hz < 1.0) {
+            return Err(FieldError::new(
+                "simulation.interference.duration_s",
+                self.duration_s,
+                "(0, 1/rate_hz) s (bursts must not overlap)",
+            ));
+        }
+        if !(Range::closed(0.0, 1.0).contains(self.wander_s) && (self.wander_s + self.duration_s) * self.rate_hz < 1.0) {
+            return Err(FieldError::new(
+                "simulation.interference.wander_s",
+                self.wander_s,
+                "[0, 1/rate_hz - duration_s) s (bursts must not overlap)",
+            ));
+        }
+        if self.frequencies_hz.is_empty() || self.frequencies_hz.len() > 32 {
+            return Err(FieldError::new(
+                "simulation.interference.frequencies_hz",
+                format!("{} modes", self.frequencies_hz.len()),
+                "1 to 32 modes",
+            ));
+        }
+        for (k, f) in self.frequencies_hz.iter().enumerate() {
+            check(&[(
+                &format!("simulation.interference.frequencies_hz[{k}]"),
+                (*f).into(),
+                Range::positive_max(1e10),
+                "(0, 1e10] Hz",
+            )])?;
+        }
+        Ok(())
+    }
 }
 
 fn default_wander() -> f64 {
@@ -340,6 +531,19 @@ pub struct NoiseConfig {
     /// DC offset of the stop channel, V (the source: mean −5.115e-4 V).
     #[serde(default)]
     pub offset_v: f64,
+}
+
+impl NoiseConfig {
+    /// Checks `[simulation.noise]`.
+    pub fn validate(&self) -> Result<(), FieldError> {
+        if let Some(s) = self.thermal_sigma_v {
+            check(&[("simulation.noise.thermal_sigma_v", s.into(), Range::closed(0.0, 1e3), "[0, 1000] V")])?;
+        }
+        if let Some(g) = self.skewness {
+            check(&[("simulation.noise.skewness", g.into(), Range::closed(-2.0, 2.0), "[-2, 2]")])?;
+        }
+        check(&[("simulation.noise.offset_v", self.offset_v.into(), Range::closed(-1e3, 1e3), "[-1000, 1000] V")])
+    }
 }
 
 /// `[simulation.digitiser]`.
@@ -383,6 +587,59 @@ pub struct SimDigitiserConfig {
     pub stop_channel: String,
 }
 
+impl SimDigitiserConfig {
+    /// Checks `[simulation.digitiser]`.
+    pub fn validate(&self) -> Result<(), FieldError> {
+        check(&[
+            ("simulation.digitiser.sample_interval_s", self.sample_interval_s.into(), Range::positive_max(1e-3), "(0, 1e-3] s"),
+            ("simulation.digitiser.samples_per_frame", self.samples_per_frame.into(), Range::closed(2.0, 1e7), "[2, 10000000]"),
+            (
+                "simulation.digitiser.pre_trigger_samples",
+                self.pre_trigger_samples.into(),
+                Range::closed_open(0.0, self.samples_per_frame as f64),
+                "[0, samples_per_frame)",
+            ),
+            ("simulation.digitiser.bits", self.bits.into(), Range::closed(2.0, 16.0), "[2, 16]"),
+        ])?;
+        if !(self.full_scale_low_v.is_finite()
+            && self.full_scale_high_v.is_finite()
+            && self.full_scale_low_v < self.full_scale_high_v)
+        {
+            return Err(FieldError::new(
+                "simulation.digitiser.full_scale_high_v",
+                format!("{} (low {})", self.full_scale_high_v, self.full_scale_low_v),
+                "finite volts with full_scale_low_v < full_scale_high_v",
+            ));
+        }
+        if let Some(b) = self.bandwidth_hz {
+            check(&[("simulation.digitiser.bandwidth_hz", b.into(), Range::positive_max(1e12), "(0, 1e12] Hz")])?;
+        }
+        check(&[
+            (
+                "simulation.digitiser.aperture_jitter_s",
+                self.aperture_jitter_s.into(),
+                Range::closed(0.0, self.sample_interval_s),
+                "[0, sample_interval_s] s",
+            ),
+            ("simulation.digitiser.trigger_jitter_s", self.trigger_jitter_s.into(), Range::closed(0.0, 1e-6), "[0, 1e-6] s"),
+            ("simulation.digitiser.oversample", self.oversample.into(), Range::closed(1.0, 256.0), "[1, 256]"),
+        ])?;
+        if self.start_channel.trim().is_empty()
+            || crate::frame::channel_key(&self.start_channel) == crate::frame::channel_key(&self.stop_channel)
+        {
+            return Err(FieldError::new(
+                "simulation.digitiser.start_channel",
+                format!("{:?}", self.start_channel),
+                "a non-empty channel name other than stop_channel",
+            ));
+        }
+        if self.stop_channel.trim().is_empty() {
+            return Err(FieldError::new("simulation.digitiser.stop_channel", "\"\"", "a non-empty channel name"));
+        }
+        Ok(())
+    }
+}
+
 fn default_oversample() -> usize {
     16
 }
@@ -393,474 +650,40 @@ fn default_stop_name() -> String {
     "CH2".into()
 }
 
-/// Validation helper: builds the error naming the field.
-fn bad(field: impl Into<String>, value: impl ToString, allowed: &'static str) -> PhysicsError {
-    PhysicsError::Invalid {
-        field: field.into(),
-        value: value.to_string(),
-        allowed,
-    }
-}
-
-/// `lo < x <= hi` and finite.
-fn in_open_closed(x: f64, lo: f64, hi: f64) -> bool {
-    x.is_finite() && x > lo && x <= hi
-}
-
-/// `lo <= x <= hi` and finite.
-fn in_closed(x: f64, lo: f64, hi: f64) -> bool {
-    x.is_finite() && x >= lo && x <= hi
-}
-
 impl SimulationConfig {
     /// Checks every value against its allowed range; errors name the dotted
     /// field (`simulation.targets[1].range_m`) and the allowed range.
     pub fn validate(&self) -> Result<(), PhysicsError> {
-        let d = &self.digitiser;
-        if !in_open_closed(d.sample_interval_s, 0.0, 1e-3) {
-            return Err(bad(
-                "simulation.digitiser.sample_interval_s",
-                d.sample_interval_s,
-                "(0, 1e-3] s",
-            ));
-        }
-        if d.samples_per_frame < 2 || d.samples_per_frame > 10_000_000 {
-            return Err(bad(
-                "simulation.digitiser.samples_per_frame",
-                d.samples_per_frame,
-                "[2, 10000000]",
-            ));
-        }
-        if d.pre_trigger_samples >= d.samples_per_frame {
-            return Err(bad(
-                "simulation.digitiser.pre_trigger_samples",
-                d.pre_trigger_samples,
-                "[0, samples_per_frame)",
-            ));
-        }
-        if !(2..=16).contains(&d.bits) {
-            return Err(bad("simulation.digitiser.bits", d.bits, "[2, 16]"));
-        }
-        if !(d.full_scale_low_v.is_finite()
-            && d.full_scale_high_v.is_finite()
-            && d.full_scale_low_v < d.full_scale_high_v)
-        {
-            return Err(bad(
-                "simulation.digitiser.full_scale_high_v",
-                format!("{} (low {})", d.full_scale_high_v, d.full_scale_low_v),
-                "finite volts with full_scale_low_v < full_scale_high_v",
-            ));
-        }
-        if let Some(b) = d.bandwidth_hz
-            && !in_open_closed(b, 0.0, 1e12)
-        {
-            return Err(bad("simulation.digitiser.bandwidth_hz", b, "(0, 1e12] Hz"));
-        }
-        if !in_closed(d.aperture_jitter_s, 0.0, d.sample_interval_s) {
-            return Err(bad(
-                "simulation.digitiser.aperture_jitter_s",
-                d.aperture_jitter_s,
-                "[0, sample_interval_s] s",
-            ));
-        }
-        if !in_closed(d.trigger_jitter_s, 0.0, 1e-6) {
-            return Err(bad(
-                "simulation.digitiser.trigger_jitter_s",
-                d.trigger_jitter_s,
-                "[0, 1e-6] s",
-            ));
-        }
-        if !(1..=256).contains(&d.oversample) {
-            return Err(bad(
-                "simulation.digitiser.oversample",
-                d.oversample,
-                "[1, 256]",
-            ));
-        }
-        if d.start_channel.trim().is_empty()
-            || crate::frame::channel_key(&d.start_channel)
-                == crate::frame::channel_key(&d.stop_channel)
-        {
-            return Err(bad(
-                "simulation.digitiser.start_channel",
-                format!("{:?}", d.start_channel),
-                "a non-empty channel name other than stop_channel",
-            ));
-        }
-        if d.stop_channel.trim().is_empty() {
-            return Err(bad(
-                "simulation.digitiser.stop_channel",
-                "\"\"",
-                "a non-empty channel name",
-            ));
-        }
-
+        self.digitiser.validate()?;
         if let Some(l) = &self.laser {
-            if !in_open_closed(l.peak_power_w, 0.0, 1e9) {
-                return Err(bad(
-                    "simulation.laser.peak_power_w",
-                    l.peak_power_w,
-                    "(0, 1e9] W",
-                ));
-            }
-            if !in_open_closed(l.pulse_width_s, 0.0, 1e-5) {
-                return Err(bad(
-                    "simulation.laser.pulse_width_s",
-                    l.pulse_width_s,
-                    "(0, 1e-5] s",
-                ));
-            }
-            if !in_open_closed(l.prf_hz, 0.0, 1e9) {
-                return Err(bad("simulation.laser.prf_hz", l.prf_hz, "(0, 1e9] Hz"));
-            }
-            if !in_open_closed(l.wavelength_m, 1e-7, 2e-5) {
-                return Err(bad(
-                    "simulation.laser.wavelength_m",
-                    l.wavelength_m,
-                    "(1e-7, 2e-5] m",
-                ));
-            }
-            if !in_closed(l.emission_time_s, -1e-3, 1e-3) {
-                return Err(bad(
-                    "simulation.laser.emission_time_s",
-                    l.emission_time_s,
-                    "[-1e-3, 1e-3] s",
-                ));
-            }
-            if !in_closed(l.beam_divergence_half_angle_rad, 0.0, 0.5) {
-                return Err(bad(
-                    "simulation.laser.beam_divergence_half_angle_rad",
-                    l.beam_divergence_half_angle_rad,
-                    "[0, 0.5] rad",
-                ));
-            }
-            if !in_open_closed(l.beam_radius_m, 0.0, 1.0) {
-                return Err(bad(
-                    "simulation.laser.beam_radius_m",
-                    l.beam_radius_m,
-                    "(0, 1] m",
-                ));
-            }
+            l.validate()?;
         }
         for (i, t) in self.targets.iter().enumerate() {
-            let f = |name: &str| format!("simulation.targets[{i}].{name}");
-            if !in_open_closed(t.range_m, 0.0, 1e6) {
-                return Err(bad(f("range_m"), t.range_m, "(0, 1e6] m"));
-            }
-            if !in_closed(t.reflectivity, 0.0, 1.0) {
-                return Err(bad(f("reflectivity"), t.reflectivity, "[0, 1]"));
-            }
-            if !in_closed(t.incidence_deg, 0.0, 89.9) {
-                return Err(bad(
-                    f("incidence_deg"),
-                    t.incidence_deg,
-                    "[0, 89.9] degrees",
-                ));
-            }
-            match (t.kind, t.area_m2) {
-                (TargetKind::Small, None) => {
-                    return Err(bad(
-                        f("area_m2"),
-                        "missing",
-                        "(0, 1e6] m² (required for kind = \"small\")",
-                    ));
-                }
-                (TargetKind::Small, Some(a)) if !in_open_closed(a, 0.0, 1e6) => {
-                    return Err(bad(f("area_m2"), a, "(0, 1e6] m²"));
-                }
-                (TargetKind::Extended, Some(a)) => {
-                    return Err(bad(f("area_m2"), a, "absent for kind = \"extended\""));
-                }
-                _ => {}
-            }
+            t.validate(i)?;
         }
-        if let Some(a) = &self.atmosphere
-            && !in_closed(a.extinction_per_km, 0.0, 1e3)
-        {
-            return Err(bad(
-                "simulation.atmosphere.extinction_per_km",
-                a.extinction_per_km,
-                "[0, 1000] /km",
-            ));
+        if let Some(a) = &self.atmosphere {
+            a.validate()?;
         }
         if let Some(r) = &self.receiver {
-            if !in_open_closed(r.aperture_diameter_m, 0.0, 10.0) {
-                return Err(bad(
-                    "simulation.receiver.aperture_diameter_m",
-                    r.aperture_diameter_m,
-                    "(0, 10] m",
-                ));
-            }
-            if !in_open_closed(r.optics_efficiency, 0.0, 1.0) {
-                return Err(bad(
-                    "simulation.receiver.optics_efficiency",
-                    r.optics_efficiency,
-                    "(0, 1]",
-                ));
-            }
-            if !in_open_closed(r.fov_half_angle_rad, 0.0, 1.5) {
-                return Err(bad(
-                    "simulation.receiver.fov_half_angle_rad",
-                    r.fov_half_angle_rad,
-                    "(0, 1.5] rad",
-                ));
-            }
-            if !in_closed(r.tx_rx_separation_m, 0.0, 10.0) {
-                return Err(bad(
-                    "simulation.receiver.tx_rx_separation_m",
-                    r.tx_rx_separation_m,
-                    "[0, 10] m",
-                ));
-            }
-            if !in_open_closed(r.filter_bandwidth_m, 0.0, 1e-5) {
-                return Err(bad(
-                    "simulation.receiver.filter_bandwidth_m",
-                    r.filter_bandwidth_m,
-                    "(0, 1e-5] m",
-                ));
-            }
+            r.validate()?;
         }
         if let Some(b) = &self.background {
-            if !in_closed(b.spectral_radiance_w_per_m2_sr_nm, 0.0, 1e3) {
-                return Err(bad(
-                    "simulation.background.spectral_radiance_w_per_m2_sr_nm",
-                    b.spectral_radiance_w_per_m2_sr_nm,
-                    "[0, 1000] W/(m²·sr·nm)",
-                ));
-            }
-            if !in_closed(b.reflectivity, 0.0, 1.0) {
-                return Err(bad(
-                    "simulation.background.reflectivity",
-                    b.reflectivity,
-                    "[0, 1]",
-                ));
-            }
+            b.validate()?;
         }
         if let Some(a) = &self.apd {
-            if !in_open_closed(a.responsivity_a_per_w, 0.0, 100.0) {
-                return Err(bad(
-                    "simulation.apd.responsivity_a_per_w",
-                    a.responsivity_a_per_w,
-                    "(0, 100] A/W",
-                ));
-            }
-            if !in_closed(a.gain, 1.0, 1e4) {
-                return Err(bad("simulation.apd.gain", a.gain, "[1, 10000]"));
-            }
-            if !in_closed(a.ionisation_ratio_k, 0.0, 1.0) {
-                return Err(bad(
-                    "simulation.apd.ionisation_ratio_k",
-                    a.ionisation_ratio_k,
-                    "[0, 1]",
-                ));
-            }
-            if !in_closed(a.dark_current_a, 0.0, 1.0) {
-                return Err(bad(
-                    "simulation.apd.dark_current_a",
-                    a.dark_current_a,
-                    "[0, 1] A",
-                ));
-            }
+            a.validate()?;
         }
         if let Some(t) = &self.tia {
-            if !in_open_closed(t.gain_ohm, 0.0, 1e12) {
-                return Err(bad("simulation.tia.gain_ohm", t.gain_ohm, "(0, 1e12] ohm"));
-            }
-            if !in_open_closed(t.bandwidth_hz, 0.0, 1e12) {
-                return Err(bad(
-                    "simulation.tia.bandwidth_hz",
-                    t.bandwidth_hz,
-                    "(0, 1e12] Hz",
-                ));
-            }
-            if !in_closed(t.noise_current_a, 0.0, 1.0) {
-                return Err(bad(
-                    "simulation.tia.noise_current_a",
-                    t.noise_current_a,
-                    "[0, 1] A",
-                ));
-            }
-            if let Some(s) = t.swing_v
-                && !in_open_closed(s, 0.0, 1e3)
-            {
-                return Err(bad("simulation.tia.swing_v", s, "(0, 1000] V"));
-            }
-            if let Some(tau) = t.ac_coupling_s
-                && !in_open_closed(tau, 0.0, 10.0)
-            {
-                return Err(bad("simulation.tia.ac_coupling_s", tau, "(0, 10] s"));
-            }
-            if !in_closed(t.delay_s, 0.0, 1e-3) {
-                return Err(bad("simulation.tia.delay_s", t.delay_s, "[0, 1e-3] s"));
-            }
-            match &t.ringing {
-                Some(RingingConfig::Resonance {
-                    frequency_hz,
-                    q,
-                    amplitude,
-                }) => {
-                    if !in_open_closed(*frequency_hz, 0.0, 1e12) {
-                        return Err(bad(
-                            "simulation.tia.ringing.frequency_hz",
-                            frequency_hz,
-                            "(0, 1e12] Hz",
-                        ));
-                    }
-                    if !in_closed(*q, 0.05, 1e4) {
-                        return Err(bad("simulation.tia.ringing.q", q, "[0.05, 10000]"));
-                    }
-                    if !in_closed(*amplitude, -10.0, 10.0) {
-                        return Err(bad(
-                            "simulation.tia.ringing.amplitude",
-                            amplitude,
-                            "[-10, 10]",
-                        ));
-                    }
-                }
-                Some(RingingConfig::Reflection {
-                    coefficient,
-                    round_trip_s,
-                    echoes,
-                }) => {
-                    if !(coefficient.is_finite() && coefficient.abs() < 1.0) {
-                        return Err(bad(
-                            "simulation.tia.ringing.coefficient",
-                            coefficient,
-                            "(-1, 1)",
-                        ));
-                    }
-                    if !in_open_closed(*round_trip_s, 0.0, 1e-5) {
-                        return Err(bad(
-                            "simulation.tia.ringing.round_trip_s",
-                            round_trip_s,
-                            "(0, 1e-5] s",
-                        ));
-                    }
-                    if *echoes == 0 || *echoes > 100 {
-                        return Err(bad("simulation.tia.ringing.echoes", echoes, "[1, 100]"));
-                    }
-                }
-                None => {}
-            }
+            t.validate()?;
         }
         if let Some(s) = &self.start {
-            if !in_open_closed(s.tap_fraction, 0.0, 1.0) {
-                return Err(bad(
-                    "simulation.start.tap_fraction",
-                    s.tap_fraction,
-                    "(0, 1]",
-                ));
-            }
-            if !in_open_closed(s.responsivity_a_per_w, 0.0, 100.0) {
-                return Err(bad(
-                    "simulation.start.responsivity_a_per_w",
-                    s.responsivity_a_per_w,
-                    "(0, 100] A/W",
-                ));
-            }
-            if !in_open_closed(s.gain_ohm, 0.0, 1e12) {
-                return Err(bad(
-                    "simulation.start.gain_ohm",
-                    s.gain_ohm,
-                    "(0, 1e12] ohm",
-                ));
-            }
-            if !in_open_closed(s.bandwidth_hz, 0.0, 1e12) {
-                return Err(bad(
-                    "simulation.start.bandwidth_hz",
-                    s.bandwidth_hz,
-                    "(0, 1e12] Hz",
-                ));
-            }
-            if !in_closed(s.delay_s, 0.0, 1e-3) {
-                return Err(bad("simulation.start.delay_s", s.delay_s, "[0, 1e-3] s"));
-            }
-            if !in_closed(s.noise_sigma_v, 0.0, 1e3) {
-                return Err(bad(
-                    "simulation.start.noise_sigma_v",
-                    s.noise_sigma_v,
-                    "[0, 1000] V",
-                ));
-            }
-            if !in_closed(s.dip_fraction, 0.0, 1.0) {
-                return Err(bad(
-                    "simulation.start.dip_fraction",
-                    s.dip_fraction,
-                    "[0, 1]",
-                ));
-            }
-            if !in_closed(s.dip_delay_s, 0.0, 1e-5) {
-                return Err(bad(
-                    "simulation.start.dip_delay_s",
-                    s.dip_delay_s,
-                    "[0, 1e-5] s",
-                ));
-            }
+            s.validate()?;
         }
         if let Some(i) = &self.interference {
-            if !in_closed(i.amplitude_v, 0.0, 1e3) {
-                return Err(bad(
-                    "simulation.interference.amplitude_v",
-                    i.amplitude_v,
-                    "[0, 1000] V",
-                ));
-            }
-            if !in_open_closed(i.rate_hz, 0.0, 1e6) {
-                return Err(bad(
-                    "simulation.interference.rate_hz",
-                    i.rate_hz,
-                    "(0, 1e6] Hz",
-                ));
-            }
-            if !(in_open_closed(i.duration_s, 0.0, 1.0) && i.duration_s * i.rate_hz < 1.0) {
-                return Err(bad(
-                    "simulation.interference.duration_s",
-                    i.duration_s,
-                    "(0, 1/rate_hz) s (bursts must not overlap)",
-                ));
-            }
-            if !(in_closed(i.wander_s, 0.0, 1.0) && (i.wander_s + i.duration_s) * i.rate_hz < 1.0) {
-                return Err(bad(
-                    "simulation.interference.wander_s",
-                    i.wander_s,
-                    "[0, 1/rate_hz - duration_s) s (bursts must not overlap)",
-                ));
-            }
-            if i.frequencies_hz.is_empty() || i.frequencies_hz.len() > 32 {
-                return Err(bad(
-                    "simulation.interference.frequencies_hz",
-                    format!("{} modes", i.frequencies_hz.len()),
-                    "1 to 32 modes",
-                ));
-            }
-            for (k, f) in i.frequencies_hz.iter().enumerate() {
-                if !in_open_closed(*f, 0.0, 1e10) {
-                    return Err(bad(
-                        format!("simulation.interference.frequencies_hz[{k}]"),
-                        f,
-                        "(0, 1e10] Hz",
-                    ));
-                }
-            }
+            i.validate()?;
         }
         if let Some(n) = &self.noise {
-            if let Some(s) = n.thermal_sigma_v
-                && !in_closed(s, 0.0, 1e3)
-            {
-                return Err(bad("simulation.noise.thermal_sigma_v", s, "[0, 1000] V"));
-            }
-            if let Some(g) = n.skewness
-                && !in_closed(g, -2.0, 2.0)
-            {
-                return Err(bad("simulation.noise.skewness", g, "[-2, 2]"));
-            }
-            if !in_closed(n.offset_v, -1e3, 1e3) {
-                return Err(bad(
-                    "simulation.noise.offset_v",
-                    n.offset_v,
-                    "[-1000, 1000] V",
-                ));
-            }
+            n.validate()?;
         }
 
         // Sections an effect depends on.

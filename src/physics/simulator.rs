@@ -24,13 +24,13 @@
 //! is what `calibrate` learns. `range_m` is the geometric range.
 
 use super::PhysicsError;
-use super::config::{PulseShape, RingingConfig, SimulationConfig};
-use super::detector::{Chain, StateSpace, coast, periodic_state, run_chain};
+use super::config::{LaserPulseShape, RingingConfig, SimulationConfig};
+use super::photodetector::{Chain, StateSpace, coast, periodic_state, run_chain};
 use super::digitiser::{FineWave, Quantiser};
 use super::link_budget::{self, LinkBudgetLine, Q_E};
-use super::noise::{Burst, ColouredNoise, c_for_skew};
+use super::noise_source::{Burst, ColouredNoise, c_for_skew};
 use crate::frame::{Channel, ChannelRole, Frame};
-use crate::scene::Scene;
+use crate::scene::{FieldError, Scene};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
@@ -104,7 +104,7 @@ struct Event {
 /// The pulse shape of the laser.
 #[derive(Debug, Clone, Copy)]
 struct Pulse {
-    shape: PulseShape,
+    shape: LaserPulseShape,
     width_s: f64,
 }
 
@@ -112,24 +112,24 @@ impl Pulse {
     /// Extent before and after the reference instant, s.
     fn extent(&self) -> (f64, f64) {
         match self.shape {
-            PulseShape::Gaussian => {
+            LaserPulseShape::Gaussian => {
                 let sigma = self.width_s / (8.0 * 2f64.ln()).sqrt();
                 (7.0 * sigma, 7.0 * sigma)
             }
-            PulseShape::Rectangular => (0.0, self.width_s),
+            LaserPulseShape::Rectangular => (0.0, self.width_s),
         }
     }
 
     /// Average of the unit-peak pulse over `[t, t + h]` relative to its reference.
     fn cell_average(&self, t: f64, h: f64) -> f64 {
         match self.shape {
-            PulseShape::Gaussian => {
+            LaserPulseShape::Gaussian => {
                 let sigma = self.width_s / (8.0 * 2f64.ln()).sqrt();
                 let k = 1.0 / (sigma * 2f64.sqrt());
                 let e = statrs::function::erf::erf((t + h) * k) - statrs::function::erf::erf(t * k);
                 e * sigma * (PI / 2.0).sqrt() / h
             }
-            PulseShape::Rectangular => {
+            LaserPulseShape::Rectangular => {
                 let lo = t.max(0.0);
                 let hi = (t + h).min(self.width_s);
                 ((hi - lo) / h).max(0.0)
@@ -471,6 +471,371 @@ fn find_pulse(w: &FineWave, amp: &[f64], t_a: f64, t_b: f64, t_tail: f64) -> Opt
     })
 }
 
+/// The frame's time base and the laser's emission, which every part of the
+/// simulator is built on.
+#[derive(Debug, Clone, Copy)]
+struct TimeBase {
+    /// Sample interval, s.
+    dt: f64,
+    /// Samples per frame.
+    n: usize,
+    /// Time of the first sample relative to the trigger, s.
+    t_first: f64,
+    /// Time of the last sample relative to the trigger, s.
+    t_last: f64,
+    /// Step of the fine grid waveforms are rendered on, s.
+    h: f64,
+    /// Start of the fine grid: covers every instant a jittered sample can take, s.
+    t_lo: f64,
+    /// End of the fine grid, s.
+    t_hi: f64,
+    /// Laser period (1/PRF), s; `None` without a laser.
+    period: Option<f64>,
+    /// Trigger period (1/PRF, or the frame length without a laser), s.
+    frame_period_s: f64,
+    /// Laser off or absent.
+    laser_off: bool,
+    /// The emitted pulse.
+    pulse: Pulse,
+    /// Emission instant relative to the trigger, s.
+    emit: f64,
+}
+
+impl TimeBase {
+    fn new(cfg: &SimulationConfig) -> TimeBase {
+        let d = &cfg.digitiser;
+        let dt = d.sample_interval_s;
+        let n = d.samples_per_frame;
+        let t_first = -(d.pre_trigger_samples as f64) * dt;
+        let t_last = t_first + (n - 1) as f64 * dt;
+        let h = dt / d.oversample as f64;
+        // The fine grid covers every instant a jittered sample can take.
+        let jitter_span = 8.0 * (d.trigger_jitter_s + d.aperture_jitter_s) + dt;
+        let (t_lo, t_hi) = (
+            t_first - jitter_span - 2.0 * dt,
+            t_last + jitter_span + 2.0 * dt,
+        );
+        let laser = cfg.laser.as_ref();
+        let laser_off = laser.is_none_or(|l| l.off);
+        let period = laser.map(|l| 1.0 / l.prf_hz);
+        let frame_period_s = period.unwrap_or(n as f64 * dt);
+        let pulse = Pulse {
+            shape: laser.map_or(LaserPulseShape::Gaussian, |l| l.pulse_shape),
+            width_s: laser.map_or(1e-9, |l| l.pulse_width_s),
+        };
+        let emit = laser.map_or(0.0, |l| l.emission_time_s);
+        TimeBase {
+            dt,
+            n,
+            t_first,
+            t_last,
+            h,
+            t_lo,
+            t_hi,
+            period,
+            frame_period_s,
+            laser_off,
+            pulse,
+            emit,
+        }
+    }
+
+    /// The fine grid.
+    fn grid(&self) -> Grid {
+        Grid {
+            t_lo: self.t_lo,
+            t_hi: self.t_hi,
+            h: self.h,
+        }
+    }
+}
+
+/// The stop channel: receiver chain, reflections after it, one event per
+/// target, and the noise-free waveform they render to.
+struct StopChannel {
+    chain: Chain,
+    post: Post,
+    /// One per target (none with the laser off); optical peak power in W.
+    events: Vec<Event>,
+    wave: FineWave,
+}
+
+impl StopChannel {
+    fn new(cfg: &SimulationConfig, tb: &TimeBase, c_m: f64) -> StopChannel {
+        let chain = stop_chain(cfg);
+        let stop_delay = cfg.tia.as_ref().map_or(0.0, |t| t.delay_s);
+        let post = match cfg.tia.as_ref().and_then(|t| t.ringing.clone()) {
+            Some(RingingConfig::Reflection {
+                coefficient,
+                round_trip_s,
+                echoes,
+            }) => Post::Echoes {
+                coefficient,
+                round_trip_s,
+                echoes,
+            },
+            _ => Post::None,
+        };
+        let powers: Vec<f64> = cfg
+            .targets
+            .iter()
+            .map(|t| link_budget::received_power_w(cfg, t))
+            .collect();
+        let events: Vec<Event> = if tb.laser_off {
+            vec![]
+        } else {
+            cfg.targets
+                .iter()
+                .zip(&powers)
+                .map(|(t, &p)| Event {
+                    t_s: tb.emit + 2.0 * t.range_m / c_m + stop_delay,
+                    amp: p,
+                })
+                .collect()
+        };
+        let (wave, _) = render(&chain, tb.pulse, &events, tb.period, tb.grid(), post);
+        StopChannel {
+            chain,
+            post,
+            events,
+            wave,
+        }
+    }
+}
+
+/// The start channel, when the scene has one: its chain, the laser's event
+/// on it, and the noise-free waveform.
+struct StartChannel {
+    chain: Option<Chain>,
+    /// The dip after the start pulse, if any.
+    post: Post,
+    /// The laser shot (none with the laser off or without a start channel).
+    events: Vec<Event>,
+    wave: Option<FineWave>,
+}
+
+impl StartChannel {
+    fn new(cfg: &SimulationConfig, tb: &TimeBase) -> StartChannel {
+        let chain = start_chain(cfg);
+        let post = match &cfg.start {
+            Some(s) if s.dip_fraction > 0.0 => Post::Dip {
+                fraction: s.dip_fraction,
+                delay_s: s.dip_delay_s,
+            },
+            _ => Post::None,
+        };
+        let (wave, events) = match (&chain, &cfg.start) {
+            (Some(sc), Some(s)) => {
+                let ev: Vec<Event> = if tb.laser_off {
+                    vec![]
+                } else {
+                    vec![Event {
+                        t_s: tb.emit + s.delay_s,
+                        amp: cfg.laser.as_ref().map_or(0.0, |l| l.peak_power_w),
+                    }]
+                };
+                (Some(render(sc, tb.pulse, &ev, tb.period, tb.grid(), post).0), ev)
+            }
+            _ => (None, vec![]),
+        };
+        StartChannel {
+            chain,
+            post,
+            events,
+            wave,
+        }
+    }
+}
+
+/// Unjittered 50 % crossing of the start pulse, s (0 without one).
+fn start_truth(cfg: &SimulationConfig, tb: &TimeBase, start: &StartChannel) -> f64 {
+    let (ext_a, ext_b) = tb.pulse.extent();
+    match (&start.chain, start.events.first()) {
+        (Some(sc), Some(ev)) => {
+            let lo = ev.t_s - ext_a - tb.h;
+            let hi = ev.t_s + ext_b + 10.0 * fast_time_s(cfg, true);
+            let (w, amp) = render(
+                sc,
+                tb.pulse,
+                &[*ev],
+                tb.period,
+                Grid {
+                    t_lo: lo.min(tb.t_lo),
+                    t_hi: hi.max(tb.t_hi),
+                    h: tb.h,
+                },
+                start.post,
+            );
+            find_pulse(&w, &amp, lo, hi, hi).map_or(0.0, |f| f.t_half_s)
+        }
+        _ => 0.0,
+    }
+}
+
+/// Unjittered truth of every return in the frame (every shot of every
+/// target whose pulse reaches the frame), in order of stop time.
+fn return_truth(
+    cfg: &SimulationConfig,
+    tb: &TimeBase,
+    stop: &StopChannel,
+    quant: Quantiser,
+    offset_v: f64,
+    t_start_s: f64,
+) -> Vec<ReturnTemplate> {
+    let (ext_a, ext_b) = tb.pulse.extent();
+    let (t_lo, t_hi, h, period) = (tb.t_lo, tb.t_hi, tb.h, tb.period);
+    let fast = fast_time_s(cfg, false);
+    let mut returns = Vec::new();
+    for (j, ev) in stop.events.iter().enumerate() {
+        let (w, amp) = render(&stop.chain, tb.pulse, &[*ev], period, Grid { t_lo, t_hi, h }, stop.post);
+        let shots: Vec<i64> = match period {
+            Some(p) => {
+                let k0 = ((t_lo - ev.t_s - ext_b - 10.0 * fast) / p).floor() as i64;
+                let k1 = ((t_hi - ev.t_s + ext_a) / p).ceil() as i64;
+                (k0..=k1).collect()
+            }
+            None => vec![0],
+        };
+        for k in shots {
+            let c = ev.t_s + k as f64 * period.unwrap_or(0.0);
+            let (a, b) = (c - ext_a - h, c + ext_b + 10.0 * fast);
+            if b < tb.t_first || a > tb.t_last {
+                continue;
+            }
+            let Some(f) = find_pulse(&w, &amp, a.max(t_lo), b.min(t_hi), (b + 20.0 * fast).min(t_hi)) else {
+                continue;
+            };
+            let saturated = stop.chain.swing_v.is_some_and(|s| f.max_amp_out >= s)
+                || quant.clips(stop.wave.at(f.t_peak_s) + offset_v);
+            returns.push(ReturnTemplate {
+                ret: TrueReturn {
+                    target: j,
+                    range_m: cfg.targets[j].range_m,
+                    tof_s: f.t_half_s - (t_start_s + k as f64 * period.unwrap_or(0.0)),
+                    shot_offset: k,
+                    peak_amplitude_v: f.peak_v,
+                    t_stop_s: f.t_half_s,
+                    t_peak_s: f.t_peak_s,
+                    first_sample: 0,
+                    last_sample: 0,
+                    truncated: false,
+                    saturated,
+                },
+                t_first_s: f.t_first_s,
+                t_last_s: f.t_last_s,
+            });
+        }
+    }
+    returns.sort_by(|a, b| a.ret.t_stop_s.total_cmp(&b.ret.t_stop_s));
+    returns
+}
+
+/// The noise generators of both channels.
+struct NoiseGenerators {
+    /// Stop channel: thermal, dark-current and background shot noise through the chain.
+    stop: Option<ColouredNoise>,
+    /// Signal shot-noise innovation variance per sample (V² at the TIA output), if any signal.
+    stop_envelope: Option<Vec<f64>>,
+    /// Start channel.
+    start: Option<ColouredNoise>,
+}
+
+impl NoiseGenerators {
+    fn new(
+        cfg: &SimulationConfig,
+        tb: &TimeBase,
+        stop: &StopChannel,
+        start: &StartChannel,
+    ) -> Result<NoiseGenerators, PhysicsError> {
+        let dt = tb.dt;
+        let lin = stop.chain.linear();
+        let nf = lin.discretise(dt);
+        let unit_gain = nf.stationary_output_variance().sqrt();
+        let tia_r = cfg.tia.as_ref().map_or(1.0, |t| t.gain_ohm);
+        let (m2f, r_o, i_d) = match &cfg.apd {
+            Some(a) => (
+                a.gain * a.gain * link_budget::excess_noise_factor(a.gain, a.ionisation_ratio_k),
+                a.responsivity_a_per_w,
+                a.dark_current_a,
+            ),
+            None => (0.0, 0.0, 0.0),
+        };
+        // Innovation variance per sample for a one-sided current density S: S/(2 dt) · R².
+        let per_sample = |s_a2_per_hz: f64| s_a2_per_hz / (2.0 * dt) * tia_r * tia_r;
+        let p_bg = link_budget::background_power_w(cfg);
+        let var_db = per_sample(2.0 * Q_E * (i_d + r_o * p_bg) * m2f);
+        let var_th = match cfg.noise.as_ref().and_then(|n| n.thermal_sigma_v) {
+            Some(s) => {
+                if unit_gain > 0.0 {
+                    (s / unit_gain).powi(2)
+                } else {
+                    0.0
+                }
+            }
+            None => cfg.tia.as_ref().map_or(0.0, |t| {
+                per_sample(t.noise_current_a * t.noise_current_a / t.bandwidth_hz)
+            }),
+        };
+        let sigma_stationary = ((var_th + var_db).max(0.0)).sqrt() * unit_gain;
+        // Shot-noise envelope from the optical power at the detector.
+        let stop_envelope = if !tb.laser_off && !stop.events.is_empty() && m2f > 0.0 {
+            let p_wave = render_optical(tb.pulse, &stop.events, tb.period, tb.t_first, dt, tb.n);
+            Some(
+                p_wave
+                    .iter()
+                    .map(|&p| per_sample(2.0 * Q_E * r_o * p * m2f))
+                    .collect::<Vec<f64>>(),
+            )
+        } else {
+            None
+        };
+        let skew_c = match cfg.noise.as_ref().and_then(|n| n.skewness) {
+            Some(g) if g != 0.0 => {
+                let kappa = ColouredNoise::skew_transfer(&nf);
+                let needed = if kappa > 0.0 {
+                    g / kappa
+                } else {
+                    f64::INFINITY
+                };
+                c_for_skew(needed).ok_or(PhysicsError::Invalid(FieldError::new(
+                    "simulation.noise.skewness",
+                    format!("{g} (needs innovation skewness {needed:.3} through this chain)"),
+                    "a skewness the chain can deliver: |skewness| < 2.83 x the chain's skew transfer",
+                )))?
+            }
+            _ => 0.0,
+        };
+        let stop_noise = (sigma_stationary > 0.0 || stop_envelope.is_some())
+            .then(|| ColouredNoise::new(nf.clone(), sigma_stationary, skew_c));
+        let start_noise = match (&start.chain, &cfg.start) {
+            (Some(sc), Some(s)) if s.noise_sigma_v > 0.0 => Some(ColouredNoise::new(
+                sc.linear().discretise(dt),
+                s.noise_sigma_v,
+                0.0,
+            )),
+            _ => None,
+        };
+        Ok(NoiseGenerators {
+            stop: stop_noise,
+            stop_envelope,
+            start: start_noise,
+        })
+    }
+}
+
+/// The interference burst, if the scene has one.
+fn burst(cfg: &SimulationConfig) -> Option<Burst> {
+    cfg.interference.as_ref().map(|i| {
+        Burst::new(
+            i.amplitude_v,
+            i.rate_hz,
+            i.duration_s,
+            &i.frequencies_hz,
+            i.wander_s,
+        )
+    })
+}
+
 /// The simulator built from a scene; see the module docs.
 #[derive(Debug, Clone)]
 pub struct Simulator {
@@ -520,6 +885,11 @@ const SEED_STREAM: u64 = u64::MAX;
 impl Simulator {
     /// Builds the simulator; fails if the scene has no `[simulation]` section
     /// or the section is invalid.
+    ///
+    /// Each part is built by its own function: the time base, the stop chain
+    /// and waveform, the start chain and waveform, the truth of the start
+    /// crossing and of every return, the noise generators, the interference
+    /// burst, and the noise-free samples of a jitter-free digitiser.
     pub fn new(scene: &Scene) -> Result<Simulator, PhysicsError> {
         let cfg = scene
             .simulation
@@ -529,287 +899,43 @@ impl Simulator {
                 needed_by: "the simulator (add a [simulation] section to the scene)",
             })?;
         cfg.validate()?;
+        let tb = TimeBase::new(&cfg);
         let d = &cfg.digitiser;
-        let dt = d.sample_interval_s;
-        let n = d.samples_per_frame;
-        let t_first = -(d.pre_trigger_samples as f64) * dt;
-        let t_last = t_first + (n - 1) as f64 * dt;
-        let h = dt / d.oversample as f64;
-        // The fine grid covers every instant a jittered sample can take.
-        let jitter_span = 8.0 * (d.trigger_jitter_s + d.aperture_jitter_s) + dt;
-        let (t_lo, t_hi) = (
-            t_first - jitter_span - 2.0 * dt,
-            t_last + jitter_span + 2.0 * dt,
-        );
-        let laser = cfg.laser.clone();
-        let laser_off = laser.as_ref().is_none_or(|l| l.off);
-        let period = laser.as_ref().map(|l| 1.0 / l.prf_hz);
-        let frame_period_s = period.unwrap_or(n as f64 * dt);
-        let pulse = Pulse {
-            shape: laser
-                .as_ref()
-                .map_or(PulseShape::Gaussian, |l| l.pulse_shape),
-            width_s: laser.as_ref().map_or(1e-9, |l| l.pulse_width_s),
-        };
-        let c_m = scene.c_medium_m_per_s();
-        let emit = laser.as_ref().map_or(0.0, |l| l.emission_time_s);
         let quant = Quantiser::new(d.bits, d.full_scale_low_v, d.full_scale_high_v);
         let offset_v = cfg.noise.as_ref().map_or(0.0, |n| n.offset_v);
-
-        // ---- stop channel ----
-        let chain = stop_chain(&cfg);
-        let stop_delay = cfg.tia.as_ref().map_or(0.0, |t| t.delay_s);
-        let stop_post = match cfg.tia.as_ref().and_then(|t| t.ringing.clone()) {
-            Some(RingingConfig::Reflection {
-                coefficient,
-                round_trip_s,
-                echoes,
-            }) => Post::Echoes {
-                coefficient,
-                round_trip_s,
-                echoes,
-            },
-            _ => Post::None,
-        };
-        let powers: Vec<f64> = cfg
-            .targets
-            .iter()
-            .map(|t| link_budget::received_power_w(&cfg, t))
-            .collect();
-        let target_events: Vec<Event> = if laser_off {
-            vec![]
-        } else {
-            cfg.targets
-                .iter()
-                .zip(&powers)
-                .map(|(t, &p)| Event {
-                    t_s: emit + 2.0 * t.range_m / c_m + stop_delay,
-                    amp: p,
-                })
-                .collect()
-        };
-        let grid = Grid { t_lo, t_hi, h };
-        let (stop_wave, _) = render(&chain, pulse, &target_events, period, grid, stop_post);
-
-        // ---- start channel ----
-        let s_chain = start_chain(&cfg);
-        let (start_wave, start_events) = match (&s_chain, &cfg.start) {
-            (Some(sc), Some(s)) => {
-                let ev: Vec<Event> = if laser_off {
-                    vec![]
-                } else {
-                    vec![Event {
-                        t_s: emit + s.delay_s,
-                        amp: laser.as_ref().map_or(0.0, |l| l.peak_power_w),
-                    }]
-                };
-                let post = if s.dip_fraction > 0.0 {
-                    Post::Dip {
-                        fraction: s.dip_fraction,
-                        delay_s: s.dip_delay_s,
-                    }
-                } else {
-                    Post::None
-                };
-                (
-                    Some(render(sc, pulse, &ev, period, Grid { t_lo, t_hi, h }, post).0),
-                    ev,
-                )
-            }
-            _ => (None, vec![]),
-        };
-
-        // ---- truth ----
-        let (ext_a, ext_b) = pulse.extent();
-        let t_start_s = match (&s_chain, start_events.first()) {
-            (Some(sc), Some(ev)) => {
-                let lo = ev.t_s - ext_a - h;
-                let hi = ev.t_s + ext_b + 10.0 * fast_time_s(&cfg, true);
-                let post = match &cfg.start {
-                    Some(s) if s.dip_fraction > 0.0 => Post::Dip {
-                        fraction: s.dip_fraction,
-                        delay_s: s.dip_delay_s,
-                    },
-                    _ => Post::None,
-                };
-                let (w, amp) = render(
-                    sc,
-                    pulse,
-                    &[*ev],
-                    period,
-                    Grid {
-                        t_lo: lo.min(t_lo),
-                        t_hi: hi.max(t_hi),
-                        h,
-                    },
-                    post,
-                );
-                find_pulse(&w, &amp, lo, hi, hi).map_or(0.0, |f| f.t_half_s)
-            }
-            _ => 0.0,
-        };
-        let fast = fast_time_s(&cfg, false);
-        let mut returns = Vec::new();
-        for (j, ev) in target_events.iter().enumerate() {
-            let (w, amp) = render(
-                &chain,
-                pulse,
-                &[*ev],
-                period,
-                Grid { t_lo, t_hi, h },
-                stop_post,
-            );
-            let shots: Vec<i64> = match period {
-                Some(p) => {
-                    let k0 = ((t_lo - ev.t_s - ext_b - 10.0 * fast) / p).floor() as i64;
-                    let k1 = ((t_hi - ev.t_s + ext_a) / p).ceil() as i64;
-                    (k0..=k1).collect()
-                }
-                None => vec![0],
-            };
-            for k in shots {
-                let c = ev.t_s + k as f64 * period.unwrap_or(0.0);
-                let (a, b) = (c - ext_a - h, c + ext_b + 10.0 * fast);
-                if b < t_first || a > t_last {
-                    continue;
-                }
-                let Some(f) = find_pulse(
-                    &w,
-                    &amp,
-                    a.max(t_lo),
-                    b.min(t_hi),
-                    (b + 20.0 * fast).min(t_hi),
-                ) else {
-                    continue;
-                };
-                let saturated = chain.swing_v.is_some_and(|s| f.max_amp_out >= s)
-                    || quant.clips(stop_wave.at(f.t_peak_s) + offset_v);
-                returns.push(ReturnTemplate {
-                    ret: TrueReturn {
-                        target: j,
-                        range_m: cfg.targets[j].range_m,
-                        tof_s: f.t_half_s - (t_start_s + k as f64 * period.unwrap_or(0.0)),
-                        shot_offset: k,
-                        peak_amplitude_v: f.peak_v,
-                        t_stop_s: f.t_half_s,
-                        t_peak_s: f.t_peak_s,
-                        first_sample: 0,
-                        last_sample: 0,
-                        truncated: false,
-                        saturated,
-                    },
-                    t_first_s: f.t_first_s,
-                    t_last_s: f.t_last_s,
-                });
-            }
-        }
-        returns.sort_by(|a, b| a.ret.t_stop_s.total_cmp(&b.ret.t_stop_s));
-
-        // ---- noise ----
-        let lin = chain.linear();
-        let nf = lin.discretise(dt);
-        let unit_gain = nf.stationary_output_variance().sqrt();
-        let tia_r = cfg.tia.as_ref().map_or(1.0, |t| t.gain_ohm);
-        let (m2f, r_o, i_d) = match &cfg.apd {
-            Some(a) => (
-                a.gain * a.gain * link_budget::excess_noise_factor(a.gain, a.ionisation_ratio_k),
-                a.responsivity_a_per_w,
-                a.dark_current_a,
-            ),
-            None => (0.0, 0.0, 0.0),
-        };
-        // Innovation variance per sample for a one-sided current density S: S/(2 dt) · R².
-        let per_sample = |s_a2_per_hz: f64| s_a2_per_hz / (2.0 * dt) * tia_r * tia_r;
-        let p_bg = link_budget::background_power_w(&cfg);
-        let var_db = per_sample(2.0 * Q_E * (i_d + r_o * p_bg) * m2f);
-        let var_th = match cfg.noise.as_ref().and_then(|n| n.thermal_sigma_v) {
-            Some(s) => {
-                if unit_gain > 0.0 {
-                    (s / unit_gain).powi(2)
-                } else {
-                    0.0
-                }
-            }
-            None => cfg.tia.as_ref().map_or(0.0, |t| {
-                per_sample(t.noise_current_a * t.noise_current_a / t.bandwidth_hz)
-            }),
-        };
-        let sigma_stationary = ((var_th + var_db).max(0.0)).sqrt() * unit_gain;
-        // Shot-noise envelope from the optical power at the detector.
-        let stop_envelope = if !laser_off && !target_events.is_empty() && m2f > 0.0 {
-            let p_wave = render_optical(pulse, &target_events, period, t_first, dt, n);
-            Some(
-                p_wave
-                    .iter()
-                    .map(|&p| per_sample(2.0 * Q_E * r_o * p * m2f))
-                    .collect::<Vec<f64>>(),
-            )
-        } else {
-            None
-        };
-        let skew_c = match cfg.noise.as_ref().and_then(|n| n.skewness) {
-            Some(g) if g != 0.0 => {
-                let kappa = ColouredNoise::skew_transfer(&nf);
-                let needed = if kappa > 0.0 {
-                    g / kappa
-                } else {
-                    f64::INFINITY
-                };
-                c_for_skew(needed).ok_or(PhysicsError::Invalid {
-                    field: "simulation.noise.skewness".into(),
-                    value: format!("{g} (needs innovation skewness {needed:.3} through this chain)"),
-                    allowed: "a skewness the chain can deliver: |skewness| < 2.83 x the chain's skew transfer",
-                })?
-            }
-            _ => 0.0,
-        };
-        let stop_noise = (sigma_stationary > 0.0 || stop_envelope.is_some())
-            .then(|| ColouredNoise::new(nf.clone(), sigma_stationary, skew_c));
-        let start_noise = match (&s_chain, &cfg.start) {
-            (Some(sc), Some(s)) if s.noise_sigma_v > 0.0 => Some(ColouredNoise::new(
-                sc.linear().discretise(dt),
-                s.noise_sigma_v,
-                0.0,
-            )),
-            _ => None,
-        };
-        let burst = cfg.interference.as_ref().map(|i| {
-            Burst::new(
-                i.amplitude_v,
-                i.rate_hz,
-                i.duration_s,
-                &i.frequencies_hz,
-                i.wander_s,
-            )
-        });
-
+        let stop = StopChannel::new(&cfg, &tb, scene.c_medium_m_per_s());
+        let start = StartChannel::new(&cfg, &tb);
+        let t_start_s = start_truth(&cfg, &tb, &start);
+        let returns = return_truth(&cfg, &tb, &stop, quant, offset_v, t_start_s);
+        let noise = NoiseGenerators::new(&cfg, &tb, &stop, &start)?;
+        let burst = burst(&cfg);
         let no_jitter =
             d.trigger_jitter_s == 0.0 && d.aperture_jitter_s == 0.0 && !d.sample_clock_asynchronous;
         let sample_all = |w: &FineWave| {
-            let mut v = vec![0.0; n];
-            w.sample_into(t_first, dt, &mut v);
+            let mut v = vec![0.0; tb.n];
+            w.sample_into(tb.t_first, tb.dt, &mut v);
             v
         };
-        let stop_fixed = no_jitter.then(|| sample_all(&stop_wave));
-        let start_fixed = match (&start_wave, no_jitter) {
+        let stop_fixed = no_jitter.then(|| sample_all(&stop.wave));
+        let start_fixed = match (&start.wave, no_jitter) {
             (Some(w), true) => Some(sample_all(w)),
             _ => None,
         };
         Ok(Simulator {
             sensor_id: scene.name.clone(),
-            dt_s: dt,
-            n_samples: n,
-            t_first_s: t_first,
-            frame_period_s,
-            laser_off,
+            dt_s: tb.dt,
+            n_samples: tb.n,
+            t_first_s: tb.t_first,
+            frame_period_s: tb.frame_period_s,
+            laser_off: tb.laser_off,
             quant,
-            stop_wave,
+            stop_wave: stop.wave,
             stop_fixed,
-            start_wave,
+            start_wave: start.wave,
             start_fixed,
-            stop_noise,
-            stop_envelope,
-            start_noise,
+            stop_noise: noise.stop,
+            stop_envelope: noise.stop_envelope,
+            start_noise: noise.start,
             burst,
             offset_v,
             returns,

@@ -33,7 +33,6 @@ use super::{FrameError, Stage, Work};
 use crate::detect::noise::Moments;
 use crate::dsp::average::{CodeAccumulator, mean_from_sums, robust_average};
 use crate::dsp::fracdelay::FractionalDelay;
-use crate::dsp::pulse::Shape;
 use crate::frame::{Channel, ChannelRole, Samples};
 use crate::scene::{AveragingAlign, AveragingConfig, AveragingMethod, AveragingMode, Scene};
 use std::collections::VecDeque;
@@ -522,7 +521,7 @@ impl Average {
     ) -> bool {
         let _ = (n_older, n_newer);
         let dt = w.frame.sample_interval_s;
-        let shape = Shape::from_config(&self.return_pulse, dt);
+        let shape = self.return_pulse.shape(dt);
         let (h, peak_idx) = shape.template();
         let e: f64 = h.iter().map(|v| v * v).sum();
         if e.is_nan() || e <= 0.0 {

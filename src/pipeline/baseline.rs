@@ -35,7 +35,7 @@ impl GatePlacer {
         let s = &self.scene;
         let dt = w.frame.sample_interval_s;
         if self.pulse.as_ref().is_none_or(|p| p.0 != dt) {
-            self.pulse = Some((dt, Shape::from_config(&s.return_pulse, dt)));
+            self.pulse = Some((dt, s.return_pulse.shape(dt)));
         }
         let pulse = &self.pulse.as_ref().expect("set above").1;
         let (lo, hi) = pulse.support();

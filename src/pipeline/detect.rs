@@ -185,7 +185,7 @@ impl Stage for Detect {
         let dt = w.frame.sample_interval_s;
         let n = w.stop_v.len();
         if self.plan.as_ref().is_none_or(|p| p.0 != dt || p.1 < n) {
-            let shape = Shape::from_config(&self.pulse_cfg, dt);
+            let shape = self.pulse_cfg.shape(dt);
             let plan = match self.kind {
                 DetectorKind::MatchedFilter => DetectorPlan::matched_filter(&shape, n),
                 DetectorKind::Threshold => DetectorPlan::threshold(n),

@@ -13,7 +13,7 @@ use std::sync::{Arc, Mutex};
 
 use super::Pipeline;
 use crate::detect::template::{TemplateError, TemplateLearner};
-use crate::dsp::pulse::{PulseShape, Shape};
+use crate::dsp::pulse::PulseShape;
 use crate::frame::{Frame, Return};
 use crate::scene::{Scene, TimingMethod};
 
@@ -91,13 +91,13 @@ pub fn learn_shapes(
     let user_method = scene.timing.method;
     for pass in 0..opts.passes.max(1) {
         scene.timing.method = if pass == 0 { TimingMethod::PeakParabolic } else { TimingMethod::Ml };
-        let shape = Shape::from_config(&scene.return_pulse, dt);
+        let shape = scene.return_pulse.shape(dt);
         let (lo, hi) = shape.support();
         let learner = Arc::new(Mutex::new(TemplateLearner::new(opts.oversample, 1.5 * lo, 1.5 * hi)));
         // The start pulse's shape is learned the same way, aligned on the
         // start timing: a start shape that does not match the pulse makes its
         // timing depend on the sample phase, which no calibration removes.
-        let start_shape = Shape::from_config(&scene.start_pulse, dt);
+        let start_shape = scene.start_pulse.shape(dt);
         let (slo, shi) = start_shape.support();
         let start_learner = Arc::new(Mutex::new(TemplateLearner::new(opts.oversample, 1.5 * slo, 1.5 * shi)));
         let start_offset = start_shape.fraction_offset(scene.timing.fraction);
@@ -155,9 +155,9 @@ pub fn learn_shapes(
         let mut start_fwhm_s = 0.0;
         if start_learner.shots() > 0 {
             scene.start_pulse = start_learner.finish(dt).map_err(|source| LearnError::Start { pass: p, source })?;
-            start_fwhm_s = Shape::from_config(&scene.start_pulse, dt).fwhm() * dt;
+            start_fwhm_s = scene.start_pulse.shape(dt).fwhm() * dt;
         }
-        let learned = Shape::from_config(&scene.return_pulse, dt);
+        let learned = scene.return_pulse.shape(dt);
         on_pass(&PassSummary {
             pass: p,
             shots: learner.shots(),

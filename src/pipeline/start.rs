@@ -76,7 +76,7 @@ impl Stage for Start {
         let n = x.len();
         let peak = (0..n).max_by(|&a, &b| x[a].total_cmp(&x[b])).unwrap_or(0);
         if self.plan.as_ref().is_none_or(|p| p.0 != dt || p.2.len() > n + 1) {
-            let pulse = Shape::from_config(&self.pulse_cfg, dt);
+            let pulse = self.pulse_cfg.shape(dt);
             let plan = DetectorPlan::matched_filter(&pulse, n);
             self.phase = PhaseBias::measure(self.method, &pulse, self.fraction, true);
             self.plan = Some((dt, pulse, plan));

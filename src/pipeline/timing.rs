@@ -88,7 +88,7 @@ impl Stage for Timing {
     fn process(&mut self, mut w: Work, out: &mut Vec<Work>) -> Result<(), FrameError> {
         let dt = w.frame.sample_interval_s;
         if self.pulse.as_ref().is_none_or(|p| p.0 != dt) {
-            let shape = Shape::from_config(&self.pulse_cfg, dt);
+            let shape = self.pulse_cfg.shape(dt);
             let norm = if self.matched {
                 shape.template().0.iter().map(|v| v * v).sum::<f64>().sqrt()
             } else {

@@ -40,14 +40,7 @@ impl From<ServiceError> for Status {
 /// A bad scene: the message names the field (dotted path or TOML key).
 fn scene_status(e: SceneError) -> Status {
     let msg = match &e {
-        SceneError::Invalid {
-            field,
-            value,
-            allowed,
-            ..
-        } => {
-            format!("toml: {field} = {value} is out of range: allowed {allowed}")
-        }
+        SceneError::Invalid { error, .. } => format!("toml: {error}"),
         _ => format!("toml: {e}"),
     };
     Status::invalid_argument(msg)

@@ -46,8 +46,8 @@ impl Synth {
 
     /// Frame `seq` with the scene's pulse shapes; sub-sample phases come from the times given.
     pub fn frame(&self, scene: &Scene, seq: u64, rng: &mut ChaCha8Rng) -> Frame {
-        let stop_p = Pulse::from_config(&scene.return_pulse, self.dt_s);
-        let start_p = Pulse::from_config(&scene.start_pulse, self.dt_s);
+        let stop_p = scene.return_pulse.pulse(self.dt_s);
+        let start_p = scene.start_pulse.pulse(self.dt_s);
         let t0 = -(self.pre_trigger_samples as f64) * self.dt_s;
         let idx = |t: f64| (t - t0) / self.dt_s;
         let normal = Normal::new(0.0, self.noise_sigma_v.max(0.0)).unwrap();

@@ -3,7 +3,7 @@
 //!
 //! All random noise enters as a white current at the receiver input, held over
 //! each digitiser sample, and passes through the exact discrete equivalent of
-//! the channel's linear chain (see `detector`). A white current of one-sided
+//! the channel's linear chain (see `photodetector`). A white current of one-sided
 //! density S (A²/Hz) becomes, over a hold of `dt`, samples of variance
 //! `S / (2 dt)` (its power up to the Nyquist frequency); for a chain whose
 //! bandwidth is well below Nyquist this reproduces the continuous-time output
@@ -14,7 +14,7 @@
 // read closer to the maths than zipped iterators here.
 #![allow(clippy::needless_range_loop)]
 
-use super::detector::Discrete;
+use super::photodetector::Discrete;
 use rand::Rng;
 use rand_distr::StandardNormal;
 

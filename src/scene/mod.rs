@@ -1,0 +1,275 @@
+//! Scene: the declarative description of one sensor set-up (TOML).
+//!
+//! Parsed with `deny_unknown_fields` and validated at load, so a bad scene
+//! fails before any frame is processed, with an error naming the field and the
+//! allowed range. The pipeline is built from a validated scene (`pipeline::build`).
+//!
+//! Each section type sits in the file of its group, with its `validate()`
+//! next to it, written as rows for [`check::check`] (field, value, allowed
+//! range, the range as the error states it):
+//! - `digitiser`: `[digitiser]`, `[channels]`;
+//! - `pulse`: `[return_pulse]`, `[start_pulse]`, and their dsp shapes;
+//! - `gates`: `[range_gate]`, `[noise_gate]`;
+//! - `detector`, `timing`, `averaging`, `baseline`, `denoise`: the section of that name;
+//! - `calibration`: `[calibration]` and the calibration file;
+//! - here: [`Scene`], `[medium]`, loading and the order of the checks.
+//!
+//! Every type is re-exported here: its path is `scene::X` whatever file holds it.
+
+mod averaging;
+mod baseline;
+mod calibration;
+pub mod check;
+mod denoise;
+mod detector;
+mod digitiser;
+mod gates;
+mod pulse;
+mod timing;
+
+pub use averaging::{AveragingAlign, AveragingConfig, AveragingMethod, AveragingMode};
+pub use baseline::{BaselineConfig, BaselineEstimator};
+pub use calibration::{CalibrationConfig, CalibrationFile, CalibrationMeasurement};
+pub use check::FieldError;
+pub use denoise::{DenoiseConfig, DenoiseMethod};
+pub use detector::{CfarKind, DetectorConfig, DetectorKind, PfaScope, ThresholdMode};
+pub use digitiser::{ChannelsConfig, DigitiserConfig};
+pub use gates::{NoiseGateConfig, RangeGateConfig};
+pub use pulse::{PulseConfig, PulseModel};
+pub use timing::{TimingConfig, TimingMethod};
+
+use check::{check, Range};
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// The embedded default scene (the source's prototype), commented.
+pub const DEFAULT_SCENE_TOML: &str = include_str!("../default_scene.toml");
+
+/// Speed of light in vacuum, m/s.
+pub const C_VACUUM_M_PER_S: f64 = 299_792_458.0;
+
+/// Errors from loading or validating a scene.
+#[derive(Debug, thiserror::Error)]
+pub enum SceneError {
+    /// The file could not be read.
+    #[error("cannot read scene {path}: {source}")]
+    Io {
+        /// File path.
+        path: String,
+        /// Cause.
+        source: std::io::Error,
+    },
+    /// TOML syntax error, unknown key or wrong type.
+    #[error("scene {origin}: {message}")]
+    Parse {
+        /// File path or "embedded default".
+        origin: String,
+        /// The TOML parser's message (names the key and line).
+        message: String,
+    },
+    /// A value out of its allowed range.
+    #[error("scene {origin}: {error}")]
+    Invalid {
+        /// File path or "embedded default".
+        origin: String,
+        /// The field, its value and the allowed range.
+        error: FieldError,
+    },
+    /// The `[simulation]` section is invalid (the message names the dotted field).
+    #[error("scene {origin}: {source}")]
+    Simulation {
+        /// File path or "embedded default".
+        origin: String,
+        /// The physics layer's error, naming the field and the allowed range.
+        source: crate::physics::PhysicsError,
+    },
+}
+
+/// One sensor set-up.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Scene {
+    /// Free text shown in logs.
+    #[serde(default = "default_name")]
+    pub name: String,
+    /// What the digitiser delivers.
+    #[serde(default)]
+    pub digitiser: DigitiserConfig,
+    /// Which channel is which.
+    #[serde(default)]
+    pub channels: ChannelsConfig,
+    /// Shape of a return on the stop channel.
+    #[serde(default = "PulseConfig::default_return")]
+    pub return_pulse: PulseConfig,
+    /// Shape of the start pulse.
+    #[serde(default = "PulseConfig::default_start")]
+    pub start_pulse: PulseConfig,
+    /// Where returns are sought.
+    #[serde(default)]
+    pub range_gate: RangeGateConfig,
+    /// Where the noise model is fitted.
+    #[serde(default)]
+    pub noise_gate: NoiseGateConfig,
+    /// Detector and false-alarm target.
+    #[serde(default)]
+    pub detector: DetectorConfig,
+    /// How instants are measured.
+    #[serde(default)]
+    pub timing: TimingConfig,
+    /// Ensemble averaging.
+    #[serde(default)]
+    pub averaging: AveragingConfig,
+    /// Baseline (offset) removal; absent: no baseline stage.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub baseline: Option<BaselineConfig>,
+    /// Structured-interference cancellation; absent: no denoise stage.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub denoise: Option<DenoiseConfig>,
+    /// System delay.
+    #[serde(default)]
+    pub calibration: CalibrationConfig,
+    /// Propagation medium.
+    #[serde(default)]
+    pub medium: MediumConfig,
+    /// What `tofwave simulate` synthesises for this scene (laser, targets,
+    /// receiver, noise, digitiser); absent in scenes of real sensors.
+    #[serde(default)]
+    pub simulation: Option<crate::physics::SimulationConfig>,
+}
+
+fn default_name() -> String {
+    "unnamed".into()
+}
+
+
+/// Medium.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct MediumConfig {
+    /// Group refractive index.
+    pub refractive_index: f64,
+}
+
+impl Default for MediumConfig {
+    fn default() -> Self {
+        MediumConfig {
+            refractive_index: 1.000268,
+        }
+    }
+}
+
+impl Scene {
+    /// The embedded default scene (the source's prototype).
+    pub fn default_scene() -> Scene {
+        Scene::from_toml_str(DEFAULT_SCENE_TOML, "embedded default")
+            .expect("the embedded default scene is valid (tested)")
+    }
+
+    /// Reads and validates a scene file.
+    pub fn load(path: &Path) -> Result<Scene, SceneError> {
+        let text = std::fs::read_to_string(path).map_err(|source| SceneError::Io {
+            path: path.display().to_string(),
+            source,
+        })?;
+        Scene::from_toml_str(&text, &path.display().to_string())
+    }
+
+    /// Parses and validates TOML text; `origin` names it in errors.
+    pub fn from_toml_str(text: &str, origin: &str) -> Result<Scene, SceneError> {
+        let scene: Scene = toml::from_str(text).map_err(|e| SceneError::Parse {
+            origin: origin.to_string(),
+            message: e.to_string().trim_end().to_string(),
+        })?;
+        scene.validate(origin)?;
+        Ok(scene)
+    }
+
+    /// The scene as TOML (uncommented; see [`DEFAULT_SCENE_TOML`] for the commented default).
+    pub fn to_toml(&self) -> String {
+        toml::to_string(self).expect("a scene always serialises")
+    }
+
+    /// Speed of light in the medium, m/s.
+    pub fn c_medium_m_per_s(&self) -> f64 {
+        C_VACUUM_M_PER_S / self.medium.refractive_index
+    }
+
+    /// Checks every value against its allowed range.
+    pub fn validate(&self, origin: &str) -> Result<(), SceneError> {
+        self.validate_sections().map_err(|error| SceneError::Invalid {
+            origin: origin.to_string(),
+            error,
+        })?;
+        if let Some(sim) = &self.simulation {
+            sim.validate().map_err(|source| SceneError::Simulation {
+                origin: origin.to_string(),
+                source,
+            })?;
+        }
+        Ok(())
+    }
+
+    /// Each section in turn (the order fixes which error a scene with several gets).
+    fn validate_sections(&self) -> Result<(), FieldError> {
+        self.digitiser.validate()?;
+        self.channels.validate()?;
+        self.return_pulse.validate("return_pulse")?;
+        self.start_pulse.validate("start_pulse")?;
+        self.range_gate.validate()?;
+        self.noise_gate.validate()?;
+        self.detector.validate()?;
+        self.timing.validate()?;
+        self.averaging.validate()?;
+        if let Some(b) = &self.baseline {
+            b.validate()?;
+        }
+        if let Some(d) = &self.denoise {
+            d.validate(self.digitiser.sample_interval_s)?;
+        }
+        self.calibration.validate()?;
+        self.medium.validate()
+    }
+}
+
+impl MediumConfig {
+    /// Checks `[medium]`.
+    pub fn validate(&self) -> Result<(), FieldError> {
+        check(&[("medium.refractive_index", self.refractive_index.into(), Range::closed(1.0, 4.0), "[1, 4]")])
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn default_scene_parses_and_round_trips() {
+        let s = Scene::default_scene();
+        assert_eq!(s.channels.stop, "CH2");
+        assert_eq!(s.detector.pfa, 1e-6);
+        let again = Scene::from_toml_str(&s.to_toml(), "round trip").unwrap();
+        assert_eq!(s, again);
+    }
+
+    #[test]
+    fn unknown_key_is_refused_by_name() {
+        let text = DEFAULT_SCENE_TOML.replace("[detector]", "[detector]\npfaa = 1e-3");
+        let e = Scene::from_toml_str(&text, "x.toml").unwrap_err().to_string();
+        assert!(e.contains("pfaa"), "{e}");
+        assert!(e.contains("x.toml"), "{e}");
+    }
+
+    #[test]
+    fn out_of_range_names_field_and_range() {
+        let text = DEFAULT_SCENE_TOML.replace("pfa = 1e-6", "pfa = 0.7");
+        let e = Scene::from_toml_str(&text, "x.toml").unwrap_err().to_string();
+        assert!(e.contains("detector.pfa") && e.contains("(0, 0.5]"), "{e}");
+    }
+
+    #[test]
+    fn minimal_scene_takes_defaults() {
+        let s = Scene::from_toml_str("name = \"m\"\n", "m").unwrap();
+        assert_eq!(s.detector.kind, DetectorKind::MatchedFilter);
+        assert_eq!(s.return_pulse.fwhm_s, 26.04e-9);
+    }
+}

@@ -12,8 +12,8 @@ use tofwave::frame::{Channel, ChannelRole, Frame, Samples};
 use tofwave::pipeline::report_json;
 use tofwave::scene::Scene;
 use tofwave::service::client::{self, BatchLimits, ClientOptions, Clients, Rate};
-use tofwave::service::convert::frame_to_proto;
-use tofwave::service::proto::{self, report_event::Event};
+use tofwave::wire::frame_to_proto;
+use tofwave::wire::proto::{self, report_event::Event};
 use tofwave::service::session::build_pipeline;
 use tofwave::service::{ServerConfig, ServiceError, run};
 use tokio::net::TcpListener;
@@ -221,7 +221,7 @@ async fn small_window_subscribe(url: &str) -> tonic::Streaming<proto::ReportEven
         .connect()
         .await
         .unwrap();
-    let mut c = proto::reports_client::ReportsClient::new(channel);
+    let mut c = tofwave::service::grpc::reports_client::ReportsClient::new(channel);
     c.subscribe(proto::SubscribeRequest::default())
         .await
         .unwrap()

@@ -1,9 +1,9 @@
 //! `Control`: list sensors, read and change scenes, read noise models and status.
 
-use super::fanout::noise_to_proto;
 use super::session::{Session, StartError};
-use super::{ServiceError, Shared, proto};
+use super::{ServiceError, Shared, grpc};
 use crate::scene::{Scene, SceneError};
+use crate::wire::{noise_to_proto, proto};
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use tonic::{Request, Response, Status};
@@ -70,7 +70,7 @@ pub fn status_of(s: &Session) -> proto::SensorStatus {
 }
 
 #[tonic::async_trait]
-impl proto::control_server::Control for ControlService {
+impl grpc::control_server::Control for ControlService {
     async fn list_sensors(
         &self,
         _request: Request<proto::ListSensorsRequest>,

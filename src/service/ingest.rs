@@ -8,12 +8,13 @@
 //! keep their order: one stream queues them in order, and the worker processes
 //! its queue in order.
 
-use super::convert::{self, ConvertError};
+use super::Shared;
+use super::grpc;
 use super::session::{Session, StartError, Verdict};
-use super::{Shared, proto};
 use crate::frame::{ChannelRole, Frame, channel_key};
 use crate::scene::Scene;
 use crate::telemetry;
+use crate::wire::{self, ConvertError, proto};
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use tokio::sync::{mpsc, oneshot};
@@ -54,8 +55,8 @@ impl From<ConvertError> for EdgeRejection {
     fn from(e: ConvertError) -> Self {
         EdgeRejection {
             reason: "invalid_frame",
-            field: e.field,
-            message: e.message,
+            field: e.field().to_string(),
+            message: e.message().to_string(),
         }
     }
 }
@@ -118,7 +119,7 @@ struct StreamTotals {
 }
 
 #[tonic::async_trait]
-impl proto::ingest_server::Ingest for IngestService {
+impl grpc::ingest_server::Ingest for IngestService {
     type PushStream = ReceiverStream<Result<proto::IngestAck, Status>>;
 
     async fn push(
@@ -290,7 +291,7 @@ async fn start_batch(shared: &Shared, batch: proto::FrameBatch) -> PendingBatch 
                 count,
             });
         }
-        let frame = match convert::frame_from_proto(msg)
+        let frame = match wire::frame_from_proto(msg)
             .map_err(EdgeRejection::from)
             .and_then(|f| check_against_scene(&f, &session.scene()).map(|()| f))
         {

@@ -1,4 +1,6 @@
-//! gRPC services and the wire contract. Only this module knows prost/tonic types.
+//! gRPC services over the wire contract. Only [`wire`](crate::wire) knows the
+//! generated message types; only this module knows tonic (transport, stubs,
+//! `Status`).
 //!
 //! Reading order (paths are absolute because `lib.rs` documents this module too):
 //! - [`run`](crate::service::run) wires everything and owns shutdown;
@@ -14,13 +16,11 @@
 //! - [`client`](crate::service::client) is the library side of `tofwave replay`
 //!   and `tofwave subscribe` ([`cli`](crate::service::cli)).
 
-/// Conversion between the wire `Frame` and the domain `Frame`, with validation that names the field.
-pub mod convert;
-
-/// Generated wire-contract types (`proto/tofwave/v1/*.proto`).
+/// Generated gRPC client and server stubs of `tofwave.v1` (tonic); their
+/// messages are [`wire::proto`](crate::wire::proto).
 #[allow(missing_docs, clippy::all)]
-pub mod proto {
-    tonic::include_proto!("tofwave.v1");
+pub mod grpc {
+    include!(concat!(env!("OUT_DIR"), "/grpc/tofwave.v1.rs"));
 
     /// Encoded file descriptor set, for gRPC reflection.
     pub const FILE_DESCRIPTOR_SET: &[u8] =
@@ -225,35 +225,35 @@ pub async fn run(
     let limit = config.max_message_bytes;
     use tonic::service::interceptor::InterceptedService;
     let ingest = InterceptedService::new(
-        proto::ingest_server::IngestServer::new(ingest::IngestService::new(shared.clone(), limit))
+        grpc::ingest_server::IngestServer::new(ingest::IngestService::new(shared.clone(), limit))
             .max_decoding_message_size(limit),
         auth.interceptor(auth::Access::Write),
     );
     let reports = InterceptedService::new(
-        proto::reports_server::ReportsServer::new(subscribe::ReportsService::new(shared.clone()))
+        grpc::reports_server::ReportsServer::new(subscribe::ReportsService::new(shared.clone()))
             .max_decoding_message_size(limit),
         auth.interceptor(auth::Access::Read),
     );
     let control = InterceptedService::new(
-        proto::control_server::ControlServer::new(control::ControlService::new(shared.clone()))
+        grpc::control_server::ControlServer::new(control::ControlService::new(shared.clone()))
             .max_decoding_message_size(limit),
         auth.interceptor(auth::Access::Write),
     );
 
     let (health, health_svc) = tonic_health::server::health_reporter();
     health
-        .set_serving::<proto::ingest_server::IngestServer<ingest::IngestService>>()
+        .set_serving::<grpc::ingest_server::IngestServer<ingest::IngestService>>()
         .await;
     health
-        .set_serving::<proto::reports_server::ReportsServer<subscribe::ReportsService>>()
+        .set_serving::<grpc::reports_server::ReportsServer<subscribe::ReportsService>>()
         .await;
     health
-        .set_serving::<proto::control_server::ControlServer<control::ControlService>>()
+        .set_serving::<grpc::control_server::ControlServer<control::ControlService>>()
         .await;
     // v1 for current grpcurl/grpcui, v1alpha for older tools.
     let reflection = || {
         tonic_reflection::server::Builder::configure()
-            .register_encoded_file_descriptor_set(proto::FILE_DESCRIPTOR_SET)
+            .register_encoded_file_descriptor_set(grpc::FILE_DESCRIPTOR_SET)
             .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
     };
     let reflection_v1 = reflection().build_v1().map_err(ServiceError::Reflection)?;
@@ -314,10 +314,10 @@ pub async fn run(
         tracing::info!("shutdown: draining");
         // Load balancers stop sending new work while the drain runs.
         health
-            .set_not_serving::<proto::ingest_server::IngestServer<ingest::IngestService>>()
+            .set_not_serving::<grpc::ingest_server::IngestServer<ingest::IngestService>>()
             .await;
         health
-            .set_not_serving::<proto::control_server::ControlServer<control::ControlService>>()
+            .set_not_serving::<grpc::control_server::ControlServer<control::ControlService>>()
             .await;
         let _ = notify_tx.send(true);
     });

@@ -1,8 +1,9 @@
 //! `Reports.Subscribe`: a filtered view of the fan-out per subscriber.
 
 use super::fanout::{Hub, Published};
-use super::{Shared, ShutdownSignal, proto};
+use super::{Shared, ShutdownSignal, grpc};
 use crate::telemetry;
+use crate::wire::proto;
 use std::collections::HashSet;
 use std::sync::Arc;
 use tokio::sync::{broadcast, mpsc};
@@ -27,7 +28,7 @@ impl ReportsService {
 pub type EventStream = ReceiverStream<Result<proto::ReportEvent, Status>>;
 
 #[tonic::async_trait]
-impl proto::reports_server::Reports for ReportsService {
+impl grpc::reports_server::Reports for ReportsService {
     type SubscribeStream = EventStream;
 
     async fn subscribe(

@@ -131,10 +131,9 @@ impl grpc::ingest_server::Ingest for IngestService {
         let shared = self.shared.clone();
         let limit = self.max_message_bytes;
         let (tx, rx) = mpsc::channel(4);
-        tokio::spawn(async move {
-            let mut shutdown = shared.shutdown.clone();
+        self.shared.tasks.spawn(async move {
             let _guard = shared.sessions.ingest_guard();
-            if shutdown.is_shutdown() {
+            if shared.shutdown.is_cancelled() {
                 let _ = tx
                     .send(Err(Status::unavailable("server is shutting down")))
                     .await;
@@ -160,7 +159,7 @@ impl grpc::ingest_server::Ingest for IngestService {
             loop {
                 let msg = tokio::select! {
                     biased;
-                    _ = shutdown.recv() => break,
+                    _ = shared.shutdown.cancelled() => break,
                     m = incoming.message() => m,
                 };
                 match msg {

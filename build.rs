@@ -24,8 +24,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         out_dir.join("tofwave_descriptor.bin"),
         prost::Message::encode_to_vec(&fds),
     )?;
-    // Messages: `OUT_DIR/tofwave.v1.rs`, included by `wire::proto`.
+    // Messages: `OUT_DIR/wire/tofwave.v1.rs`, included by `wire::proto`.
+    let wire_dir = out_dir.join("wire");
+    std::fs::create_dir_all(&wire_dir)?;
     tonic_prost_build::configure()
+        .out_dir(&wire_dir)
         .build_client(false)
         .build_server(false)
         // Sample payloads stay `bytes::Bytes`: decoding a batch does not copy them.

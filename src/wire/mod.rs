@@ -16,5 +16,5 @@ pub use report::{noise_from_proto, noise_to_proto, report_to_proto};
 /// Generated message types of `tofwave.v1` (prost only; no tonic).
 #[allow(missing_docs, clippy::all)]
 pub mod proto {
-    include!(concat!(env!("OUT_DIR"), "/tofwave.v1.rs"));
+    include!(concat!(env!("OUT_DIR"), "/wire/tofwave.v1.rs"));
 }

@@ -234,9 +234,12 @@ async fn start_batch(shared: &Shared, batch: proto::FrameBatch) -> PendingBatch 
         let sensor = msg.sensor_id.clone();
         let sequence = msg.sequence;
         let mut reject = |r: EdgeRejection, session: Option<&Session>| {
-            telemetry::frames_rejected(&sensor, r.reason, 1);
-            if let Some(s) = session {
-                s.stats.frames_rejected.fetch_add(1, Ordering::Relaxed);
+            match session {
+                Some(s) => {
+                    s.metrics.frames_rejected(r.reason, 1);
+                    s.stats.frames_rejected.fetch_add(1, Ordering::Relaxed);
+                }
+                None => telemetry::frames_rejected(&sensor, r.reason, 1),
             }
             ack.rejections.push(proto::Rejection {
                 sensor_id: sensor.clone(),
@@ -256,10 +259,13 @@ async fn start_batch(shared: &Shared, batch: proto::FrameBatch) -> PendingBatch 
             );
             continue;
         }
-        telemetry::frame_received(&sensor);
         let session = match shared.sessions.get_or_start(&sensor) {
-            Ok(s) => s,
+            Ok(s) => {
+                s.metrics.frame_received();
+                s
+            }
             Err(e) => {
+                telemetry::frame_received(&sensor);
                 let (reason, code) = match e {
                     StartError::Limit(_) => ("sensor_limit", "RESOURCE_EXHAUSTED"),
                     StartError::Build(_) => ("pipeline", "INTERNAL"),
@@ -350,7 +356,7 @@ async fn finish_batch(batch: PendingBatch, totals: &mut StreamTotals) -> proto::
             ))),
             // The worker is gone (it cannot answer): not processed.
             Err(_) => {
-                telemetry::frames_rejected(&p.sensor, "pipeline", 1);
+                p.session.metrics.frames_rejected("pipeline", 1);
                 p.session
                     .stats
                     .frames_rejected

@@ -8,9 +8,9 @@
 //! keep their order: one stream queues them in order, and the worker processes
 //! its queue in order.
 
-use super::Shared;
 use super::grpc;
 use super::session::{Session, StartError, Verdict};
+use super::{Shared, status};
 use crate::frame::{ChannelRole, Frame, channel_key};
 use crate::scene::Scene;
 use crate::telemetry;
@@ -170,8 +170,8 @@ impl grpc::ingest_server::Ingest for IngestService {
                         }
                     }
                     Ok(None) => break,
-                    Err(status) => {
-                        failure = Some(map_stream_error(status, limit));
+                    Err(e) => {
+                        failure = Some(status::ingest_stream(e, limit));
                         break;
                     }
                 }
@@ -192,20 +192,6 @@ impl grpc::ingest_server::Ingest for IngestService {
             );
         });
         Ok(Response::new(ReceiverStream::new(rx)))
-    }
-}
-
-/// An over-limit message fails in tonic's decoder (OUT_OF_RANGE); say it as
-/// the bad-input error it is, naming the limit. Other errors pass through.
-fn map_stream_error(status: Status, limit: usize) -> Status {
-    if status.code() == tonic::Code::OutOfRange && status.message().contains("too large") {
-        telemetry::frames_rejected("", "oversize", 1);
-        Status::invalid_argument(format!(
-            "FrameBatch: message exceeds the server's limit of {limit} bytes ({}); send smaller batches",
-            status.message()
-        ))
-    } else {
-        status
     }
 }
 

@@ -12,6 +12,7 @@
 //!   ([`subscribe`](crate::service::subscribe));
 //! - [`control`](crate::service::control) reads and changes sensor state;
 //! - [`auth`](crate::service::auth) checks bearer tokens;
+//! - `status` is the one place that maps errors to gRPC `Status`;
 //! - [`state`](crate::service::state) persists scenes and noise models;
 //! - [`client`](crate::service::client) is the library side of `tofwave replay`
 //!   and `tofwave subscribe` ([`cli`](crate::service::cli)).
@@ -36,6 +37,7 @@ pub mod ingest;
 mod metrics_http;
 pub mod session;
 pub mod state;
+mod status;
 pub mod subscribe;
 
 use crate::scene::Scene;

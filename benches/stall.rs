@@ -17,8 +17,8 @@ use tofwave::frame::Frame;
 use tofwave::physics::Simulator;
 use tofwave::scene::Scene;
 use tofwave::service::client::{self, ClientOptions};
-use tofwave::service::convert::frame_to_proto;
-use tofwave::service::proto::{self, report_event::Event};
+use tofwave::wire::frame_to_proto;
+use tofwave::wire::proto::{self, report_event::Event};
 use tofwave::service::{run, ServerConfig};
 use tokio::net::TcpListener;
 
@@ -65,7 +65,7 @@ async fn round(scene: &Scene, batches: &[proto::FrameBatch], stalled: bool) -> R
             .connect()
             .await
             .unwrap();
-        let mut rc = proto::reports_client::ReportsClient::new(channel);
+        let mut rc = tofwave::service::grpc::reports_client::ReportsClient::new(channel);
         Some(rc.subscribe(proto::SubscribeRequest::default()).await.unwrap().into_inner())
     } else {
         None

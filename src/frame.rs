@@ -1,6 +1,6 @@
 //! Domain types shared by every layer: frames in, reports out.
 //!
-//! No prost or tonic types here: `service::convert` maps the wire contract to
+//! No prost or tonic types here: `wire` maps the wire contract to
 //! and from these.
 
 use serde::Serialize;

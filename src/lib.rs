@@ -9,6 +9,8 @@
 
 /// Domain types: frames in, reports out. No wire types.
 pub mod frame;
+/// Wire contract: generated protobuf messages and their lossless, validating conversion to the domain types.
+pub mod wire;
 /// Scene: TOML description of a sensor set-up, validated at load, and the embedded default.
 pub mod scene;
 /// Pure numeric kernels: matched filter, interpolation, crossings, fits. No I/O.
@@ -23,7 +25,7 @@ pub mod calibrate;
 pub mod physics;
 /// Readers and writers of capture formats; replay source.
 pub mod capture;
-/// gRPC services, wire-contract conversion, fan-out, sessions, shutdown.
+/// gRPC services, fan-out, sessions, shutdown.
 pub mod service;
 /// Metric names and recording functions; tracing set-up.
 pub mod telemetry;

@@ -6,6 +6,7 @@
 //! Per-sensor metrics carry a `sensor` label (sensor counts are small: one
 //! label value per digitiser).
 
+use metrics::{Counter, Gauge, Histogram};
 use metrics_exporter_prometheus::{Matcher, PrometheusBuilder, PrometheusHandle};
 use std::sync::OnceLock;
 use std::time::Duration;
@@ -75,38 +76,137 @@ pub fn prometheus_handle() -> PrometheusHandle {
         .clone()
 }
 
-/// A frame was decoded from an ingest message.
+/// Values of the `reason` label of [`FRAMES_REJECTED`].
+pub const REJECT_REASONS: [&str; 9] = [
+    "invalid_frame",
+    "sample_rate",
+    "samples_per_frame",
+    "missing_stop",
+    "pipeline",
+    "panic",
+    "oversize",
+    "sensor_limit",
+    "shutdown",
+];
+
+/// One sensor's metric handles, kept by its session. Building a labelled
+/// metric key allocates (the label value and the label list), so each handle
+/// is registered on first use and reused after: recording allocates nothing
+/// per frame. A series still appears on its first use, as it would without
+/// the cache.
+pub struct SensorMetrics {
+    /// Value of the `sensor` label.
+    sensor: String,
+    /// [`FRAMES_RECEIVED`].
+    frames_received: OnceLock<Counter>,
+    /// [`FRAMES_PROCESSED`].
+    frames_processed: OnceLock<Counter>,
+    /// [`PROCESSING_SECONDS`].
+    processing_seconds: OnceLock<Histogram>,
+    /// [`FRAMES_REJECTED`], one per entry of [`REJECT_REASONS`].
+    frames_rejected: [OnceLock<Counter>; REJECT_REASONS.len()],
+    /// [`REPORTS`].
+    reports: OnceLock<Counter>,
+    /// [`RETURNS`].
+    returns: OnceLock<Counter>,
+    /// [`SEQUENCE_GAPS`].
+    sequence_gaps: OnceLock<Counter>,
+    /// [`QUEUE_DEPTH`].
+    queue_depth: OnceLock<Gauge>,
+    /// [`FRAMES_RECORDED`].
+    frames_recorded: OnceLock<Counter>,
+}
+
+impl SensorMetrics {
+    /// Handles of `sensor`'s metrics (none registered yet).
+    pub fn new(sensor: &str) -> Self {
+        SensorMetrics {
+            sensor: sensor.to_string(),
+            frames_received: OnceLock::new(),
+            frames_processed: OnceLock::new(),
+            processing_seconds: OnceLock::new(),
+            frames_rejected: Default::default(),
+            reports: OnceLock::new(),
+            returns: OnceLock::new(),
+            sequence_gaps: OnceLock::new(),
+            queue_depth: OnceLock::new(),
+            frames_recorded: OnceLock::new(),
+        }
+    }
+
+    /// The counter `name` of this sensor, registered on first use.
+    fn counter<'a>(&self, cell: &'a OnceLock<Counter>, name: &'static str) -> &'a Counter {
+        cell.get_or_init(|| metrics::counter!(name, "sensor" => self.sensor.clone()))
+    }
+
+    /// A frame was decoded from an ingest message.
+    pub fn frame_received(&self) {
+        self.counter(&self.frames_received, FRAMES_RECEIVED)
+            .increment(1);
+    }
+
+    /// A frame was processed; `latency` runs from enqueue to the end of processing.
+    pub fn frame_processed(&self, latency: Duration) {
+        self.counter(&self.frames_processed, FRAMES_PROCESSED)
+            .increment(1);
+        self.processing_seconds
+            .get_or_init(
+                || metrics::histogram!(PROCESSING_SECONDS, "sensor" => self.sensor.clone()),
+            )
+            .record(latency.as_secs_f64());
+    }
+
+    /// `count` frames were refused for `reason` (one of [`REJECT_REASONS`]).
+    pub fn frames_rejected(&self, reason: &'static str, count: u64) {
+        match REJECT_REASONS.iter().position(|r| *r == reason) {
+            Some(i) => self.frames_rejected[i]
+                .get_or_init(|| {
+                    metrics::counter!(FRAMES_REJECTED, "sensor" => self.sensor.clone(), "reason" => reason)
+                })
+                .increment(count),
+            // Not in the list: still counted, through a fresh key.
+            None => frames_rejected(&self.sensor, reason, count),
+        }
+    }
+
+    /// A report with `returns` returns was published.
+    pub fn report_published(&self, returns: usize) {
+        self.counter(&self.reports, REPORTS).increment(1);
+        self.counter(&self.returns, RETURNS)
+            .increment(returns as u64);
+    }
+
+    /// `missing` sequence numbers were skipped.
+    pub fn sequence_gap(&self, missing: u64) {
+        self.counter(&self.sequence_gaps, SEQUENCE_GAPS)
+            .increment(missing);
+    }
+
+    /// Current depth of the sensor's pipeline queue, frames.
+    pub fn queue_depth(&self, depth: usize) {
+        self.queue_depth
+            .get_or_init(|| metrics::gauge!(QUEUE_DEPTH, "sensor" => self.sensor.clone()))
+            .set(depth as f64);
+    }
+
+    /// A frame was written to a recording.
+    pub fn frame_recorded(&self) {
+        self.counter(&self.frames_recorded, FRAMES_RECORDED)
+            .increment(1);
+    }
+}
+
+/// A frame was decoded from an ingest message of a sensor that has no
+/// session (sessions use [`SensorMetrics`]).
 pub fn frame_received(sensor: &str) {
     metrics::counter!(FRAMES_RECEIVED, "sensor" => sensor.to_string()).increment(1);
 }
 
-/// A frame was processed; `latency` runs from enqueue to the end of processing.
-pub fn frame_processed(sensor: &str, latency: Duration) {
-    metrics::counter!(FRAMES_PROCESSED, "sensor" => sensor.to_string()).increment(1);
-    metrics::histogram!(PROCESSING_SECONDS, "sensor" => sensor.to_string())
-        .record(latency.as_secs_f64());
-}
-
-/// `count` frames were refused for `reason` (one of the labels in [`FRAMES_REJECTED`]).
+/// `count` frames were refused for `reason` (one of [`REJECT_REASONS`]), for
+/// a sensor without a session (sessions use [`SensorMetrics`]).
 pub fn frames_rejected(sensor: &str, reason: &'static str, count: u64) {
     metrics::counter!(FRAMES_REJECTED, "sensor" => sensor.to_string(), "reason" => reason)
         .increment(count);
-}
-
-/// A report with `returns` returns was published.
-pub fn report_published(sensor: &str, returns: usize) {
-    metrics::counter!(REPORTS, "sensor" => sensor.to_string()).increment(1);
-    metrics::counter!(RETURNS, "sensor" => sensor.to_string()).increment(returns as u64);
-}
-
-/// `missing` sequence numbers were skipped by a sensor.
-pub fn sequence_gap(sensor: &str, missing: u64) {
-    metrics::counter!(SEQUENCE_GAPS, "sensor" => sensor.to_string()).increment(missing);
-}
-
-/// Current depth of a sensor's pipeline queue, frames.
-pub fn queue_depth(sensor: &str, depth: usize) {
-    metrics::gauge!(QUEUE_DEPTH, "sensor" => sensor.to_string()).set(depth as f64);
 }
 
 /// A subscriber fell behind and `skipped` reports were dropped for it.
@@ -117,9 +217,4 @@ pub fn subscriber_lagged(skipped: u64) {
 /// A subscription opened (`+1`) or closed (`-1`).
 pub fn subscribers_changed(delta: f64) {
     metrics::gauge!(SUBSCRIBERS).increment(delta);
-}
-
-/// A frame was written to a recording.
-pub fn frame_recorded(sensor: &str) {
-    metrics::counter!(FRAMES_RECORDED, "sensor" => sensor.to_string()).increment(1);
 }

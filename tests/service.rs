@@ -12,10 +12,10 @@ use tofwave::frame::{Channel, ChannelRole, Frame, Samples};
 use tofwave::pipeline::report_json;
 use tofwave::scene::Scene;
 use tofwave::service::client::{self, BatchLimits, ClientOptions, Clients, Rate};
-use tofwave::service::convert::frame_to_proto;
-use tofwave::service::proto::{self, report_event::Event};
 use tofwave::service::session::build_pipeline;
 use tofwave::service::{ServerConfig, ServiceError, run};
+use tofwave::wire::frame_to_proto;
+use tofwave::wire::proto::{self, report_event::Event};
 use tokio::net::TcpListener;
 use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
@@ -221,7 +221,7 @@ async fn small_window_subscribe(url: &str) -> tonic::Streaming<proto::ReportEven
         .connect()
         .await
         .unwrap();
-    let mut c = proto::reports_client::ReportsClient::new(channel);
+    let mut c = tofwave::service::grpc::reports_client::ReportsClient::new(channel);
     c.subscribe(proto::SubscribeRequest::default())
         .await
         .unwrap()
@@ -1059,4 +1059,68 @@ async fn concurrent_streams_per_connection_are_limited() {
             .is_ok()
     );
     server.shutdown().await.unwrap();
+}
+
+/// Counts this thread's heap allocations, so a test can assert that a code
+/// path allocates nothing while other tests' threads run alongside.
+mod counting {
+    use std::alloc::{GlobalAlloc, Layout, System};
+    use std::cell::Cell;
+
+    thread_local! {
+        /// Allocations made by this thread so far.
+        pub static ALLOCATIONS: Cell<u64> = const { Cell::new(0) };
+    }
+
+    /// The system allocator, counting.
+    pub struct Counting;
+
+    // SAFETY: forwards to `System`; the counter is a const-initialised
+    // thread-local `Cell` (no allocation, no destructor).
+    unsafe impl GlobalAlloc for Counting {
+        unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+            let _ = ALLOCATIONS.try_with(|c| c.set(c.get() + 1));
+            unsafe { System.alloc(layout) }
+        }
+
+        unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+            unsafe { System.dealloc(ptr, layout) }
+        }
+    }
+}
+
+#[global_allocator]
+static ALLOCATOR: counting::Counting = counting::Counting;
+
+#[test]
+fn sensor_metrics_record_without_allocating_after_first_use() {
+    use tofwave::telemetry::SensorMetrics;
+    let _ = tofwave::telemetry::prometheus_handle();
+    let m = SensorMetrics::new("alloc-free");
+    // The processing histogram is left out: the exporter stores its samples
+    // in blocks it allocates as they fill, however the handle is kept.
+    let record = |m: &SensorMetrics| {
+        m.frame_received();
+        m.frames_rejected("pipeline", 1);
+        m.report_published(3);
+        m.sequence_gap(1);
+        m.queue_depth(2);
+        m.frame_recorded();
+    };
+    record(&m); // registers the handles
+    let before = counting::ALLOCATIONS.with(|c| c.get());
+    for _ in 0..100 {
+        record(&m);
+    }
+    let allocations = counting::ALLOCATIONS.with(|c| c.get()) - before;
+    assert_eq!(allocations, 0, "allocations while recording 100 frames");
+    let text = tofwave::telemetry::prometheus_handle().render();
+    assert_eq!(
+        metric_in(
+            &text,
+            "tofwave_frames_received_total",
+            &[("sensor", "alloc-free")]
+        ),
+        Some(101.0)
+    );
 }

@@ -14,9 +14,9 @@ use super::BenchError;
 use super::grid::reference_frames;
 use crate::scene::Scene;
 use crate::service::client::{self, ClientOptions};
-use crate::service::convert::frame_to_proto;
-use crate::service::proto::{self, report_event::Event};
 use crate::service::{ServerConfig, run};
+use crate::wire::frame_to_proto;
+use crate::wire::proto::{self, report_event::Event};
 
 /// Frames per `FrameBatch` message of the load generator.
 const BATCH_FRAMES: usize = 32;

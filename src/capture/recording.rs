@@ -5,7 +5,7 @@
 //! `tofwave.v1.Frame` messages, each preceded by its length as a protobuf
 //! varint (prost's `encode_length_delimited`). The file ends at a message
 //! boundary; a cut anywhere else is reported as truncation. Frames are
-//! converted with `service::convert`, which keeps every sample type exactly
+//! converted with [`wire`](crate::wire), which keeps every sample type exactly
 //! (f64 samples travel as `SAMPLE_FORMAT_F64`), so reading a recording gives
 //! back identical frames, sensor ids and sequence numbers included.
 
@@ -16,8 +16,7 @@ use prost::Message;
 
 use super::CaptureError;
 use crate::frame::Frame;
-use crate::service::convert::{frame_from_proto, frame_to_proto};
-use crate::service::proto;
+use crate::wire::{frame_from_proto, frame_to_proto, proto};
 
 /// First bytes of every recording.
 pub const RECORDING_MAGIC: &[u8] = b"TOFWAVE-REC\n";

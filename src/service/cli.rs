@@ -2,9 +2,10 @@
 //! `tofwave subscribe`; `main.rs` parses and calls these.
 
 use super::client::{self, BatchLimits, ClientOptions, Rate};
-use super::{ServerConfig, TlsPem, proto};
+use super::{ServerConfig, TlsPem};
 use crate::capture;
 use crate::scene::Scene;
+use crate::wire::proto;
 use anyhow::Context;
 use std::io::Write;
 use std::net::SocketAddr;

@@ -2,9 +2,9 @@
 //! frames and collect acknowledgements, replay captures at a chosen pace, and
 //! subscribe to reports.
 
-use super::convert::frame_to_proto;
-use super::proto;
+use super::grpc;
 use crate::frame::Frame;
+use crate::wire::{frame_to_proto, proto};
 use prost::Message;
 use std::fmt::Display;
 use std::time::Duration;
@@ -84,14 +84,13 @@ impl Interceptor for BearerToken {
 }
 
 /// Ingest client with the bearer token attached.
-pub type IngestClient =
-    proto::ingest_client::IngestClient<InterceptedService<Channel, BearerToken>>;
+pub type IngestClient = grpc::ingest_client::IngestClient<InterceptedService<Channel, BearerToken>>;
 /// Reports client with the bearer token attached.
 pub type ReportsClient =
-    proto::reports_client::ReportsClient<InterceptedService<Channel, BearerToken>>;
+    grpc::reports_client::ReportsClient<InterceptedService<Channel, BearerToken>>;
 /// Control client with the bearer token attached.
 pub type ControlClient =
-    proto::control_client::ControlClient<InterceptedService<Channel, BearerToken>>;
+    grpc::control_client::ControlClient<InterceptedService<Channel, BearerToken>>;
 
 /// The three clients over one connection.
 pub struct Clients {
@@ -130,17 +129,14 @@ pub async fn connect(url: &str, opts: &ClientOptions) -> Result<Clients, ClientE
         .max_message_bytes
         .unwrap_or(super::DEFAULT_MAX_MESSAGE_BYTES);
     Ok(Clients {
-        ingest: proto::ingest_client::IngestClient::with_interceptor(
+        ingest: grpc::ingest_client::IngestClient::with_interceptor(channel.clone(), token.clone())
+            .max_decoding_message_size(limit),
+        reports: grpc::reports_client::ReportsClient::with_interceptor(
             channel.clone(),
             token.clone(),
         )
         .max_decoding_message_size(limit),
-        reports: proto::reports_client::ReportsClient::with_interceptor(
-            channel.clone(),
-            token.clone(),
-        )
-        .max_decoding_message_size(limit),
-        control: proto::control_client::ControlClient::with_interceptor(channel, token)
+        control: grpc::control_client::ControlClient::with_interceptor(channel, token)
             .max_decoding_message_size(limit),
     })
 }

@@ -1,9 +1,9 @@
 //! `Control`: list sensors, read and change scenes, read noise models and status.
 
-use super::fanout::noise_to_proto;
-use super::session::{Session, StartError};
-use super::{ServiceError, Shared, proto};
-use crate::scene::{Scene, SceneError};
+use super::session::Session;
+use super::{Shared, grpc, status};
+use crate::scene::Scene;
+use crate::wire::{noise_to_proto, proto};
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use tonic::{Request, Response, Status};
@@ -27,25 +27,6 @@ impl ControlService {
     }
 }
 
-/// The one place that maps service errors to gRPC status.
-impl From<ServiceError> for Status {
-    fn from(e: ServiceError) -> Status {
-        match e {
-            ServiceError::Scene { .. } => Status::invalid_argument(e.to_string()),
-            _ => Status::internal(e.to_string()),
-        }
-    }
-}
-
-/// A bad scene: the message names the field (dotted path or TOML key).
-fn scene_status(e: SceneError) -> Status {
-    let msg = match &e {
-        SceneError::Invalid { error, .. } => format!("toml: {error}"),
-        _ => format!("toml: {e}"),
-    };
-    Status::invalid_argument(msg)
-}
-
 /// Status of one session on the wire.
 pub fn status_of(s: &Session) -> proto::SensorStatus {
     let st = &s.stats;
@@ -63,7 +44,7 @@ pub fn status_of(s: &Session) -> proto::SensorStatus {
 }
 
 #[tonic::async_trait]
-impl proto::control_server::Control for ControlService {
+impl grpc::control_server::Control for ControlService {
     async fn list_sensors(
         &self,
         _request: Request<proto::ListSensorsRequest>,
@@ -108,27 +89,21 @@ impl proto::control_server::Control for ControlService {
         } else {
             format!("SetScene({})", req.sensor_id)
         };
-        let scene = Scene::from_toml_str(&req.toml, &origin).map_err(scene_status)?;
+        let scene = Scene::from_toml_str(&req.toml, &origin).map_err(status::scene)?;
         if req.sensor_id.is_empty() {
             // Building once proves the scene makes a pipeline before it is stored.
-            super::session::build_pipeline(&scene, "default")
-                .map_err(|m| Status::invalid_argument(format!("toml: {m}")))?;
+            super::session::build_pipeline(&scene, "default").map_err(status::pipeline_build)?;
             self.shared.sessions.set_default_scene(scene.clone())?;
         } else {
-            let session =
-                self.shared
-                    .sessions
-                    .get_or_start(&req.sensor_id)
-                    .map_err(|e| match e {
-                        StartError::Limit(_) => {
-                            Status::resource_exhausted(format!("sensor_id: {e}"))
-                        }
-                        StartError::Build(m) => Status::invalid_argument(format!("toml: {m}")),
-                    })?;
+            let session = self
+                .shared
+                .sessions
+                .get_or_start(&req.sensor_id)
+                .map_err(status::start)?;
             session
                 .set_scene(scene.clone())
                 .await
-                .map_err(|m| Status::invalid_argument(format!("toml: {m}")))?;
+                .map_err(status::pipeline_build)?;
             self.shared.sessions.persist_scene(&req.sensor_id, &scene)?;
         }
         tracing::info!(sensor = %req.sensor_id, scene = %scene.name, "scene set");

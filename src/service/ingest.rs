@@ -8,12 +8,13 @@
 //! keep their order: one stream queues them in order, and the worker processes
 //! its queue in order.
 
-use super::convert::{self, ConvertError};
+use super::grpc;
 use super::session::{Session, StartError, Verdict};
-use super::{Shared, proto};
+use super::{Shared, status};
 use crate::frame::{ChannelRole, Frame, channel_key};
 use crate::scene::Scene;
 use crate::telemetry;
+use crate::wire::{self, ConvertError, proto};
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use tokio::sync::{mpsc, oneshot};
@@ -54,8 +55,8 @@ impl From<ConvertError> for EdgeRejection {
     fn from(e: ConvertError) -> Self {
         EdgeRejection {
             reason: "invalid_frame",
-            field: e.field,
-            message: e.message,
+            field: e.field().to_string(),
+            message: e.message().to_string(),
         }
     }
 }
@@ -118,7 +119,7 @@ struct StreamTotals {
 }
 
 #[tonic::async_trait]
-impl proto::ingest_server::Ingest for IngestService {
+impl grpc::ingest_server::Ingest for IngestService {
     type PushStream = ReceiverStream<Result<proto::IngestAck, Status>>;
 
     async fn push(
@@ -130,10 +131,9 @@ impl proto::ingest_server::Ingest for IngestService {
         let shared = self.shared.clone();
         let limit = self.max_message_bytes;
         let (tx, rx) = mpsc::channel(4);
-        tokio::spawn(async move {
-            let mut shutdown = shared.shutdown.clone();
+        self.shared.tasks.spawn(async move {
             let _guard = shared.sessions.ingest_guard();
-            if shutdown.is_shutdown() {
+            if shared.shutdown.is_cancelled() {
                 let _ = tx
                     .send(Err(Status::unavailable("server is shutting down")))
                     .await;
@@ -159,7 +159,7 @@ impl proto::ingest_server::Ingest for IngestService {
             loop {
                 let msg = tokio::select! {
                     biased;
-                    _ = shutdown.recv() => break,
+                    _ = shared.shutdown.cancelled() => break,
                     m = incoming.message() => m,
                 };
                 match msg {
@@ -170,8 +170,8 @@ impl proto::ingest_server::Ingest for IngestService {
                         }
                     }
                     Ok(None) => break,
-                    Err(status) => {
-                        failure = Some(map_stream_error(status, limit));
+                    Err(e) => {
+                        failure = Some(status::ingest_stream(e, limit));
                         break;
                     }
                 }
@@ -192,20 +192,6 @@ impl proto::ingest_server::Ingest for IngestService {
             );
         });
         Ok(Response::new(ReceiverStream::new(rx)))
-    }
-}
-
-/// An over-limit message fails in tonic's decoder (OUT_OF_RANGE); say it as
-/// the bad-input error it is, naming the limit. Other errors pass through.
-fn map_stream_error(status: Status, limit: usize) -> Status {
-    if status.code() == tonic::Code::OutOfRange && status.message().contains("too large") {
-        telemetry::frames_rejected("", "oversize", 1);
-        Status::invalid_argument(format!(
-            "FrameBatch: message exceeds the server's limit of {limit} bytes ({}); send smaller batches",
-            status.message()
-        ))
-    } else {
-        status
     }
 }
 
@@ -234,9 +220,12 @@ async fn start_batch(shared: &Shared, batch: proto::FrameBatch) -> PendingBatch 
         let sensor = msg.sensor_id.clone();
         let sequence = msg.sequence;
         let mut reject = |r: EdgeRejection, session: Option<&Session>| {
-            telemetry::frames_rejected(&sensor, r.reason, 1);
-            if let Some(s) = session {
-                s.stats.frames_rejected.fetch_add(1, Ordering::Relaxed);
+            match session {
+                Some(s) => {
+                    s.metrics.frames_rejected(r.reason, 1);
+                    s.stats.frames_rejected.fetch_add(1, Ordering::Relaxed);
+                }
+                None => telemetry::frames_rejected(&sensor, r.reason, 1),
             }
             ack.rejections.push(proto::Rejection {
                 sensor_id: sensor.clone(),
@@ -256,10 +245,13 @@ async fn start_batch(shared: &Shared, batch: proto::FrameBatch) -> PendingBatch 
             );
             continue;
         }
-        telemetry::frame_received(&sensor);
         let session = match shared.sessions.get_or_start(&sensor) {
-            Ok(s) => s,
+            Ok(s) => {
+                s.metrics.frame_received();
+                s
+            }
             Err(e) => {
+                telemetry::frame_received(&sensor);
                 let (reason, code) = match e {
                     StartError::Limit(_) => ("sensor_limit", "RESOURCE_EXHAUSTED"),
                     StartError::Build(_) => ("pipeline", "INTERNAL"),
@@ -290,7 +282,7 @@ async fn start_batch(shared: &Shared, batch: proto::FrameBatch) -> PendingBatch 
                 count,
             });
         }
-        let frame = match convert::frame_from_proto(msg)
+        let frame = match wire::frame_from_proto(msg)
             .map_err(EdgeRejection::from)
             .and_then(|f| check_against_scene(&f, &session.scene()).map(|()| f))
         {
@@ -350,7 +342,7 @@ async fn finish_batch(batch: PendingBatch, totals: &mut StreamTotals) -> proto::
             ))),
             // The worker is gone (it cannot answer): not processed.
             Err(_) => {
-                telemetry::frames_rejected(&p.sensor, "pipeline", 1);
+                p.session.metrics.frames_rejected("pipeline", 1);
                 p.session
                     .stats
                     .frames_rejected

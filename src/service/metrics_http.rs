@@ -2,10 +2,10 @@
 //! (one request per connection), so the endpoint shares the server's runtime
 //! and shutdown instead of the exporter's own listener.
 
-use super::ShutdownSignal;
 use metrics_exporter_prometheus::PrometheusHandle;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpListener, TcpStream};
+use tokio_util::sync::CancellationToken;
 
 /// Largest request head read, bytes.
 const MAX_REQUEST_BYTES: usize = 8192;
@@ -13,12 +13,12 @@ const MAX_REQUEST_BYTES: usize = 8192;
 pub(crate) async fn serve(
     listener: TcpListener,
     handle: PrometheusHandle,
-    mut shutdown: ShutdownSignal,
+    shutdown: CancellationToken,
 ) {
     tracing::info!(addr = ?listener.local_addr().ok(), "metrics endpoint");
     loop {
         let conn = tokio::select! {
-            _ = shutdown.recv() => return,
+            _ = shutdown.cancelled() => return,
             c = listener.accept() => c,
         };
         match conn {

@@ -1,4 +1,6 @@
-//! gRPC services and the wire contract. Only this module knows prost/tonic types.
+//! gRPC services over the wire contract. Only [`wire`](crate::wire) knows the
+//! generated message types; only this module knows tonic (transport, stubs,
+//! `Status`).
 //!
 //! Reading order (paths are absolute because `lib.rs` documents this module too):
 //! - [`run`](crate::service::run) wires everything and owns shutdown;
@@ -10,17 +12,16 @@
 //!   ([`subscribe`](crate::service::subscribe));
 //! - [`control`](crate::service::control) reads and changes sensor state;
 //! - [`auth`](crate::service::auth) checks bearer tokens;
+//! - `status` is the one place that maps errors to gRPC `Status`;
 //! - [`state`](crate::service::state) persists scenes and noise models;
 //! - [`client`](crate::service::client) is the library side of `tofwave replay`
 //!   and `tofwave subscribe` ([`cli`](crate::service::cli)).
 
-/// Conversion between the wire `Frame` and the domain `Frame`, with validation that names the field.
-pub mod convert;
-
-/// Generated wire-contract types (`proto/tofwave/v1/*.proto`).
+/// Generated gRPC client and server stubs of `tofwave.v1` (tonic); their
+/// messages are [`wire::proto`](crate::wire::proto).
 #[allow(missing_docs, clippy::all)]
-pub mod proto {
-    tonic::include_proto!("tofwave.v1");
+pub mod grpc {
+    include!(concat!(env!("OUT_DIR"), "/grpc/tofwave.v1.rs"));
 
     /// Encoded file descriptor set, for gRPC reflection.
     pub const FILE_DESCRIPTOR_SET: &[u8] =
@@ -36,6 +37,7 @@ pub mod ingest;
 mod metrics_http;
 pub mod session;
 pub mod state;
+mod status;
 pub mod subscribe;
 
 use crate::scene::Scene;
@@ -43,8 +45,9 @@ use std::future::Future;
 use std::path::PathBuf;
 use std::sync::Arc;
 use tokio::net::TcpListener;
-use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::TcpListenerStream;
+use tokio_util::sync::CancellationToken;
+use tokio_util::task::TaskTracker;
 use tonic::transport::{Identity, Server, ServerTlsConfig};
 
 /// Everything `run` needs besides the listener. [`ServerConfig::default`] is a
@@ -151,37 +154,17 @@ pub enum ServiceError {
     },
 }
 
-/// Tells long-lived tasks that shutdown began, and lets `run` wait for them:
-/// every task holds a clone of `_done`; when all are dropped the receiver ends
-/// (the mini-redis pattern).
-#[derive(Clone)]
-pub(crate) struct ShutdownSignal {
-    /// Flips to `true` once when shutdown begins.
-    rx: watch::Receiver<bool>,
-    /// Dropped when the holding task ends.
-    _done: mpsc::Sender<()>,
-}
-
-impl ShutdownSignal {
-    /// True once shutdown has begun.
-    pub(crate) fn is_shutdown(&self) -> bool {
-        *self.rx.borrow()
-    }
-
-    /// Resolves when shutdown begins (at once if it already has).
-    pub(crate) async fn recv(&mut self) {
-        let _ = self.rx.wait_for(|s| *s).await;
-    }
-}
-
 /// Shared state of one server: sessions, fan-out and configuration.
 pub(crate) struct Shared {
     /// Per-sensor sessions.
     pub(crate) sessions: session::Sessions,
     /// Report fan-out and history.
     pub(crate) hub: Arc<fanout::Hub>,
-    /// Template for task shutdown handles.
-    pub(crate) shutdown: ShutdownSignal,
+    /// Cancelled once, when shutdown begins: streams stop taking new work.
+    pub(crate) shutdown: CancellationToken,
+    /// Long-lived tasks (ingest streams, subscriptions, the metrics
+    /// endpoint): after the drain, `run` waits until every one has ended.
+    pub(crate) tasks: TaskTracker,
 }
 
 /// Serves Ingest, Reports and Control (plus health and reflection) on
@@ -195,12 +178,8 @@ pub async fn run(
     shutdown: impl Future,
 ) -> Result<(), ServiceError> {
     let local = listener.local_addr().ok();
-    let (notify_tx, notify_rx) = watch::channel(false);
-    let (done_tx, mut done_rx) = mpsc::channel::<()>(1);
-    let signal = ShutdownSignal {
-        rx: notify_rx,
-        _done: done_tx,
-    };
+    let shutdown_begun = CancellationToken::new();
+    let tasks = TaskTracker::new();
 
     let hub = Arc::new(fanout::Hub::new(
         config.subscriber_buffer,
@@ -218,42 +197,43 @@ pub async fn run(
     let shared = Arc::new(Shared {
         sessions,
         hub: hub.clone(),
-        shutdown: signal.clone(),
+        shutdown: shutdown_begun.clone(),
+        tasks: tasks.clone(),
     });
 
     let auth = auth::Tokens::new(config.write_token.clone(), config.read_token.clone());
     let limit = config.max_message_bytes;
     use tonic::service::interceptor::InterceptedService;
     let ingest = InterceptedService::new(
-        proto::ingest_server::IngestServer::new(ingest::IngestService::new(shared.clone(), limit))
+        grpc::ingest_server::IngestServer::new(ingest::IngestService::new(shared.clone(), limit))
             .max_decoding_message_size(limit),
         auth.interceptor(auth::Access::Write),
     );
     let reports = InterceptedService::new(
-        proto::reports_server::ReportsServer::new(subscribe::ReportsService::new(shared.clone()))
+        grpc::reports_server::ReportsServer::new(subscribe::ReportsService::new(shared.clone()))
             .max_decoding_message_size(limit),
         auth.interceptor(auth::Access::Read),
     );
     let control = InterceptedService::new(
-        proto::control_server::ControlServer::new(control::ControlService::new(shared.clone()))
+        grpc::control_server::ControlServer::new(control::ControlService::new(shared.clone()))
             .max_decoding_message_size(limit),
         auth.interceptor(auth::Access::Write),
     );
 
     let (health, health_svc) = tonic_health::server::health_reporter();
     health
-        .set_serving::<proto::ingest_server::IngestServer<ingest::IngestService>>()
+        .set_serving::<grpc::ingest_server::IngestServer<ingest::IngestService>>()
         .await;
     health
-        .set_serving::<proto::reports_server::ReportsServer<subscribe::ReportsService>>()
+        .set_serving::<grpc::reports_server::ReportsServer<subscribe::ReportsService>>()
         .await;
     health
-        .set_serving::<proto::control_server::ControlServer<control::ControlService>>()
+        .set_serving::<grpc::control_server::ControlServer<control::ControlService>>()
         .await;
     // v1 for current grpcurl/grpcui, v1alpha for older tools.
     let reflection = || {
         tonic_reflection::server::Builder::configure()
-            .register_encoded_file_descriptor_set(proto::FILE_DESCRIPTOR_SET)
+            .register_encoded_file_descriptor_set(grpc::FILE_DESCRIPTOR_SET)
             .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
     };
     let reflection_v1 = reflection().build_v1().map_err(ServiceError::Reflection)?;
@@ -263,8 +243,7 @@ pub async fn run(
 
     let metrics_task = config.metrics_listener.map(|l| {
         let handle = crate::telemetry::prometheus_handle();
-        let sig = signal.clone();
-        tokio::spawn(metrics_http::serve(l, handle, sig))
+        tasks.spawn(metrics_http::serve(l, handle, shutdown_begun.clone()))
     });
     // Make sure the recorder exists even without an endpoint, so counters count.
     let _ = crate::telemetry::prometheus_handle();
@@ -297,36 +276,32 @@ pub async fn run(
     // The drainer runs once shutdown begins, concurrently with tonic's graceful
     // shutdown, which waits for the streams the drainer ends.
     let drain_shared = shared.clone();
-    let mut drain_signal = signal.clone();
-    drop(signal);
+    let drain_begun = shutdown_begun.clone();
     let drainer = tokio::spawn(async move {
-        drain_signal.recv().await;
-        drop(drain_signal);
+        drain_begun.cancelled().await;
         drain(drain_shared).await
     });
-    // `shared` holds a ShutdownSignal too; the drainer's copy keeps it alive.
     drop(shared);
 
-    let mut begun = notify_tx.subscribe();
-    let begun_tx = notify_tx.clone();
+    let begin = shutdown_begun.clone();
     let serve = router.serve_with_incoming_shutdown(TcpListenerStream::new(listener), async move {
         shutdown.await;
         tracing::info!("shutdown: draining");
         // Load balancers stop sending new work while the drain runs.
         health
-            .set_not_serving::<proto::ingest_server::IngestServer<ingest::IngestService>>()
+            .set_not_serving::<grpc::ingest_server::IngestServer<ingest::IngestService>>()
             .await;
         health
-            .set_not_serving::<proto::control_server::ControlServer<control::ControlService>>()
+            .set_not_serving::<grpc::control_server::ControlServer<control::ControlService>>()
             .await;
-        let _ = notify_tx.send(true);
+        begin.cancel();
     });
     tokio::pin!(serve);
     // Phase 1: serve until shutdown begins (or the transport fails).
     tokio::select! {
         served = &mut serve => {
             // The transport ended by itself: still drain what was accepted.
-            let _ = begun_tx.send(true);
+            shutdown_begun.cancel();
             let drained = tokio::time::timeout(config.drain_timeout, drainer).await;
             served?;
             return match drained {
@@ -335,7 +310,7 @@ pub async fn run(
                 Err(_) => Ok(()),
             };
         }
-        _ = async { let _ = begun.wait_for(|b| *b).await.is_ok(); } => {}
+        _ = shutdown_begun.cancelled() => {}
     }
     // Phase 2: drain, bounded. Clients that stop reading can hold their
     // streams (and so tonic's graceful shutdown) open forever; past the
@@ -344,8 +319,9 @@ pub async fn run(
     let finished = tokio::time::timeout(drain_timeout, async {
         let served = serve.await;
         let drained = drainer.await;
-        // Every task holding a shutdown handle has ended once this returns.
-        let _ = done_rx.recv().await;
+        // Every long-lived task has ended once this returns.
+        tasks.close();
+        tasks.wait().await;
         (served, drained)
     })
     .await;
@@ -367,8 +343,8 @@ pub async fn run(
     }
 }
 
-/// Shutdown order: ingest streams finish their batch and end (they hold
-/// shutdown handles, counted by `sessions.wait_ingest`), then sessions close their
+/// Shutdown order: ingest streams finish their batch and end (counted by
+/// `sessions.wait_ingest_idle`), then sessions close their
 /// queues and their workers process what is queued and flush, then the hub
 /// closes so subscribers receive the last reports and see their streams end.
 async fn drain(shared: Arc<Shared>) -> Result<(), ServiceError> {

@@ -89,6 +89,8 @@ pub struct Session {
     scene: Mutex<Arc<Scene>>,
     /// Counters.
     pub stats: Stats,
+    /// The sensor's metric handles (labelled once, not per frame).
+    pub metrics: telemetry::SensorMetrics,
     /// Latest noise model (from the pipeline, or reloaded from the state dir).
     noise: Mutex<Option<NoiseSummary>>,
     /// Last sequence number seen at the edge, for gap detection.
@@ -149,7 +151,7 @@ impl Session {
         self.stats.last_sequence.store(seq, Ordering::Relaxed);
         if let Some((_, n)) = gap {
             self.stats.sequence_gaps.fetch_add(n, Ordering::Relaxed);
-            telemetry::sequence_gap(&self.sensor, n);
+            self.metrics.sequence_gap(n);
         }
         gap
     }
@@ -170,7 +172,7 @@ impl Session {
         })
         .await
         .map_err(|_| QueueError::Closed)?;
-        telemetry::queue_depth(&self.sensor, tx.max_capacity() - tx.capacity());
+        self.metrics.queue_depth(tx.max_capacity() - tx.capacity());
         Ok(rx)
     }
 
@@ -340,6 +342,7 @@ impl Sessions {
             tx: Mutex::new(Some(tx)),
             scene: Mutex::new(Arc::new(scene)),
             stats: Stats::default(),
+            metrics: telemetry::SensorMetrics::new(sensor),
             noise: Mutex::new(None),
             last_seq: Mutex::new(None),
             worker: Mutex::new(None),
@@ -437,7 +440,7 @@ impl Worker {
                 } => {
                     if let Some(w) = &mut self.recorder {
                         match w.write_frame(&frame) {
-                            Ok(()) => telemetry::frame_recorded(&sensor),
+                            Ok(()) => self.session.metrics.frame_recorded(),
                             Err(e) => {
                                 tracing::error!(sensor = %sensor, error = %e, "recording stopped");
                                 self.recorder = None;
@@ -451,14 +454,14 @@ impl Worker {
                                 .stats
                                 .frames_processed
                                 .fetch_add(1, Ordering::Relaxed);
-                            telemetry::frame_processed(&sensor, enqueued.elapsed());
+                            self.session.metrics.frame_processed(enqueued.elapsed());
                         }
                         Verdict::Refused(e) => {
                             self.session
                                 .stats
                                 .frames_rejected
                                 .fetch_add(1, Ordering::Relaxed);
-                            telemetry::frames_rejected(&sensor, "pipeline", 1);
+                            self.session.metrics.frames_rejected("pipeline", 1);
                             tracing::debug!(sensor = %sensor, error = %e, "pipeline refused frame");
                         }
                         Verdict::Panicked(m) => {
@@ -466,12 +469,12 @@ impl Worker {
                                 .stats
                                 .frames_rejected
                                 .fetch_add(1, Ordering::Relaxed);
-                            telemetry::frames_rejected(&sensor, "panic", 1);
+                            self.session.metrics.frames_rejected("panic", 1);
                             tracing::error!(sensor = %sensor, message = %m, "pipeline panicked; rebuilt");
                         }
                     }
                     self.publish(&mut reports);
-                    telemetry::queue_depth(&sensor, rx.len());
+                    self.session.metrics.queue_depth(rx.len());
                     let _ = done.send(verdict);
                 }
                 Job::SetScene { scene, done } => {
@@ -534,7 +537,7 @@ impl Worker {
             st.reports.fetch_add(1, Ordering::Relaxed);
             st.returns
                 .fetch_add(r.returns.len() as u64, Ordering::Relaxed);
-            telemetry::report_published(&self.session.sensor, r.returns.len());
+            self.session.metrics.report_published(r.returns.len());
             self.hub.publish(r);
         }
     }

@@ -6,10 +6,9 @@
 //! percent-encoded into file names. Files are written to a temporary name and
 //! renamed, so a crash never leaves half a scene.
 
-use super::fanout::{noise_from_proto, noise_to_proto};
-use super::proto;
 use crate::frame::NoiseSummary;
 use crate::scene::Scene;
+use crate::wire::{noise_from_proto, noise_to_proto, proto};
 use prost::Message;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};

@@ -1,12 +1,14 @@
 //! `Reports.Subscribe`: a filtered view of the fan-out per subscriber.
 
 use super::fanout::{Hub, Published};
-use super::{Shared, ShutdownSignal, proto};
+use super::{Shared, grpc};
 use crate::telemetry;
+use crate::wire::proto;
 use std::collections::HashSet;
 use std::sync::Arc;
 use tokio::sync::{broadcast, mpsc};
 use tokio_stream::wrappers::ReceiverStream;
+use tokio_util::task::TaskTracker;
 use tonic::{Request, Response, Status};
 
 /// Events buffered per subscriber between its forwarding task and gRPC.
@@ -27,7 +29,7 @@ impl ReportsService {
 pub type EventStream = ReceiverStream<Result<proto::ReportEvent, Status>>;
 
 #[tonic::async_trait]
-impl proto::reports_server::Reports for ReportsService {
+impl grpc::reports_server::Reports for ReportsService {
     type SubscribeStream = EventStream;
 
     async fn subscribe(
@@ -44,28 +46,27 @@ impl proto::reports_server::Reports for ReportsService {
         }
         tracing::info!(sensors = ?req.sensor_ids, min_snr_db = ?req.min_snr_db,
             resume = ?req.resume_from_sequence, "subscriber joined");
-        subscription_stream(&self.shared.hub, &req, self.shared.shutdown.clone())
+        subscription_stream(&self.shared.hub, &req, &self.shared.tasks)
             .map(Response::new)
             .ok_or_else(|| Status::unavailable("server is shutting down"))
     }
 }
 
-/// Starts the forwarding task of one subscription. The stream ends (cleanly)
-/// when the hub closes at shutdown, after the last reports; `None` when the
-/// hub is already closed.
+/// Starts the forwarding task of one subscription on `tasks` (so `run` waits
+/// for it). The stream ends (cleanly) when the hub closes at shutdown, after
+/// the last reports; `None` when the hub is already closed.
 pub(crate) fn subscription_stream(
     hub: &Hub,
     req: &proto::SubscribeRequest,
-    shutdown: ShutdownSignal,
+    tasks: &TaskTracker,
 ) -> Option<EventStream> {
     let sensors: HashSet<String> = req.sensor_ids.iter().cloned().collect();
     let wanted = move |s: &str| sensors.is_empty() || sensors.contains(s);
     let sub = hub.subscribe(req.resume_from_sequence, &wanted)?;
     let min_snr_db = req.min_snr_db;
     let (tx, rx) = mpsc::channel(FORWARD_BUFFER);
-    tokio::spawn(async move {
-        // Held so that `run` waits for this task; the hub closing ends it.
-        let _shutdown = shutdown;
+    // The hub closing ends this task.
+    tasks.spawn(async move {
         telemetry::subscribers_changed(1.0);
         forward(sub.backlog, sub.live, &wanted, min_snr_db, &tx).await;
         telemetry::subscribers_changed(-1.0);
@@ -116,7 +117,6 @@ async fn forward(
 mod tests {
     use super::*;
     use crate::frame::{Report, Return};
-    use tokio::sync::watch;
     use tokio_stream::StreamExt;
 
     fn report(sensor: &str, seq: u64, snrs: &[f64]) -> Report {
@@ -135,12 +135,6 @@ mod tests {
                 .collect(),
             ..Default::default()
         }
-    }
-
-    fn signal() -> (watch::Sender<bool>, ShutdownSignal) {
-        let (tx, rx) = watch::channel(false);
-        let (done, _) = mpsc::channel(1);
-        (tx, ShutdownSignal { rx, _done: done })
     }
 
     fn req(sensors: &[&str], min: Option<f64>, resume: Option<u64>) -> proto::SubscribeRequest {
@@ -172,8 +166,8 @@ mod tests {
     #[tokio::test]
     async fn slow_subscriber_gets_lag_marker_then_continues() {
         let hub = Hub::new(4, 0);
-        let (_tx, sig) = signal();
-        let stream = subscription_stream(&hub, &req(&[], None, None), sig).unwrap();
+        let tasks = TaskTracker::new();
+        let stream = subscription_stream(&hub, &req(&[], None, None), &tasks).unwrap();
         // The forwarder parks on a full 16-event buffer; the broadcast keeps 4.
         // 100 reports overflow both, whatever the task interleaving.
         for i in 0..100 {
@@ -204,8 +198,8 @@ mod tests {
     #[tokio::test]
     async fn filters_by_sensor_and_snr() {
         let hub = Hub::new(64, 0);
-        let (_tx, sig) = signal();
-        let stream = subscription_stream(&hub, &req(&["b"], Some(10.0), None), sig).unwrap();
+        let tasks = TaskTracker::new();
+        let stream = subscription_stream(&hub, &req(&["b"], Some(10.0), None), &tasks).unwrap();
         hub.publish(report("a", 0, &[20.0]));
         hub.publish(report("b", 1, &[5.0, 12.0]));
         hub.close();
@@ -231,8 +225,8 @@ mod tests {
         for i in 0..5 {
             hub.publish(report("a", i, &[]));
         }
-        let (_tx, sig) = signal();
-        let stream = subscription_stream(&hub, &req(&[], None, Some(3)), sig).unwrap();
+        let tasks = TaskTracker::new();
+        let stream = subscription_stream(&hub, &req(&[], None, Some(3)), &tasks).unwrap();
         hub.publish(report("a", 5, &[]));
         hub.close();
         let got: Vec<u64> = seqs(&collect(stream).await)

@@ -6,28 +6,45 @@
 //! domain frame decodes to an identical frame. Decoding validates everything a
 //! sender can get wrong and names the offending field
 //! (`channels[1].samples`, `sample_interval_s`, ...), because the message goes
-//! straight back to the sender as `INVALID_ARGUMENT`.
+//! straight back to the sender (the gRPC service answers `INVALID_ARGUMENT`).
 
 use bytes::Bytes;
 
+use super::proto;
 use crate::frame::{Channel, ChannelRole, Frame, Samples};
-use crate::service::proto;
 
-/// A wire frame that does not make a valid domain frame.
+/// A wire message that does not make a valid domain value.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
-#[error("{field}: {message}")]
-pub struct ConvertError {
-    /// Path of the offending field, e.g. `channels[1].samples` or `sample_interval_s`.
-    pub field: String,
-    /// What is wrong with it (expected vs found).
-    pub message: String,
+pub enum ConvertError {
+    /// A field holds a value the domain type cannot take.
+    #[error("{field}: {message}")]
+    InvalidField {
+        /// Path of the offending field, e.g. `channels[1].samples` or `sample_interval_s`.
+        field: String,
+        /// What is wrong with it (expected vs found).
+        message: String,
+    },
 }
 
 impl ConvertError {
     fn new(field: impl Into<String>, message: impl Into<String>) -> Self {
-        ConvertError {
+        ConvertError::InvalidField {
             field: field.into(),
             message: message.into(),
+        }
+    }
+
+    /// Path of the offending field, e.g. `channels[1].samples`.
+    pub fn field(&self) -> &str {
+        match self {
+            ConvertError::InvalidField { field, .. } => field,
+        }
+    }
+
+    /// What is wrong with the field (expected vs found).
+    pub fn message(&self) -> &str {
+        match self {
+            ConvertError::InvalidField { message, .. } => message,
         }
     }
 }
@@ -372,16 +389,16 @@ mod tests {
         let mut m = good.clone();
         m.channels[1].samples = Bytes::from_static(&[1, 2, 3]);
         let e = err(&m);
-        assert_eq!(e.field, "channels[1].samples");
-        assert!(e.message.contains("multiple of 2"), "{e}");
+        assert_eq!(e.field(), "channels[1].samples");
+        assert!(e.message().contains("multiple of 2"), "{e}");
 
         let mut m = good.clone();
         m.channels[2].format = 0;
-        assert_eq!(err(&m).field, "channels[2].format");
+        assert_eq!(err(&m).field(), "channels[2].format");
         m.channels[2].format = 42;
         let e = err(&m);
-        assert_eq!(e.field, "channels[2].format");
-        assert!(e.message.contains("42"), "{e}");
+        assert_eq!(e.field(), "channels[2].format");
+        assert!(e.message().contains("42"), "{e}");
 
         let mut m = good.clone();
         m.channels[3].samples = Bytes::from(
@@ -391,46 +408,46 @@ mod tests {
                 .collect::<Vec<u8>>(),
         );
         let e = err(&m);
-        assert_eq!(e.field, "channels[3].samples");
-        assert!(e.message.contains("index 1"), "{e}");
+        assert_eq!(e.field(), "channels[3].samples");
+        assert!(e.message().contains("index 1"), "{e}");
 
         let mut m = good.clone();
         m.channels[4].samples = Bytes::from(f64::INFINITY.to_le_bytes().repeat(3));
-        assert_eq!(err(&m).field, "channels[4].samples");
+        assert_eq!(err(&m).field(), "channels[4].samples");
 
         for dt in [0.0, -1e-9, f64::NAN, f64::INFINITY] {
             let mut m = good.clone();
             m.sample_interval_s = dt;
-            assert_eq!(err(&m).field, "sample_interval_s");
+            assert_eq!(err(&m).field(), "sample_interval_s");
         }
 
         let mut m = good.clone();
         m.channels[1].samples = Bytes::from_static(&[0, 0, 1, 0]);
         let e = err(&m);
-        assert_eq!(e.field, "channels[1].samples");
-        assert!(e.message.contains("expected 3 samples"), "{e}");
+        assert_eq!(e.field(), "channels[1].samples");
+        assert!(e.message().contains("expected 3 samples"), "{e}");
 
         let mut m = good.clone();
         m.channels.clear();
-        assert_eq!(err(&m).field, "channels");
+        assert_eq!(err(&m).field(), "channels");
 
         for vpc in [0.0, f64::NAN] {
             let mut m = good.clone();
             m.channels[0].volts_per_code = vpc;
-            assert_eq!(err(&m).field, "channels[0].volts_per_code");
+            assert_eq!(err(&m).field(), "channels[0].volts_per_code");
         }
 
         let mut m = good.clone();
         m.channels[0].role = 9;
-        assert_eq!(err(&m).field, "channels[0].role");
+        assert_eq!(err(&m).field(), "channels[0].role");
 
         let mut m = good.clone();
         m.channels[0].offset_v = f64::NAN;
-        assert_eq!(err(&m).field, "channels[0].offset_v");
+        assert_eq!(err(&m).field(), "channels[0].offset_v");
 
         let mut m = good.clone();
         m.trigger_time_s = f64::NAN;
-        assert_eq!(err(&m).field, "trigger_time_s");
+        assert_eq!(err(&m).field(), "trigger_time_s");
     }
 
     #[test]

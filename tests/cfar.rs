@@ -11,7 +11,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 use tofwave::detect::cfar::{CfarMethod, CfarPlan};
-use tofwave::detect::detector::DetectorPlan;
+use tofwave::detect::kernels::DetectorPlan;
 use tofwave::detect::qfunc::q_inv;
 use tofwave::detect::stats::clopper_pearson;
 use tofwave::dsp::pulse::Shape;

@@ -4,7 +4,7 @@
 
 use std::path::Path;
 use std::sync::{Arc, Mutex};
-use tofwave::detect::noise::Moments;
+use tofwave::detect::noise_model::Moments;
 use tofwave::dsp::pulse::Shape;
 use tofwave::frame::Report;
 use tofwave::physics::{Simulator, Truth};

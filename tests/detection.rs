@@ -169,7 +169,7 @@ fn learned_template_is_within_twice_the_bound() {
 
 #[test]
 fn probability_of_detection_follows_theory() {
-    use tofwave::detect::detector::DetectorPlan;
+    use tofwave::detect::kernels::DetectorPlan;
     let sc = scene(TimingMethod::PeakParabolic);
     let shape = Shape::from_config(&sc.return_pulse, 1e-9);
     let mut plan = DetectorPlan::matched_filter(&shape, N);

@@ -9,7 +9,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal, StandardNormal};
 
-use tofwave::dsp::average::{
+use tofwave::dsp::accumulate::{
     CodeAccumulator, add_codes_i8, add_codes_i16, add_codes_i32, add_f64, div_round,
     mean_from_sums, median, robust_average, trimmed_mean,
 };

@@ -689,7 +689,7 @@ fn report_threshold_monte_carlo_deep_tail() {
 
 // ---------------------------------------------------------------- noise ----
 
-use tofwave::detect::noise::{Moments, NoiseFitter, NoiseTracker, autocorrelation, welch_psd};
+use tofwave::detect::noise_model::{Moments, NoiseFitter, NoiseTracker, autocorrelation, welch_psd};
 
 fn normals(n: usize, seed: u64) -> Vec<f64> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);

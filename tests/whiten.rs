@@ -11,7 +11,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 use std::sync::{Arc, Mutex};
-use tofwave::detect::detector::DetectorPlan;
+use tofwave::detect::kernels::DetectorPlan;
 use tofwave::detect::finite_gate::detection_probability;
 use tofwave::detect::qfunc::{q, q_inv};
 use tofwave::detect::stats::clopper_pearson;

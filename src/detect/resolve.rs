@@ -8,7 +8,7 @@
 //! does not match the data; no further pulse is sought under it (such a
 //! residual is the mismatch, not a second return) and it is flagged.
 
-use super::detector::DetectorPlan;
+use super::kernels::DetectorPlan;
 use crate::dsp::mlfit::fit_delay;
 use crate::dsp::pulse::{PulseShape, Shape};
 use std::ops::Range;

@@ -102,7 +102,7 @@ impl ArModel {
 
     /// One-sided power spectral density of the model, V²/Hz, at frequency
     /// `f_hz` for sampling period `dt_s`: 2 E_p dt / |A(e^{iω})|² (for a
-    /// comparison with [`super::noise::welch_psd`]).
+    /// comparison with [`super::noise_model::welch_psd`]).
     pub fn psd(&self, f_hz: f64, dt_s: f64) -> f64 {
         let w = 2.0 * std::f64::consts::PI * f_hz * dt_s;
         let (mut re, mut im) = (0.0, 0.0);

@@ -29,7 +29,7 @@
 use super::{FrameError, Stage, Work};
 use crate::detect::cfar::{CfarMethod, CfarPlan};
 use crate::detect::colour::NoiseColour;
-use crate::detect::detector::{local_maxima, local_maxima_above, upcrossings, upcrossings_above, DetectorPlan};
+use crate::detect::kernels::{local_maxima, local_maxima_above, upcrossings, upcrossings_above, DetectorPlan};
 use crate::detect::whiten::{ArModel, AutocovarianceAccumulator, Whitener};
 use crate::detect::extreme::{threshold_for_report, ReportThreshold};
 use crate::detect::finite_gate::{mean_error_inflation, t_quantile_from_z};

@@ -4,13 +4,13 @@
 //! Integer ADC codes are summed in `i64`, which is exact for any realistic
 //! number of frames: |code| ≤ 2^15 for i16, so 2^48 frames (~9 years at 1 MHz)
 //! fit, and the mean is then formed once, correctly rounded
-//! ([`mean_from_sums`](crate::dsp::average::mean_from_sums)). The result
+//! ([`mean_from_sums`](crate::dsp::accumulate::mean_from_sums)). The result
 //! depends on the number of frames only through the 1/N scaling, never through
 //! rounding of a running sum.
 //!
 //! The `add_*` kernels are written as fixed-size chunks so they auto-vectorise;
 //! on x86-64 an AVX2 copy is chosen at run time.
-//! [`CodeAccumulator`](crate::dsp::average::CodeAccumulator) goes one
+//! [`CodeAccumulator`](crate::dsp::accumulate::CodeAccumulator) goes one
 //! step further for narrow codes: it sums frames in `i32` lanes (half the
 //! memory traffic and twice the SIMD width of `i64`) and flushes into the
 //! `i64` totals before an `i32` could overflow.

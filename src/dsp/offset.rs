@@ -6,7 +6,7 @@
 //! the median (or a trimmed mean) of the gate moves little when a few samples
 //! are wild, where the plain mean would follow them.
 
-use crate::dsp::average::trimmed_mean;
+use crate::dsp::accumulate::trimmed_mean;
 
 /// How one frame's offset is estimated from its gate samples.
 #[derive(Debug, Clone, Copy, PartialEq)]

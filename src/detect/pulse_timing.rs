@@ -197,7 +197,7 @@ fn leading_edge(input: &TimingInput) -> Option<Timed> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::detect::detector::DetectorPlan;
+    use crate::detect::kernels::DetectorPlan;
 
     fn synth(pulse: &Shape, peak: f64, amp: f64, n: usize) -> Vec<f64> {
         (0..n).map(|k| 0.01 + amp * pulse.value_and_slope(k as f64 - peak).0).collect()

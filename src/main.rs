@@ -6,6 +6,7 @@ use std::io::Write;
 use std::path::PathBuf;
 use tofwave::capture::{self, Format, ReadOptions};
 use tofwave::frame::Report;
+use tofwave::math::select::high_median;
 use tofwave::pipeline::{report_json, Pipeline};
 use tofwave::scene::{CalibrationFile, CalibrationMeasurement, Scene, TimingMethod, DEFAULT_SCENE_TOML};
 
@@ -460,12 +461,10 @@ fn calibrate(a: CalibrateArgs) -> Result<i32> {
         bail!("no returns detected in {} reports: nothing to calibrate on", reports.len());
     }
     // Outliers (a false alarm taken for the target) are rejected beyond 5 robust sigmas of the median.
-    let mut sorted = delays.clone();
-    sorted.sort_by(f64::total_cmp);
-    let median = sorted[sorted.len() / 2];
-    let mut dev: Vec<f64> = sorted.iter().map(|d| (d - median).abs()).collect();
-    dev.sort_by(f64::total_cmp);
-    let robust = 1.4826 * dev[dev.len() / 2];
+    let mut scratch = delays.clone();
+    let median = high_median(&mut scratch).expect("delays is not empty");
+    let mut dev: Vec<f64> = scratch.iter().map(|d| (d - median).abs()).collect();
+    let robust = 1.4826 * high_median(&mut dev).expect("delays is not empty");
     let keep: Vec<usize> = (0..delays.len())
         .filter(|&i| robust == 0.0 || (delays[i] - median).abs() <= 5.0 * robust)
         .collect();

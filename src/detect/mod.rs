@@ -1,10 +1,6 @@
 //! Detection: noise model, Neyman-Pearson thresholds, detectors, timing and
 //! false-alarm statistics. Plain synchronous code.
 
-/// Gaussian tail Q(x), its logarithm and inverse; per-cell probabilities.
-pub mod qfunc;
-/// Confidence intervals and normality tests.
-pub mod stats;
 /// Noise-gate moments and the fitted noise model.
 pub mod noise_model;
 /// Noise colour (pooled gate autocorrelation) and the detector output's sigma.

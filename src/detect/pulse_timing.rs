@@ -1,5 +1,8 @@
 //! Timing of one pulse: the instant its leading edge crosses a fraction of its
 //! peak, by the method the scene chooses, with its one-sigma uncertainty.
+//!
+//! Named `pulse_timing` (not `timing`) because `pipeline::timing` is the
+//! stage; this module times one pulse, the stage times every return.
 
 use crate::dsp::crossing;
 use crate::dsp::interp;

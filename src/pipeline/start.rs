@@ -5,7 +5,7 @@
 
 use super::{FrameError, Stage, Work};
 use crate::detect::kernels::DetectorPlan;
-use crate::detect::noise_model::mad_sigma;
+use crate::math::select::mad_sigma;
 use crate::detect::phase::PhaseBias;
 use crate::detect::pulse_timing::{time_pulse, TimingInput};
 use crate::dsp::pulse::Shape;

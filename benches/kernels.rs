@@ -11,9 +11,9 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 
-use tofwave::detect::detector::{local_maxima, upcrossings};
-use tofwave::detect::noise::NoiseFitter;
-use tofwave::dsp::average::{CodeAccumulator, add_codes_i16, add_f64};
+use tofwave::detect::kernels::{local_maxima, upcrossings};
+use tofwave::detect::noise_model::NoiseFitter;
+use tofwave::dsp::accumulate::{CodeAccumulator, add_codes_i16, add_f64};
 use tofwave::dsp::correlate::{CorrelationMethod, Correlator};
 use tofwave::dsp::fracdelay::FractionalDelay;
 use tofwave::dsp::mlfit::fit_delay;

@@ -9,6 +9,7 @@
 
 use crate::detect::walk::{fit_walk, WalkError, WalkFit, WalkTable};
 use crate::frame::Report;
+use crate::math::select::high_median;
 use crate::scene::{CalibrationConfig, CalibrationFile, CalibrationMeasurement, Scene};
 
 /// Why no calibration could be measured.
@@ -64,12 +65,10 @@ pub fn calibrate(
         return Err(CalibrateError::NoReturns { reports: reports.len() });
     }
     // Outliers (a false alarm taken for the target) are rejected beyond 5 robust sigmas of the median.
-    let mut sorted = delays.clone();
-    sorted.sort_by(f64::total_cmp);
-    let median = sorted[sorted.len() / 2];
-    let mut dev: Vec<f64> = sorted.iter().map(|d| (d - median).abs()).collect();
-    dev.sort_by(f64::total_cmp);
-    let robust = 1.4826 * dev[dev.len() / 2];
+    let mut scratch = delays.clone();
+    let median = high_median(&mut scratch).expect("delays is not empty");
+    let mut dev: Vec<f64> = delays.iter().map(|d| (d - median).abs()).collect();
+    let robust = 1.4826 * high_median(&mut dev).expect("delays is not empty");
     let keep: Vec<usize> = (0..delays.len())
         .filter(|&i| robust == 0.0 || (delays[i] - median).abs() <= 5.0 * robust)
         .collect();
@@ -96,9 +95,8 @@ pub fn calibrate(
             .collect();
         used = fit.counts.iter().sum();
         n = used as f64;
-        let mut sorted: Vec<f64> = residuals.iter().map(|v| v.abs()).collect();
-        sorted.sort_by(f64::total_cmp);
-        let cut = 5.0 * 1.4826 * sorted[sorted.len() / 2];
+        let mut abs: Vec<f64> = residuals.iter().map(|v| v.abs()).collect();
+        let cut = 5.0 * 1.4826 * high_median(&mut abs).expect("fit_walk kept at least one return");
         let kept: Vec<f64> = residuals.iter().copied().filter(|v| cut == 0.0 || v.abs() <= cut).collect();
         let rm = kept.iter().sum::<f64>() / kept.len() as f64;
         var = kept.iter().map(|v| (v - rm).powi(2)).sum::<f64>() / (kept.len() as f64 - 1.0).max(1.0);

@@ -13,6 +13,8 @@ pub mod frame;
 pub mod wire;
 /// Scene: TOML description of a sensor set-up, validated at load, and the embedded default.
 pub mod scene;
+/// Numerics with no domain knowledge: special functions, statistics, dense solver, autocovariance, selection. Depends on std only.
+pub mod math;
 /// Pure numeric kernels: matched filter, interpolation, crossings, fits. No I/O.
 pub mod dsp;
 /// Noise model, Q-function and thresholds, detectors, timing, false-alarm statistics.

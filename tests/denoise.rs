@@ -3,8 +3,8 @@
 //! seed-like frames (replay-data/scenes/burst-1m83.toml) with ground truth.
 
 use std::sync::{Arc, Mutex};
-use tofwave::detect::noise::Moments;
-use tofwave::detect::stats::clopper_pearson;
+use tofwave::detect::noise_model::Moments;
+use tofwave::math::stats::clopper_pearson;
 use tofwave::dsp::pulse::Shape;
 use tofwave::frame::Report;
 use tofwave::physics::{Simulator, Truth};
@@ -192,7 +192,7 @@ fn burst_cancellation_removes_spurious_returns_without_weakening_the_return() {
     let cells = 1100.0;
     det.threshold_v = out_m.mean()
         + out_m.variance().sqrt()
-            * tofwave::detect::qfunc::q_inv(tofwave::detect::qfunc::per_cell_pfa(1e-6, cells));
+            * tofwave::math::special::q_inv(tofwave::math::special::per_cell_pfa(1e-6, cells));
     let (_, _, fx_clean, _) = run_fixed(&clean, &sim_clean, seed, frames, Some(&det));
     let (plain, truths, fx_plain, _) = run_fixed(&with_bursts, &sim, seed, frames, Some(&det));
     let with = |m: DenoiseMethod| {

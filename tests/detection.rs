@@ -7,8 +7,9 @@ mod common;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
-use tofwave::detect::finite_gate::{detection_probability, mean_error_inflation, t_quantile_from_z};
-use tofwave::detect::qfunc::{q, q_inv};
+use tofwave::detect::finite_gate::{detection_probability, mean_error_inflation};
+use tofwave::math::stats::t_quantile_from_z;
+use tofwave::math::special::{q, q_inv};
 use tofwave::detect::template::TemplateLearner;
 use tofwave::dsp::pulse::{PulseShape, Shape};
 use tofwave::frame::{Channel, ChannelRole, Frame};
@@ -169,7 +170,7 @@ fn learned_template_is_within_twice_the_bound() {
 
 #[test]
 fn probability_of_detection_follows_theory() {
-    use tofwave::detect::detector::DetectorPlan;
+    use tofwave::detect::kernels::DetectorPlan;
     let sc = scene(TimingMethod::PeakParabolic);
     let shape = sc.return_pulse.shape(1e-9);
     let mut plan = DetectorPlan::matched_filter(&shape, N);

@@ -9,10 +9,11 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal, StandardNormal};
 
-use tofwave::dsp::average::{
+use tofwave::dsp::accumulate::{
     CodeAccumulator, add_codes_i8, add_codes_i16, add_codes_i32, add_f64, div_round,
-    mean_from_sums, median, robust_average, trimmed_mean,
+    mean_from_sums, robust_average,
 };
+use tofwave::math::select::{median, trimmed_mean};
 use tofwave::dsp::correlate::{CorrelationMethod, Correlator};
 use tofwave::dsp::fracdelay::{FractionalDelay, shift};
 use tofwave::dsp::mlfit::{FitOptions, fit_delay, fit_delay_with};

@@ -9,7 +9,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 use std::sync::{Arc, Mutex};
-use tofwave::detect::noise::NoiseFitter;
+use tofwave::detect::noise_model::NoiseFitter;
 use tofwave::frame::{Channel, ChannelRole, Frame, NoiseSummary};
 use tofwave::pipeline::Pipeline;
 use tofwave::scene::Scene;

@@ -6,7 +6,7 @@
 //! Measured maximum errors are printed (`cargo test --release --test
 //! numerics -- --nocapture`).
 
-use tofwave::detect::qfunc::{erfc, ln_q, ln_q_inv, per_cell_pfa, q, q_inv};
+use tofwave::math::special::{erfc, ln_q, ln_q_inv, per_cell_pfa, q, q_inv};
 
 /// One table: rows of decimal strings, header and `#` comments skipped.
 fn table(text: &str) -> Vec<Vec<&str>> {
@@ -77,7 +77,7 @@ fn decimal_residual(p_str: &str, p: f64) -> Option<f64> {
 fn check_qinv(p_str: &str, want: f64, table_name: &str) -> f64 {
     let p = num(p_str);
     let got = q_inv(p);
-    let phi = tofwave::detect::qfunc::phi(want);
+    let phi = tofwave::math::special::phi(want);
     let (want, input_rounding) = match decimal_residual(p_str, p) {
         Some(res) => (want + res / phi, 0.0),
         // half an ulp of p: relative for normal p, absolute 2^-1075 for subnormal p
@@ -132,7 +132,7 @@ fn q_inv_matches_boost_erfc_inv_tables() {
             let got = q_inv(p);
             let err = (got - want).abs();
             // the reference times √2 rounds twice (2 EPS), plus the rounding of the decimal x
-            let bound = 1e-14 * want.abs() + EPS * p / tofwave::detect::qfunc::phi(want);
+            let bound = 1e-14 * want.abs() + EPS * p / tofwave::math::special::phi(want);
             assert!(
                 err <= bound,
                 "{name}: q_inv({p:e}) = {got:e}, want {want:e}"
@@ -394,7 +394,7 @@ fn per_cell_pfa_is_accurate_at_the_extremes() {
 
 // ---------------------------------------------------------------- stats ----
 
-use tofwave::detect::stats::{
+use tofwave::math::stats::{
     binomial_acceptance_counts, binomial_two_sided_interval_99, clopper_pearson,
     clopper_pearson_alpha, jarque_bera, poisson_interval, poisson_interval_alpha,
 };
@@ -689,7 +689,7 @@ fn report_threshold_monte_carlo_deep_tail() {
 
 // ---------------------------------------------------------------- noise ----
 
-use tofwave::detect::noise::{Moments, NoiseFitter, NoiseTracker, autocorrelation, welch_psd};
+use tofwave::detect::noise_model::{Moments, NoiseFitter, NoiseTracker, autocorrelation, welch_psd};
 
 fn normals(n: usize, seed: u64) -> Vec<f64> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);

@@ -7,7 +7,7 @@ use std::time::Instant;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use crate::dsp::average::CodeAccumulator;
+use crate::dsp::accumulate::CodeAccumulator;
 
 /// Copy-loop and averaging throughput over a stream larger than the caches.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -34,8 +34,8 @@
 //! estimate mixes both levels: cells on the quiet side are desensitised and
 //! cells on the loud side see more false alarms, as with every CA/OS-CFAR.
 
-use super::qfunc::{ln_phi, ln_q};
-use super::stats::beta_inc_reg;
+use crate::math::special::{ln_phi, ln_q};
+use crate::math::stats::beta_inc_reg;
 
 /// Which local scale estimate a [`CfarPlan`] uses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

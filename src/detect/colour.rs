@@ -18,6 +18,8 @@
 //! (the colour is a property of the receiver, slow to change) so that a single
 //! short gate does not make the threshold jitter.
 
+use crate::math::autocov::lag_product_sum;
+
 /// Pooled autocovariance of noise-gate samples, lags 0..=max_lag.
 #[derive(Debug, Clone)]
 pub struct NoiseColour {
@@ -35,8 +37,6 @@ pub struct NoiseColour {
     added: f64,
     /// Changes whenever the sums do (callers cache what they derive).
     version: u64,
-    /// Scratch: one segment minus the mean (kept, so frames allocate nothing).
-    centred: Vec<f64>,
 }
 
 /// Pooled samples beyond which old sums are halved, so that the estimate
@@ -57,7 +57,6 @@ impl NoiseColour {
             frames: 0,
             added: 0.0,
             version: 0,
-            centred: Vec::new(),
         }
     }
 
@@ -88,21 +87,16 @@ impl NoiseColour {
         self.version += 1;
         let lags = self.sums.len();
         let total = segments.iter().map(|s| s.len()).sum::<usize>() as f64;
-        let mut centred = std::mem::take(&mut self.centred);
         for seg in segments {
-            centred.clear();
-            centred.extend(seg.iter().map(|v| v - mean));
-            let n = centred.len();
+            let n = seg.len();
             for k in 0..lags.min(n) {
                 // Per-frame partial sum first: the pooled sum then adds values
                 // of similar size, frame after frame.
-                let s: f64 = centred[..n - k].iter().zip(&centred[k..]).map(|(a, b)| a * b).sum();
-                self.sums[k] += s;
+                self.sums[k] += lag_product_sum(seg, k, mean);
                 self.counts[k] += (n - k) as f64;
                 self.centring[k] += (n - k) as f64 / total;
             }
         }
-        self.centred = centred;
     }
 
     /// Normalised autocorrelation ρ(0..=K) (ρ(0) = 1; K is `max_lag` or a

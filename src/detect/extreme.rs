@@ -35,7 +35,7 @@
 //! below e⁻⁵⁰), and the whole probability is carried in logarithms, so
 //! u up to ~38 (p_report down to 1e-300 with n = 1e9) stays accurate.
 
-use super::qfunc::{ln_phi, ln_q, ln_q_inv, q};
+use crate::math::special::{ln_phi, ln_q, ln_q_inv, q};
 
 const LN_SQRT_2PI: f64 = 0.918_938_533_204_672_8;
 /// Simpson intervals for the Owen's T integral (even).
@@ -194,7 +194,7 @@ pub fn threshold_for_report(p_report: f64, n: usize, rho1: f64) -> ReportThresho
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::detect::qfunc::{per_cell_pfa, q_inv};
+    use crate::math::special::{per_cell_pfa, q_inv};
 
     #[test]
     fn white_noise_reduces_to_independent_cells() {

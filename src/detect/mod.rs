@@ -1,12 +1,8 @@
 //! Detection: noise model, Neyman-Pearson thresholds, detectors, timing and
 //! false-alarm statistics. Plain synchronous code.
 
-/// Gaussian tail Q(x), its logarithm and inverse; per-cell probabilities.
-pub mod qfunc;
-/// Confidence intervals and normality tests.
-pub mod stats;
 /// Noise-gate moments and the fitted noise model.
-pub mod noise;
+pub mod noise_model;
 /// Noise colour (pooled gate autocorrelation) and the detector output's sigma.
 pub mod colour;
 /// Maxima of correlated Gaussian sequences: per-report thresholds.
@@ -14,9 +10,9 @@ pub mod extreme;
 /// Range gate and noise gates in sample indices.
 pub mod gates;
 /// Matched-filter and threshold detector kernels.
-pub mod detector;
+pub mod kernels;
 /// Timing methods and their uncertainties.
-pub mod timing;
+pub mod pulse_timing;
 /// Sub-sample phase bias of the interpolating timing methods, measured and removed.
 pub mod phase;
 /// Learning the pulse shape from aligned shots (equivalent time).

@@ -16,8 +16,8 @@
 //! edge's bias depends on amplitude (the walk table's business): neither gets
 //! a table.
 
-use crate::detect::detector::DetectorPlan;
-use crate::detect::timing::{time_pulse, TimingInput};
+use crate::detect::kernels::DetectorPlan;
+use crate::detect::pulse_timing::{time_pulse, TimingInput};
 use crate::dsp::pulse::{PulseShape, Shape};
 use crate::scene::TimingMethod;
 

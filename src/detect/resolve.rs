@@ -8,7 +8,8 @@
 //! does not match the data; no further pulse is sought under it (such a
 //! residual is the mismatch, not a second return) and it is flagged.
 
-use super::detector::DetectorPlan;
+use super::kernels::DetectorPlan;
+use crate::math::linalg::solve_in_place;
 use crate::dsp::mlfit::fit_delay;
 use crate::dsp::pulse::{PulseShape, Shape};
 use std::ops::Range;
@@ -200,7 +201,10 @@ impl Resolver {
                     aug[p * m + p] *= 1.0 + lambda;
                     aug[p * m + p] += 1e-30;
                 }
-                let Some(step) = solve(&mut aug, &jtr, m) else { break };
+                let mut step = jtr.clone();
+                if !(solve_in_place(&mut aug, &mut step, m, 0.0) && step.iter().all(|v| v.is_finite())) {
+                    break;
+                }
                 let trial: Vec<Component> = comps
                     .iter()
                     .enumerate()
@@ -258,36 +262,4 @@ impl Resolver {
 /// Sample span covering every component's window.
 fn span(comps: &[Component], window: &dyn Fn(f64) -> Range<usize>) -> (usize, usize) {
     comps.iter().map(|c| window(c.peak_index)).fold((usize::MAX, 0), |(a, b), w| (a.min(w.start), b.max(w.end)))
-}
-
-/// Solves the m x m system in place by Gaussian elimination with partial pivoting.
-fn solve(a: &mut [f64], b: &[f64], m: usize) -> Option<Vec<f64>> {
-    let mut x = b.to_vec();
-    for col in 0..m {
-        let piv = (col..m).max_by(|&i, &j| a[i * m + col].abs().total_cmp(&a[j * m + col].abs()))?;
-        if !(a[piv * m + col].abs() > 0.0) {
-            return None;
-        }
-        if piv != col {
-            for k in 0..m {
-                a.swap(col * m + k, piv * m + k);
-            }
-            x.swap(col, piv);
-        }
-        for r in col + 1..m {
-            let f = a[r * m + col] / a[col * m + col];
-            for k in col..m {
-                a[r * m + k] -= f * a[col * m + k];
-            }
-            x[r] -= f * x[col];
-        }
-    }
-    for col in (0..m).rev() {
-        let mut v = x[col];
-        for k in col + 1..m {
-            v -= a[col * m + k] * x[k];
-        }
-        x[col] = v / a[col * m + col];
-    }
-    x.iter().all(|v| v.is_finite()).then_some(x)
 }

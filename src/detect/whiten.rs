@@ -19,10 +19,10 @@
 //! the Toeplitz covariance), so every whitened sample has unit variance,
 //! not only those with p samples of history. The autocovariance is estimated
 //! per lag from all pairs inside the gate segments seen, about the mean of all
-//! of them ([`AutocovarianceAccumulator`]). That estimate is not guaranteed
-//! positive definite; where the recursion meets a reflection coefficient
-//! with |k| ≥ 1 it stops at the last valid order, so the filter is always
-//! minimum phase (stable).
+//! of them ([`AutocovarianceAccumulator`](crate::math::autocov::AutocovarianceAccumulator)).
+//! That estimate is not guaranteed positive definite; where the recursion
+//! meets a reflection coefficient with |k| ≥ 1 it stops at the last valid
+//! order, so the filter is always minimum phase (stable).
 //!
 //! The whitened template is g = h ∗ s (full convolution, L + p taps, same
 //! peak tap): the whitened signal of a pulse A s placed at P is A g. The
@@ -102,7 +102,7 @@ impl ArModel {
 
     /// One-sided power spectral density of the model, V²/Hz, at frequency
     /// `f_hz` for sampling period `dt_s`: 2 E_p dt / |A(e^{iω})|² (for a
-    /// comparison with [`super::noise::welch_psd`]).
+    /// comparison with [`super::noise_model::welch_psd`]).
     pub fn psd(&self, f_hz: f64, dt_s: f64) -> f64 {
         let w = 2.0 * std::f64::consts::PI * f_hz * dt_s;
         let (mut re, mut im) = (0.0, 0.0);
@@ -111,107 +111,6 @@ impl ArModel {
             im -= a * (w * k as f64).sin();
         }
         2.0 * self.innovation_variance() * dt_s / (re * re + im * im)
-    }
-}
-
-/// Autocovariance of noise-gate segments, accumulated over frames with
-/// optional exponential forgetting.
-///
-/// Lag k is estimated from every pair (x_i, x_{i+k}) inside one segment, about
-/// the mean of everything accumulated (not each frame's own gate mean, which in
-/// strongly coloured noise is itself off by a sizeable fraction of σ and would
-/// bias the low-frequency power down), divided by the number of pairs (the
-/// unbiased-lag estimator: the biased one's taper 1 − k/n would shrink an
-/// AR(1) φ = 0.9 to ~0.89 on a 150-sample gate and leave the pulse band
-/// under-whitened). Values enter relative to a fixed shift (the first
-/// segment's mean) so a large offset does not cancel digits.
-#[derive(Debug, Clone)]
-pub struct AutocovarianceAccumulator {
-    /// Origin subtracted from every sample (set by the first segment).
-    shift: Option<f64>,
-    /// Σ x and the sample count, for the overall mean.
-    sum_x: f64,
-    samples: f64,
-    /// Per lag: Σ x_i x_{i+k}, Σ x_i, Σ x_{i+k} over the pairs, and the pair count.
-    sum_xy: Vec<f64>,
-    sum_a: Vec<f64>,
-    sum_b: Vec<f64>,
-    pairs: Vec<f64>,
-}
-
-impl AutocovarianceAccumulator {
-    /// Accumulates lags 0..=`max_lag`.
-    pub fn new(max_lag: usize) -> Self {
-        let z = vec![0.0; max_lag + 1];
-        Self {
-            shift: None,
-            sum_x: 0.0,
-            samples: 0.0,
-            sum_xy: z.clone(),
-            sum_a: z.clone(),
-            sum_b: z.clone(),
-            pairs: z,
-        }
-    }
-
-    /// Multiplies everything accumulated so far by `lambda` (0 < λ ≤ 1).
-    pub fn forget(&mut self, lambda: f64) {
-        self.sum_x *= lambda;
-        self.samples *= lambda;
-        for v in [
-            &mut self.sum_xy,
-            &mut self.sum_a,
-            &mut self.sum_b,
-            &mut self.pairs,
-        ] {
-            v.iter_mut().for_each(|s| *s *= lambda);
-        }
-    }
-
-    /// Adds one gate segment; `mean` (the frame's fitted noise mean) only
-    /// sets the shift on the first call. Non-finite samples end the segment
-    /// there (pairs never straddle them).
-    pub fn add_segment(&mut self, x: &[f64], mean: f64) {
-        let shift = *self
-            .shift
-            .get_or_insert(if mean.is_finite() { mean } else { 0.0 });
-        for part in x.split(|v| !v.is_finite()) {
-            let n = part.len();
-            self.sum_x += part.iter().map(|v| v - shift).sum::<f64>();
-            self.samples += n as f64;
-            for k in 0..self.sum_xy.len().min(n) {
-                let (a, b) = (&part[..n - k], &part[k..]);
-                self.sum_xy[k] += a
-                    .iter()
-                    .zip(b)
-                    .map(|(u, v)| (u - shift) * (v - shift))
-                    .sum::<f64>();
-                self.sum_a[k] += a.iter().map(|u| u - shift).sum::<f64>();
-                self.sum_b[k] += b.iter().map(|v| v - shift).sum::<f64>();
-                self.pairs[k] += (n - k) as f64;
-            }
-        }
-    }
-
-    /// Weighted number of samples accumulated.
-    pub fn samples(&self) -> f64 {
-        self.samples
-    }
-
-    /// Autocovariance c_k about the accumulated mean, for the lags that have
-    /// pairs (empty before any sample).
-    pub fn autocovariance(&self) -> Vec<f64> {
-        if self.samples <= 0.0 {
-            return Vec::new();
-        }
-        let m = self.sum_x / self.samples;
-        (0..self.sum_xy.len())
-            .take_while(|&k| self.pairs[k] > 0.0)
-            .map(|k| {
-                (self.sum_xy[k] - m * (self.sum_a[k] + self.sum_b[k]) + m * m * self.pairs[k])
-                    / self.pairs[k]
-            })
-            .collect()
     }
 }
 
@@ -325,22 +224,6 @@ mod tests {
         let m = ArModel::levinson_durbin(&[1.0, 1.0, 1.0], 2).unwrap();
         assert_eq!(m.order(), 0);
         assert!(ArModel::levinson_durbin(&[0.0, 0.0], 1).is_none());
-    }
-
-    #[test]
-    fn accumulator_is_the_per_pair_estimator_about_the_overall_mean() {
-        // Two segments; overall mean (1 + 3 + 2 + 5 + 4) / 5 = 3.
-        let mut acc = AutocovarianceAccumulator::new(2);
-        acc.add_segment(&[1.0, 3.0, 2.0], 2.0);
-        acc.add_segment(&[5.0, 4.0], 1e9);
-        let c = acc.autocovariance();
-        let d = [-2.0, 0.0, -1.0, 2.0, 1.0];
-        assert!((c[0] - d.iter().map(|v| v * v).sum::<f64>() / 5.0).abs() < 1e-12);
-        assert!((c[1] - (d[0] * d[1] + d[1] * d[2] + d[3] * d[4]) / 3.0).abs() < 1e-12);
-        assert!((c[2] - d[0] * d[2]).abs() < 1e-12);
-        acc.forget(0.5);
-        assert_eq!(acc.samples(), 2.5);
-        assert_eq!(acc.autocovariance(), c);
     }
 
     #[test]

@@ -27,7 +27,7 @@
 //!   whole frame — the range gate included, which the fit never looked at, so
 //!   a return there does not bias it.
 
-use crate::detect::qfunc::{per_cell_pfa, q_inv};
+use crate::math::special::{per_cell_pfa, q_inv};
 use crate::dsp::fracdelay::FractionalDelay;
 use realfft::num_complex::Complex;
 use realfft::{ComplexToReal, RealFftPlanner, RealToComplex};
@@ -198,7 +198,7 @@ impl BurstLearner {
         if all.len() < 8 {
             return;
         }
-        let median_v = crate::dsp::average::median(&mut all.clone()).unwrap_or(0.0);
+        let median_v = crate::math::select::median(&mut all.clone()).unwrap_or(0.0);
         let variance = all.iter().map(|v| (v - median_v).powi(2)).sum::<f64>() / all.len() as f64;
         self.frames.push(LearnFrame {
             segments,
@@ -214,7 +214,7 @@ impl BurstLearner {
             return None;
         }
         let mut vars: Vec<f64> = self.frames.iter().map(|f| f.variance).collect();
-        let typical = crate::dsp::average::median(&mut vars)?;
+        let typical = crate::math::select::median(&mut vars)?;
         let has_burst: Vec<bool> = self
             .frames
             .iter()
@@ -227,7 +227,7 @@ impl BurstLearner {
             .filter(|(_, b)| !**b)
             .map(|(f, _)| f.median_v)
             .collect();
-        let offset_v = crate::dsp::average::median(&mut quiet_medians)?;
+        let offset_v = crate::math::select::median(&mut quiet_medians)?;
         let (sigma_v, noise_acf) = self.noise_acf(&has_burst, offset_v);
         // Stitch consecutive burst frames into occurrences. The burst's
         // envelope fades in and out: the frames just before and after the ones

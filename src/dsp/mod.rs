@@ -11,11 +11,11 @@ pub mod crossing;
 /// Maximum-likelihood fit of amplitude and delay of a pulse shape (Gauss-Newton).
 pub mod mlfit;
 /// Exact accumulation of integer codes and f64 samples for ensemble averages.
-pub mod average;
+pub mod accumulate;
 /// Fractional-delay (sub-sample shift) filter.
 pub mod fracdelay;
 /// Robust per-frame baseline offset and its drift tracking across frames.
-pub mod baseline;
+pub mod offset;
 /// Learning, detection and subtraction of a structured interference burst.
 pub mod interference;
 /// Zero-phase notch and high-pass filters (the plain alternative to cancellation).

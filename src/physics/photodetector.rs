@@ -15,6 +15,7 @@
 // read closer to the maths than zipped iterators here.
 #![allow(clippy::needless_range_loop)]
 
+use crate::math::linalg;
 use std::f64::consts::PI;
 
 /// Dense row-major square matrix helpers for the small (≤ ~10 states) systems here.
@@ -79,43 +80,6 @@ mod mat {
             result = mul(&result, &result, n);
         }
         result
-    }
-
-    /// Solves `a x = b` (Gaussian elimination with partial pivoting); `None` if singular.
-    pub fn solve(a: &[f64], b: &[f64], n: usize) -> Option<Vec<f64>> {
-        let mut m = a.to_vec();
-        let mut x = b.to_vec();
-        for col in 0..n {
-            let piv =
-                (col..n).max_by(|&i, &j| m[i * n + col].abs().total_cmp(&m[j * n + col].abs()))?;
-            if m[piv * n + col].abs() < 1e-300 {
-                return None;
-            }
-            if piv != col {
-                for j in 0..n {
-                    m.swap(col * n + j, piv * n + j);
-                }
-                x.swap(col, piv);
-            }
-            for i in col + 1..n {
-                let f = m[i * n + col] / m[col * n + col];
-                if f == 0.0 {
-                    continue;
-                }
-                for j in col..n {
-                    m[i * n + j] -= f * m[col * n + j];
-                }
-                x[i] -= f * x[col];
-            }
-        }
-        for i in (0..n).rev() {
-            let mut s = x[i];
-            for j in i + 1..n {
-                s -= m[i * n + j] * x[j];
-            }
-            x[i] = s / m[i * n + i];
-        }
-        Some(x)
     }
 }
 
@@ -220,7 +184,7 @@ impl StateSpace {
         if self.n == 0 {
             return Some(self.d);
         }
-        let x = mat::solve(&self.a, &self.b, self.n)?;
+        let x = linalg::solve(&self.a, &self.b, self.n, 1e-300)?;
         Some(self.d - self.c.iter().zip(&x).map(|(c, x)| c * x).sum::<f64>())
     }
 
@@ -476,5 +440,5 @@ pub fn periodic_state(chain: &Chain, period_s: f64, after_one_period: &[f64]) ->
             a[i * n + j] = if i == j { 1.0 } else { 0.0 } - e[i * n + j];
         }
     }
-    mat::solve(&a, after_one_period, n).unwrap_or_else(|| after_one_period.to_vec())
+    linalg::solve(&a, after_one_period, n, 1e-300).unwrap_or_else(|| after_one_period.to_vec())
 }

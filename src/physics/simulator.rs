@@ -126,7 +126,7 @@ impl Pulse {
             LaserPulseShape::Gaussian => {
                 let sigma = self.width_s / (8.0 * 2f64.ln()).sqrt();
                 let k = 1.0 / (sigma * 2f64.sqrt());
-                let e = statrs::function::erf::erf((t + h) * k) - statrs::function::erf::erf(t * k);
+                let e = crate::math::special::erf((t + h) * k) - crate::math::special::erf(t * k);
                 e * sigma * (PI / 2.0).sqrt() / h
             }
             LaserPulseShape::Rectangular => {

@@ -30,8 +30,8 @@
 
 use super::baseline::GatePlacer;
 use super::{FrameError, Stage, Work};
-use crate::detect::noise::Moments;
-use crate::dsp::average::{CodeAccumulator, mean_from_sums, robust_average};
+use crate::detect::noise_model::Moments;
+use crate::dsp::accumulate::{CodeAccumulator, mean_from_sums, robust_average};
 use crate::dsp::fracdelay::FractionalDelay;
 use crate::frame::{Channel, ChannelRole, Samples};
 use crate::scene::{AveragingAlign, AveragingConfig, AveragingMethod, AveragingMode, Scene};
@@ -90,7 +90,7 @@ impl Acc {
     }
 
     fn add_volts(&mut self, v: &[f64]) {
-        crate::dsp::average::add_f64(&mut self.volts, v);
+        crate::dsp::accumulate::add_f64(&mut self.volts, v);
         self.count += 1;
     }
 
@@ -125,7 +125,7 @@ impl Acc {
                 self.volts.iter_mut().for_each(|v| *v += off);
             }
         }
-        crate::dsp::average::add_f64(&mut self.volts, &other.volts);
+        crate::dsp::accumulate::add_f64(&mut self.volts, &other.volts);
         self.count += other.count;
     }
 
@@ -705,7 +705,7 @@ fn mean_of<'a>(frames: impl Iterator<Item = &'a [f64]>) -> Vec<f64> {
         if sum.is_empty() {
             sum = vec![0.0; f.len()];
         }
-        crate::dsp::average::add_f64(&mut sum, f);
+        crate::dsp::accumulate::add_f64(&mut sum, f);
         n += 1;
     }
     let inv = 1.0 / n.max(1) as f64;

@@ -9,7 +9,7 @@
 
 use super::{FrameError, Stage, Work};
 use crate::detect::gates::{GateInputs, Gates};
-use crate::dsp::baseline::{DriftTracker, OffsetEstimator, robust_offset};
+use crate::dsp::offset::{DriftTracker, OffsetEstimator, robust_offset};
 use crate::dsp::pulse::Shape;
 use crate::scene::{BaselineConfig, BaselineEstimator, Scene};
 use std::ops::Range;

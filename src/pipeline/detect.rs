@@ -29,12 +29,14 @@
 use super::{FrameError, Stage, Work};
 use crate::detect::cfar::{CfarMethod, CfarPlan};
 use crate::detect::colour::NoiseColour;
-use crate::detect::detector::{local_maxima, local_maxima_above, upcrossings, upcrossings_above, DetectorPlan};
-use crate::detect::whiten::{ArModel, AutocovarianceAccumulator, Whitener};
+use crate::detect::kernels::{local_maxima, local_maxima_above, upcrossings, upcrossings_above, DetectorPlan};
+use crate::detect::whiten::{ArModel, Whitener};
+use crate::math::autocov::AutocovarianceAccumulator;
 use crate::detect::extreme::{threshold_for_report, ReportThreshold};
-use crate::detect::finite_gate::{mean_error_inflation, t_quantile_from_z};
-use crate::detect::qfunc;
-use crate::detect::stats::clopper_pearson;
+use crate::detect::finite_gate::mean_error_inflation;
+use crate::math::stats::t_quantile_from_z;
+use crate::math::special;
+use crate::math::stats::clopper_pearson;
 use crate::dsp::pulse::Shape;
 use crate::frame::{DetectorSummary, FalseAlarmStats};
 use crate::detect::empirical::EmpiricalTail;
@@ -163,7 +165,7 @@ impl Detect {
         let t = match self.scope {
             PfaScope::Report => threshold_for_report(self.pfa, cells.max(1), rho1),
             PfaScope::Sample => ReportThreshold {
-                u: qfunc::q_inv(self.pfa),
+                u: special::q_inv(self.pfa),
                 p_cell: self.pfa,
                 cells_effective: cells as f64,
             },

@@ -11,7 +11,7 @@
 
 use super::{FrameError, Stage, Work};
 use super::baseline::GatePlacer;
-use crate::detect::noise::{NoiseFitter, NoiseTracker};
+use crate::detect::noise_model::{NoiseFitter, NoiseTracker};
 use crate::scene::Scene;
 
 /// Fits the stop channel's noise model.

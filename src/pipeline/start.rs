@@ -4,10 +4,10 @@
 //! plus `channels.reference_offset_s`, and the report says so.
 
 use super::{FrameError, Stage, Work};
-use crate::detect::detector::DetectorPlan;
-use crate::detect::noise::mad_sigma;
+use crate::detect::kernels::DetectorPlan;
+use crate::math::select::mad_sigma;
 use crate::detect::phase::PhaseBias;
-use crate::detect::timing::{time_pulse, TimingInput};
+use crate::detect::pulse_timing::{time_pulse, TimingInput};
 use crate::dsp::pulse::Shape;
 use crate::scene::{Scene, TimingMethod};
 

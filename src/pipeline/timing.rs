@@ -6,7 +6,7 @@ use super::{FrameError, Stage, Work};
 use crate::detect::finite_gate::detection_probability;
 use crate::detect::resolve::MISFIT_LIMIT;
 use crate::detect::phase::PhaseBias;
-use crate::detect::timing::{crlb_samples, time_pulse, Timed, TimingInput};
+use crate::detect::pulse_timing::{crlb_samples, time_pulse, Timed, TimingInput};
 use crate::detect::walk::WalkTable;
 use crate::dsp::pulse::{PulseShape, Shape};
 use crate::frame::Return;

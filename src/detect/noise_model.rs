@@ -2,8 +2,13 @@
 //! an exponentially forgetting tracker for slow drift, and the spectral
 //! checks (Welch PSD, autocorrelation) used to decide whether the noise is
 //! white.
+//!
+//! Named `noise_model` (not `noise`) because `pipeline::noise` is the stage
+//! that uses it; this module is the model, the stage is the step.
 
 use crate::frame::NoiseSummary;
+use crate::math::autocov::lag_product_sum;
+use crate::math::select::mad_sigma;
 
 /// Single-pass central moments up to the fourth (Welford/Terriberry), f64.
 ///
@@ -343,7 +348,7 @@ impl NoiseFitter {
         let sigma = m.variance().sqrt();
         let (skew, kurt) = (m.skewness(), m.excess_kurtosis());
         let p = if sigma > 0.0 {
-            super::stats::jarque_bera(n, skew, kurt).1
+            crate::math::stats::jarque_bera(n, skew, kurt).1
         } else if n >= 2 {
             0.0
         } else {
@@ -363,7 +368,7 @@ impl NoiseFitter {
                 let nf = n as f64;
                 let c4 = 1.0 - 1.0 / (4.0 * nf) - 7.0 / (32.0 * nf * nf);
                 let diff = sigma / c4 - robust * nf / (nf - 0.8);
-                let z = super::qfunc::q_inv(0.5 * alpha);
+                let z = crate::math::special::q_inv(0.5 * alpha);
                 let sd = SIGMA_MAD_DIFF_SD * (1.0 + SMALL_SAMPLE_INFLATION / nf).sqrt() * robust
                     / nf.sqrt();
                 diff.abs() > z * sd
@@ -390,30 +395,6 @@ impl NoiseFitter {
     /// Moments of the finite samples of the last [`NoiseFitter::fit`].
     pub fn moments(&self) -> &Moments {
         &self.moments
-    }
-}
-
-/// MAD * 1.4826 (reorders `x`); 0 for an empty slice.
-pub fn mad_sigma(x: &mut [f64]) -> f64 {
-    if x.is_empty() {
-        return 0.0;
-    }
-    let med = median(x);
-    for v in x.iter_mut() {
-        *v = (*v - med).abs();
-    }
-    1.482_602_218_505_602 * median(x)
-}
-
-fn median(x: &mut [f64]) -> f64 {
-    let n = x.len();
-    let (_, m, _) = x.select_nth_unstable_by(n / 2, |a, b| a.total_cmp(b));
-    let hi = *m;
-    if n % 2 == 1 {
-        hi
-    } else {
-        let lo = x[..n / 2].iter().copied().fold(f64::NEG_INFINITY, f64::max);
-        0.5 * (lo + hi)
     }
 }
 
@@ -489,7 +470,7 @@ pub fn autocorrelation(x: &[f64], max_lag: usize) -> Vec<f64> {
     x.iter().for_each(|&v| m.push(v));
     let mean = m.mean();
     let lags = max_lag.min(n - 1);
-    let c0: f64 = x.iter().map(|v| (v - mean) * (v - mean)).sum();
+    let c0 = lag_product_sum(x, 0, mean);
     let mut out = Vec::with_capacity(lags + 1);
     out.push(1.0);
     for k in 1..=lags {
@@ -497,12 +478,7 @@ pub fn autocorrelation(x: &[f64], max_lag: usize) -> Vec<f64> {
             out.push(0.0);
             continue;
         }
-        let ck: f64 = x[..n - k]
-            .iter()
-            .zip(&x[k..])
-            .map(|(a, b)| (a - mean) * (b - mean))
-            .sum();
-        out.push(ck / c0);
+        out.push(lag_product_sum(x, k, mean) / c0);
     }
     out
 }

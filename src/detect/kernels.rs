@@ -1,6 +1,10 @@
 //! Detector kernels: matched filter (correlation with the unit-energy return
 //! template) or plain threshold, local maxima above a Neyman-Pearson
 //! threshold, and threshold upcrossings counted in the noise gates.
+//!
+//! Named `kernels` (not `detector`) because "detector" is also the
+//! photodetector (`physics::detector`) and `pipeline::detect` is the stage:
+//! these are the signal-detection kernels the stage runs.
 
 use crate::dsp::correlate::Correlator;
 use crate::dsp::pulse::Shape;

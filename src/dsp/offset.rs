@@ -2,11 +2,14 @@
 //! samples, and exponential smoothing of it across frames to follow a slow
 //! drift without passing each frame's estimation noise on.
 //!
+//! Named `offset` (not `baseline`) because `pipeline::baseline` is the stage
+//! built on it; the kernel estimates an offset.
+//!
 //! Why robust: a gate can hold a stray return, a burst or a clipped sample;
 //! the median (or a trimmed mean) of the gate moves little when a few samples
 //! are wild, where the plain mean would follow them.
 
-use crate::dsp::average::trimmed_mean;
+use crate::math::select::trimmed_mean;
 
 /// How one frame's offset is estimated from its gate samples.
 #[derive(Debug, Clone, Copy, PartialEq)]

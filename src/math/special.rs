@@ -6,7 +6,8 @@
 //! rounding of `x / sqrt 2` (3e-13 at x = 37). Here:
 //!
 //! * `erfc` is the FreeBSD/SunPro `s_erf.c` algorithm (< 1 ulp), restructured
-//!   so that its tail also yields `ln erfc` without underflow.
+//!   so that its tail also yields `ln erfc` without underflow; `erf` is the
+//!   same file's companion on the same coefficients.
 //! * `q(x)` evaluates `erfc(z)` at `z = fl(x/√2)` and corrects to first order
 //!   for the rounding residual `x/√2 − z` (computed with an FMA and a
 //!   double-double `1/√2`): the correction is `≤ 3e-13` relative, its own
@@ -190,6 +191,41 @@ pub fn erfc(z: f64) -> f64 {
         return 2.0 - erfc(-z);
     }
     erfc_pos(z).value(z)
+}
+
+/// 8 (2/√π − 1) (SunPro `efx8`), for erf of tiny arguments.
+const EFX8: f64 = 1.02703333676410069053e+00;
+
+/// Error function erf(z) = 1 − erfc(z), < 1 ulp (FreeBSD/SunPro `s_erf.c`:
+/// `z + z·P/Q` below 0.84375, `erx + P/Q` to 1.25, `1 − erfc` beyond, 1
+/// from 6 on); odd, exact limits ±1 at ±∞, NaN for NaN.
+pub fn erf(z: f64) -> f64 {
+    if z.is_nan() {
+        return f64::NAN;
+    }
+    let a = z.abs();
+    let v = if a < 0.84375 {
+        if a < 3.725_290_298_461_914e-9 {
+            // 2^-28: erf(a) = a (1 + EFX) to rounding, scaled by 8 so that
+            // subnormal arguments keep their bits.
+            0.125 * (8.0 * a + EFX8 * a)
+        } else {
+            let zz = a * a;
+            let r = PP0 + zz * (PP1 + zz * (PP2 + zz * (PP3 + zz * PP4)));
+            let s = 1.0 + zz * (QQ1 + zz * (QQ2 + zz * (QQ3 + zz * (QQ4 + zz * QQ5))));
+            a + a * (r / s)
+        }
+    } else if a < 1.25 {
+        let s = a - 1.0;
+        let p = PA0 + s * (PA1 + s * (PA2 + s * (PA3 + s * (PA4 + s * (PA5 + s * PA6)))));
+        let q = 1.0 + s * (QA1 + s * (QA2 + s * (QA3 + s * (QA4 + s * (QA5 + s * QA6)))));
+        ERX + p / q
+    } else if a < 6.0 {
+        1.0 - erfc_pos(a).value(a)
+    } else {
+        1.0
+    };
+    if z < 0.0 { -v } else { v }
 }
 
 /// Splits `x/√2 = z + dz` with `z = fl(x/√2)` and `|dz| ≲ 1e-16 |z|`.

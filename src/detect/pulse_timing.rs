@@ -1,5 +1,8 @@
 //! Timing of one pulse: the instant its leading edge crosses a fraction of its
 //! peak, by the method the scene chooses, with its one-sigma uncertainty.
+//!
+//! Named `pulse_timing` (not `timing`) because `pipeline::timing` is the
+//! stage; this module times one pulse, the stage times every return.
 
 use crate::dsp::crossing;
 use crate::dsp::interp;
@@ -197,7 +200,7 @@ fn leading_edge(input: &TimingInput) -> Option<Timed> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::detect::detector::DetectorPlan;
+    use crate::detect::kernels::DetectorPlan;
 
     fn synth(pulse: &Shape, peak: f64, amp: f64, n: usize) -> Vec<f64> {
         (0..n).map(|k| 0.01 + amp * pulse.value_and_slope(k as f64 - peak).0).collect()

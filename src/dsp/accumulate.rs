@@ -1,19 +1,24 @@
 //! Exact accumulation for ensemble averages, and robust (trimmed-mean, median)
 //! averages of a stack of frames.
 //!
+//! Named for what it does (accumulating frames) rather than `average`, which
+//! is the pipeline stage built on it (`pipeline::average`).
+//!
 //! Integer ADC codes are summed in `i64`, which is exact for any realistic
 //! number of frames: |code| ≤ 2^15 for i16, so 2^48 frames (~9 years at 1 MHz)
 //! fit, and the mean is then formed once, correctly rounded
-//! ([`mean_from_sums`](crate::dsp::average::mean_from_sums)). The result
+//! ([`mean_from_sums`](crate::dsp::accumulate::mean_from_sums)). The result
 //! depends on the number of frames only through the 1/N scaling, never through
 //! rounding of a running sum.
 //!
 //! The `add_*` kernels are written as fixed-size chunks so they auto-vectorise;
 //! on x86-64 an AVX2 copy is chosen at run time.
-//! [`CodeAccumulator`](crate::dsp::average::CodeAccumulator) goes one
+//! [`CodeAccumulator`](crate::dsp::accumulate::CodeAccumulator) goes one
 //! step further for narrow codes: it sums frames in `i32` lanes (half the
 //! memory traffic and twice the SIMD width of `i64`) and flushes into the
 //! `i64` totals before an `i32` could overflow.
+
+use crate::math::select::trimmed_mean;
 
 /// Lanes per chunk of the add kernels: one or two vector registers' worth.
 const CHUNK: usize = 16;
@@ -299,40 +304,6 @@ pub fn div_round(s: i64, n: u64) -> f64 {
     if s < 0 { -v } else { v }
 }
 
-/// Per-sample median of `values` (reordered in place); `None` when empty.
-/// For an even count it is the mean of the two middle values. NaN sorts above
-/// every number (`f64::total_cmp`).
-pub fn median(values: &mut [f64]) -> Option<f64> {
-    trimmed_mean(values, 0.5)
-}
-
-/// Mean of `values` after dropping the `floor(trim_fraction · n)` smallest and
-/// as many largest (reordered in place; at least one value — two for even `n`
-/// — is kept, so `trim_fraction >= 0.5` gives the median). `None` when empty.
-/// `trim_fraction` is clamped to [0, 0.5]. Linear time (selection, no sort).
-pub fn trimmed_mean(values: &mut [f64], trim_fraction: f64) -> Option<f64> {
-    let n = values.len();
-    if n == 0 {
-        return None;
-    }
-    let t = if trim_fraction.is_nan() {
-        0.0
-    } else {
-        trim_fraction.clamp(0.0, 0.5)
-    };
-    let g = ((t * n as f64).floor() as usize).min((n - 1) / 2);
-    let kept = if g > 0 {
-        // Put the g smallest before index g, then the g largest after n − g.
-        let (_, _, upper) = values.select_nth_unstable_by(g - 1, f64::total_cmp);
-        let m = upper.len() - g; // values kept live in upper[..m]
-        upper.select_nth_unstable_by(m, f64::total_cmp);
-        &upper[..m]
-    } else {
-        &values[..]
-    };
-    Some(kept.iter().sum::<f64>() / kept.len() as f64)
-}
-
 /// Robust per-sample average of a stack of frames: `out[i]` is the
 /// [`trimmed_mean`] of `frames[f][i]` over all frames (`trim_fraction` 0: the
 /// mean, 0.5: the median). Processes as many samples as the shortest frame and
@@ -401,18 +372,5 @@ mod tests {
             assert_eq!(b[i], x[i] as i32);
         }
         assert_eq!(&a[37..], &[1, 1, 1]);
-    }
-
-    #[test]
-    fn trimmed_mean_and_median() {
-        let mut v = [5.0, 1.0, 100.0, 2.0, 3.0];
-        assert_eq!(median(&mut v), Some(3.0));
-        let mut v = [4.0, 1.0, 3.0, 2.0];
-        assert_eq!(median(&mut v), Some(2.5));
-        let mut v = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 1000.0];
-        assert_eq!(trimmed_mean(&mut v, 0.1), Some(5.5)); // drops 1 and 1000
-        let mut v = [1.0, 2.0, 4.0];
-        assert_eq!(trimmed_mean(&mut v, 0.0), Some(7.0 / 3.0));
-        assert_eq!(median(&mut []), None);
     }
 }

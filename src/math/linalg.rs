@@ -1,0 +1,129 @@
+//! Dense linear systems: the one Gaussian-elimination solver of the crate
+//! (Levenberg-Marquardt steps of the joint refit, the photodetector's
+//! state-space steady state and DC gain). Small systems only (a few dozen
+//! unknowns): O(n³), no blocking.
+
+/// Solves `a x = b` in place by Gaussian elimination with partial pivoting.
+///
+/// `a` is row-major `n × n` and is destroyed (left upper triangular); `x`
+/// holds `b` on entry and the solution on return. A column whose largest
+/// remaining magnitude is NaN, zero or below `min_pivot` makes the system
+/// singular: the function returns `false` and leaves `a` and `x` part-way
+/// reduced. Pass `0.0` to accept any nonzero pivot. Rows whose elimination
+/// factor is zero are skipped. The solution is not checked for finiteness.
+///
+/// Panics if `a.len() < n * n` or `x.len() < n`.
+pub fn solve_in_place(a: &mut [f64], x: &mut [f64], n: usize, min_pivot: f64) -> bool {
+    for col in 0..n {
+        let Some(piv) =
+            (col..n).max_by(|&i, &j| a[i * n + col].abs().total_cmp(&a[j * n + col].abs()))
+        else {
+            return false;
+        };
+        let p = a[piv * n + col].abs();
+        if !(p > 0.0) || p < min_pivot {
+            return false;
+        }
+        if piv != col {
+            for k in 0..n {
+                a.swap(col * n + k, piv * n + k);
+            }
+            x.swap(col, piv);
+        }
+        for r in col + 1..n {
+            let f = a[r * n + col] / a[col * n + col];
+            if f == 0.0 {
+                continue;
+            }
+            for k in col..n {
+                a[r * n + k] -= f * a[col * n + k];
+            }
+            x[r] -= f * x[col];
+        }
+    }
+    for col in (0..n).rev() {
+        let mut v = x[col];
+        for k in col + 1..n {
+            v -= a[col * n + k] * x[k];
+        }
+        x[col] = v / a[col * n + col];
+    }
+    true
+}
+
+/// [`solve_in_place`] on copies: `a x = b` for row-major `n × n` `a`, or
+/// `None` when singular (see there for `min_pivot`).
+pub fn solve(a: &[f64], b: &[f64], n: usize, min_pivot: f64) -> Option<Vec<f64>> {
+    let mut m = a[..n * n].to_vec();
+    let mut x = b[..n].to_vec();
+    solve_in_place(&mut m, &mut x, n, min_pivot).then_some(x)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    /// Naive reference: Cramer's rule with cofactor determinants (n ≤ 5).
+    fn det(a: &[f64], n: usize) -> f64 {
+        if n == 1 {
+            return a[0];
+        }
+        (0..n)
+            .map(|c| {
+                let minor: Vec<f64> = (1..n)
+                    .flat_map(|r| (0..n).filter(move |&k| k != c).map(move |k| (r, k)))
+                    .map(|(r, k)| a[r * n + k])
+                    .collect();
+                let sign = if c % 2 == 0 { 1.0 } else { -1.0 };
+                sign * a[c] * det(&minor, n - 1)
+            })
+            .sum()
+    }
+
+    #[test]
+    fn matches_cramer_on_random_systems() {
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        for n in 1..=5 {
+            for _ in 0..50 {
+                let a: Vec<f64> = (0..n * n).map(|_| rng.random_range(-1.0..1.0)).collect();
+                let b: Vec<f64> = (0..n).map(|_| rng.random_range(-1.0..1.0)).collect();
+                let d = det(&a, n);
+                if d.abs() < 1e-3 {
+                    continue;
+                }
+                let x = solve(&a, &b, n, 0.0).expect("non-singular");
+                for (i, xi) in x.iter().enumerate() {
+                    let mut ai = a.clone();
+                    for r in 0..n {
+                        ai[r * n + i] = b[r];
+                    }
+                    let want = det(&ai, n) / d;
+                    assert!(
+                        (xi - want).abs() < 1e-9 * (1.0 + want.abs()),
+                        "n={n} x{i}: {xi} vs {want}"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn needs_pivoting_and_detects_singular() {
+        // Zero leading entry: only row exchange solves it.
+        assert_eq!(
+            solve(&[0.0, 1.0, 1.0, 0.0], &[2.0, 3.0], 2, 0.0),
+            Some(vec![3.0, 2.0])
+        );
+        assert_eq!(solve(&[1.0, 2.0, 2.0, 4.0], &[1.0, 1.0], 2, 0.0), None);
+        assert_eq!(solve(&[f64::NAN, 0.0, 0.0, 1.0], &[1.0, 1.0], 2, 0.0), None);
+        // A tiny but nonzero pivot: accepted at 0, refused at 1e-300.
+        assert!(solve(&[1e-310, 0.0, 0.0, 1.0], &[1.0, 1.0], 2, 0.0).is_some());
+        assert_eq!(
+            solve(&[1e-310, 0.0, 0.0, 1.0], &[1.0, 1.0], 2, 1e-300),
+            None
+        );
+        assert_eq!(solve(&[], &[], 0, 0.0), Some(vec![]));
+    }
+}

@@ -1,0 +1,15 @@
+//! Numerics that know nothing about lidar: the bottom layer with `frame`,
+//! depended on by `dsp`, `detect`, `physics` and above, depending on `std`
+//! only. One home for each routine, so that a fix or a faster kernel reaches
+//! every caller.
+
+/// Gaussian tail Q(x), its logarithm and inverse, φ, erf/erfc; per-cell probabilities.
+pub mod special;
+/// Incomplete beta/gamma, binomial and Poisson intervals, Jarque-Bera, Student-t quantile.
+pub mod stats;
+/// Dense linear solve (Gaussian elimination with partial pivoting).
+pub mod linalg;
+/// Lag-product sums and the pooled autocovariance accumulator.
+pub mod autocov;
+/// Selection: median, high median, trimmed mean, MAD sigma.
+pub mod select;

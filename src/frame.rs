@@ -192,16 +192,27 @@ impl Frame {
 /// Canonical form of a channel name: vendor spellings of channel n all map
 /// to `"n"`; other names are lower-cased and trimmed.
 pub fn channel_key(name: &str) -> String {
-    let lower = name.trim().to_ascii_lowercase();
+    let mut key = String::with_capacity(name.len());
+    channel_key_into(name, &mut key);
+    key
+}
+
+/// [`channel_key`] written into `key` (cleared first): no allocation once
+/// `key` has grown to the name's length.
+pub fn channel_key_into(name: &str, key: &mut String) {
+    key.clear();
+    key.extend(name.trim().chars().map(|c| c.to_ascii_lowercase()));
+    let lower = key.as_str();
     let stripped = ["channel", "chan", "ch", "c"]
         .iter()
         .find_map(|p| lower.strip_prefix(p))
         .map(|r| r.trim_start_matches([' ', '_', '-']))
-        .unwrap_or(&lower);
+        .unwrap_or(lower);
     if !stripped.is_empty() && stripped.bytes().all(|b| b.is_ascii_digit()) {
-        stripped.trim_start_matches('0').to_string()
-    } else {
-        lower
+        // The number without leading zeros: a suffix of `key`.
+        let digits = stripped.trim_start_matches('0').len();
+        let cut = key.len() - digits;
+        key.drain(..cut);
     }
 }
 
@@ -298,8 +309,8 @@ pub struct Report {
     pub frames_averaged: u32,
     /// Trigger time of the first frame, seconds.
     pub time_s: f64,
-    /// Pipeline stages that ran, in order.
-    pub stages: Vec<String>,
+    /// Pipeline stages that ran, in order (each stage's `name()`).
+    pub stages: Vec<&'static str>,
     /// Noise model used for detection.
     pub noise: NoiseSummary,
     /// Detector and threshold.
@@ -319,4 +330,22 @@ pub struct Report {
     /// return that adds coherently (aligned, stationary). Absent without averaging.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub snr_gain_db: Option<f64>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn channel_keys_match_vendor_spellings() {
+        for name in ["CH2", "Ch2", "C2", "2", "channel 2", " chan_02 ", "ch-2"] {
+            assert_eq!(channel_key(name), "2", "{name:?}");
+        }
+        assert_eq!(channel_key(" Stop "), "stop");
+        assert_eq!(channel_key("Coax"), "coax");
+        assert_eq!(channel_key("C000"), "");
+        let mut key = String::from("left over");
+        channel_key_into("Channel 7", &mut key);
+        assert_eq!(key, "7");
+    }
 }

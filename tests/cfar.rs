@@ -198,7 +198,7 @@ fn pipeline_false_reports(
     frames: u64,
     seed: u64,
     step_at: usize,
-) -> (u64, Vec<String>) {
+) -> (u64, Vec<&'static str>) {
     let mut scene = Scene::default_scene();
     scene.detector.pfa = 1e-2;
     scene.detector.cfar = cfar;
@@ -230,9 +230,9 @@ fn pipeline_runs_cfar_when_the_scene_asks_and_tames_the_step() {
     let (fixed, stages) = pipeline_false_reports(CfarKind::Off, frames, 5, 650);
     assert!(!stages.iter().any(|s| s.starts_with("cfar")), "{stages:?}");
     let (ca, stages) = pipeline_false_reports(CfarKind::Ca, frames, 6, 650);
-    assert!(stages.iter().any(|s| s == "cfar_ca"), "{stages:?}");
+    assert!(stages.iter().any(|s| *s == "cfar_ca"), "{stages:?}");
     let (os, stages) = pipeline_false_reports(CfarKind::Os, frames, 7, 650);
-    assert!(stages.iter().any(|s| s == "cfar_os"), "{stages:?}");
+    assert!(stages.iter().any(|s| *s == "cfar_os"), "{stages:?}");
     let (ca_flat, _) = pipeline_false_reports(CfarKind::Ca, frames, 8, 1000);
     let (os_flat, _) = pipeline_false_reports(CfarKind::Os, frames, 9, 1000);
     eprintln!(

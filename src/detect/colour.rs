@@ -182,9 +182,17 @@ pub struct OutputColour {
 /// Returns r(0) and r(1)/r(0). A non-positive r(0) (an autocorrelation
 /// estimate that is not positive definite) falls back to white noise.
 pub fn output_gain(taps: &[f64], rho: &[f64]) -> OutputColour {
+    output_gain_with(taps, rho, &mut Vec::new())
+}
+
+/// [`output_gain`] with the taps' autocorrelation written to `acf` (scratch
+/// kept by the caller, so a per-frame call does not allocate).
+pub fn output_gain_with(taps: &[f64], rho: &[f64], acf: &mut Vec<f64>) -> OutputColour {
     let len = taps.len() as isize;
     // The taps' autocorrelation A_h(j), once.
-    let acf: Vec<f64> = (0..taps.len()).map(|j| taps[..taps.len() - j].iter().zip(&taps[j..]).map(|(x, y)| x * y).sum()).collect();
+    acf.clear();
+    acf.extend((0..taps.len()).map(|j| taps[..taps.len() - j].iter().zip(&taps[j..]).map(|(x, y)| x * y).sum::<f64>()));
+    let acf = &*acf;
     let a = |j: isize| -> f64 { acf.get(j.unsigned_abs()).copied().unwrap_or(0.0) };
     let kmax = (rho.len() as isize - 1).min(len);
     let r = |m: isize| -> f64 {

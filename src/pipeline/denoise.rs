@@ -12,7 +12,7 @@
 //! `interference_cancelled`; if learning found no burst the frames pass
 //! unchanged, flagged `no_interference_learned`.
 
-use super::baseline::GatePlacer;
+use crate::detect::gates::GatePlacer;
 use super::{FrameError, Stage, Work};
 use crate::dsp::interference::{BurstCanceller, BurstLearner, BurstTemplate};
 use crate::dsp::notch::ZeroPhaseFilter;
@@ -118,14 +118,14 @@ impl Denoise {
                     )));
                 }
                 let c = canceller.as_mut().expect("planned above");
-                let ranges = self.gates.quiet_ranges(&w);
+                let ranges = w.quiet_ranges(&mut self.gates);
                 let pos = abs_pos(&w);
                 let predicted = self
                     .last
                     .filter(|_| self.cfg.predict)
                     .map(|(p, lag)| (lag + (pos - p) as f64).round() as i64)
                     .filter(|&l| l > -(n as i64) && l < template.values.len() as i64);
-                w.frame.channels[w.stop].volts_into(&mut self.volts);
+                w.frame.channels[w.source.stop].volts_into(&mut self.volts);
                 if self.volts.len() != n {
                     out.push(w);
                     return;
@@ -133,9 +133,9 @@ impl Denoise {
                 match c.cancel(&mut self.volts, &ranges, predicted) {
                     Some(found) => {
                         self.last = Some((pos, found.lag));
-                        let ch = &w.frame.channels[w.stop];
+                        let ch = &w.frame.channels[w.source.stop];
                         let new = Channel::from_volts(ch.name.clone(), ch.role, self.volts.clone());
-                        w.frame.channels[w.stop] = new;
+                        w.frame.channels[w.source.stop] = new;
                         w.report.flags.push("interference_cancelled".into());
                     }
                     None => self.last = None,
@@ -154,14 +154,14 @@ impl Denoise {
                     };
                     *plan = Some((dt, f));
                 }
-                w.frame.channels[w.stop].volts_into(&mut self.volts);
+                w.frame.channels[w.source.stop].volts_into(&mut self.volts);
                 plan.as_ref()
                     .expect("planned above")
                     .1
                     .apply(&mut self.volts);
-                let ch = &w.frame.channels[w.stop];
+                let ch = &w.frame.channels[w.source.stop];
                 let new = Channel::from_volts(ch.name.clone(), ch.role, self.volts.clone());
-                w.frame.channels[w.stop] = new;
+                w.frame.channels[w.source.stop] = new;
             }
             State::Learning { .. } => unreachable!("learning frames are held, not cancelled"),
         }
@@ -177,8 +177,8 @@ impl Stage for Denoise {
     fn process(&mut self, w: Work, out: &mut Vec<Work>) -> Result<(), FrameError> {
         if let State::Learning { held, .. } = &self.state {
             let fresh = held.is_empty().then(|| self.learner_for(&w));
-            let ranges = self.gates.quiet_ranges(&w);
-            w.frame.channels[w.stop].volts_into(&mut self.volts);
+            let ranges = w.quiet_ranges(&mut self.gates);
+            w.frame.channels[w.source.stop].volts_into(&mut self.volts);
             let State::Learning { learner, held } = &mut self.state else {
                 unreachable!("matched above")
             };

@@ -10,7 +10,7 @@
 //! N = 0 (the default) every frame is fitted on its own gates alone.
 
 use super::{FrameError, Stage, Work};
-use super::baseline::GatePlacer;
+use crate::detect::gates::GatePlacer;
 use crate::detect::noise::{NoiseFitter, NoiseTracker};
 use crate::scene::Scene;
 
@@ -45,9 +45,9 @@ impl Stage for Noise {
 
     fn process(&mut self, mut w: Work, out: &mut Vec<Work>) -> Result<(), FrameError> {
         let s = &self.scene;
-        let mut stop_v = std::mem::take(&mut w.stop_v);
-        w.frame.channels[w.stop].volts_into(&mut stop_v);
-        w.gates = self.gates.place(&w);
+        let mut stop_v = std::mem::take(&mut w.buffers.stop_v);
+        w.frame.channels[w.source.stop].volts_into(&mut stop_v);
+        w.noise.gates = w.place_gates(&mut self.gates);
         // Non-finite samples (a float capture's NaN/Inf) are held at the last
         // finite value so nothing downstream sees them; the report says how many.
         let bad = stop_v.iter().filter(|v| !v.is_finite()).count();
@@ -62,7 +62,7 @@ impl Stage for Noise {
             }
             w.report.flags.push(format!("non_finite_samples:{bad}"));
         }
-        let g = &w.gates;
+        let g = &w.noise.gates;
         let noise = self
             .fitter
             .fit(&[&stop_v[g.pre.clone()], &stop_v[g.beyond.clone()]], s.detector.normality_alpha);
@@ -83,8 +83,8 @@ impl Stage for Noise {
         // A gate with no spread (noise-free or clipped data) still needs a
         // finite threshold: floor sigma at the quantisation noise, or at 1e-12
         // of the signal scale for float data.
-        let floor = if w.lsb_v > 0.0 {
-            w.lsb_v / 12f64.sqrt()
+        let floor = if w.source.lsb_v > 0.0 {
+            w.source.lsb_v / 12f64.sqrt()
         } else {
             1e-12 * noise.mean_v.abs().max(1e-3)
         };
@@ -94,9 +94,9 @@ impl Stage for Noise {
             sorted.sort_by(f64::total_cmp);
             noise.mean_v = sorted.get(sorted.len() / 2).copied().unwrap_or(0.0);
         }
-        w.sigma_v = noise.sigma_v;
+        w.noise.sigma_v = noise.sigma_v;
         if !(noise.sigma_v > floor) {
-            w.sigma_v = floor;
+            w.noise.sigma_v = floor;
             w.report.flags.push(if noise.samples < 2 { "no_noise_estimate".into() } else { "zero_noise".into() });
         }
         if !noise.gaussian && noise.samples >= 8 {
@@ -105,9 +105,9 @@ impl Stage for Noise {
         if noise.contaminated {
             w.report.flags.push("noise_gate_contaminated".into());
         }
-        w.noise = noise;
+        w.noise.summary = noise;
         w.report.noise = noise;
-        w.stop_v = stop_v;
+        w.buffers.stop_v = stop_v;
         out.push(w);
         Ok(())
     }

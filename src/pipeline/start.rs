@@ -52,11 +52,11 @@ impl Stage for Start {
     }
 
     fn process(&mut self, mut w: Work, out: &mut Vec<Work>) -> Result<(), FrameError> {
-        w.t_ref_s = self.reference_offset_s;
-        w.t_ref_sigma_s = 0.0;
-        let Some(s) = w.start else {
+        w.reference.t_ref_s = self.reference_offset_s;
+        w.reference.t_ref_sigma_s = 0.0;
+        let Some(s) = w.source.start else {
             w.report.flags.push("no_start_channel".into());
-            w.report.t_start_s = w.t_ref_s;
+            w.report.t_start_s = w.reference.t_ref_s;
             out.push(w);
             return Ok(());
         };
@@ -111,7 +111,7 @@ impl Stage for Start {
         let amplitude = x[peak] - baseline;
         if !(amplitude >= self.min_amplitude_v.max(6.0 * sigma)) {
             w.report.flags.push("no_start_pulse".into());
-            w.report.t_start_s = w.t_ref_s;
+            w.report.t_start_s = w.reference.t_ref_s;
             out.push(w);
             return Ok(());
         }
@@ -152,13 +152,13 @@ impl Stage for Start {
                 timed.sigma_samples = timed.sigma_samples.hypot(pb.rms());
             }
         }
-        w.t_ref_s = w.frame.sample_time_s(timed.index);
-        w.t_ref_sigma_s = timed.sigma_samples * dt;
+        w.reference.t_ref_s = w.frame.sample_time_s(timed.index);
+        w.reference.t_ref_sigma_s = timed.sigma_samples * dt;
         if timed.fallback {
             w.report.flags.push("start_timing_fallback".into());
         }
-        w.report.t_start_s = w.t_ref_s;
-        w.report.t_start_sigma_s = w.t_ref_sigma_s;
+        w.report.t_start_s = w.reference.t_ref_s;
+        w.report.t_start_sigma_s = w.reference.t_ref_sigma_s;
         out.push(w);
         Ok(())
     }

@@ -167,7 +167,7 @@ pub fn report_to_proto(r: &Report, json: String) -> proto::Report {
         seq_last: r.seq_last,
         frames_averaged: r.frames_averaged,
         time_s: r.time_s,
-        stages: r.stages.clone(),
+        stages: r.stages.iter().map(|s| s.to_string()).collect(),
         noise: Some(noise_to_proto(&r.noise)),
         detector: Some(proto::Detector {
             kind: r.detector.kind.clone(),

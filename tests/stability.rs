@@ -36,8 +36,8 @@ fn assert_finite(r: &Report) {
     assert!(!json.contains("null"), "non-finite number in {json}");
 }
 
-fn has(flags: &[String], f: &str) -> bool {
-    flags.iter().any(|x| x.starts_with(f))
+fn has<T: std::fmt::Display>(flags: impl IntoIterator<Item = T>, f: &str) -> bool {
+    flags.into_iter().any(|x| x.to_string().starts_with(f))
 }
 
 fn pulse_frame(scene: &Scene, amp: f64, sigma: f64, tof_s: f64) -> Frame {

@@ -109,8 +109,17 @@ impl NoiseColour {
     /// quarter of a frame's gate samples, whichever is less), or `None` before
     /// any noise sample has been seen or when the pooled variance is zero.
     pub fn rho(&self) -> Option<Vec<f64>> {
+        let mut rho = Vec::new();
+        self.rho_into(&mut Vec::new(), &mut rho).then_some(rho)
+    }
+
+    /// [`rho`](NoiseColour::rho) written into `out` (cleared first; `g` is
+    /// scratch), so a per-frame refresh does not allocate; false where `rho`
+    /// gives `None`.
+    pub fn rho_into(&self, g: &mut Vec<f64>, out: &mut Vec<f64>) -> bool {
+        out.clear();
         if self.counts[0] < 2.0 || !(self.sums[0] > 0.0) {
-            return None;
+            return false;
         }
         // Centring each frame on its own gate mean takes the mean's variance,
         // σ²τ/n, off every product's expectation: for white noise on a
@@ -136,15 +145,17 @@ impl NoiseColour {
             }
         }
         let v = if b < 0.9 { (a / (1.0 - b)).max(0.0) } else { 0.0 };
-        let mut g = vec![0.0; lags + 1];
+        g.clear();
+        g.resize(lags + 1, 0.0);
         for (k, gk) in g.iter_mut().enumerate() {
             *gk = if self.counts[k] > 0.0 { (self.sums[k] + v * self.centring[k]) / self.counts[k] } else { 0.0 };
         }
         let c0 = g[0];
         if !(c0 > 0.0) {
-            return None;
+            return false;
         }
-        Some(g.iter().map(|gk| (gk / c0).clamp(-1.0, 1.0)).collect())
+        out.extend(g.iter().map(|gk| (gk / c0).clamp(-1.0, 1.0)));
+        true
     }
 
     /// Integrated correlation time in samples, τ = 1 + 2 Σ_{k≥1} ρ(k): the

@@ -30,6 +30,7 @@
 
 use crate::detect::gates::GatePlacer;
 use super::{FrameError, Stage, Work};
+use crate::frame::FrameFlag;
 use crate::detect::noise::Moments;
 use crate::dsp::average::{CodeAccumulator, mean_from_sums, robust_average};
 use crate::dsp::fracdelay::FractionalDelay;
@@ -202,7 +203,7 @@ pub struct Average {
 }
 
 fn has_start_pulse(w: &Work) -> bool {
-    w.source.start.is_some() && !w.report.flags.iter().any(|f| f == "no_start_pulse")
+    w.source.start.is_some() && !w.report.flags.iter().any(|f| *f == FrameFlag::NoStartPulse)
 }
 
 impl Average {
@@ -392,10 +393,10 @@ impl Average {
             seq_last,
         );
         if partial {
-            w.report.flags.push("partial_average".into());
+            w.report.flags.push(FrameFlag::PartialAverage);
         }
         if std::mem::take(&mut self.nonstationary) {
-            w.report.flags.push("nonstationary".into());
+            w.report.flags.push(FrameFlag::Nonstationary);
         }
         self.reference_s = None;
         out.push(w);
@@ -430,9 +431,9 @@ impl Average {
                         .report
                         .flags
                         .iter()
-                        .any(|f| f == "laser_off" || f == "laser_off_in_group")
+                        .any(|f| matches!(f, FrameFlag::LaserOff | FrameFlag::LaserOffInGroup))
                 {
-                    g.first.report.flags.push("laser_off_in_group".into());
+                    g.first.report.flags.push(FrameFlag::LaserOffInGroup);
                 }
                 let slot = if guard == 0 {
                     &mut self.group
@@ -501,8 +502,8 @@ impl Average {
                             .report
                             .flags
                             .iter()
-                            .filter(|f| *f == "laser_off_in_group")
-                            .cloned(),
+                            .filter(|f| **f == FrameFlag::LaserOffInGroup)
+                            .copied(),
                     );
                     self.group = Some(g);
                 }
@@ -667,7 +668,7 @@ impl Average {
             )
         });
         if self.kept.iter().any(|k| k.work.frame.laser_off) && !first.frame.laser_off {
-            first.report.flags.push("laser_off_in_group".into());
+            first.report.flags.push(FrameFlag::LaserOffInGroup);
         }
         let starts: Vec<f64> = self
             .kept
@@ -680,10 +681,10 @@ impl Average {
             first, stop, start, count, var_sum, t_var_sum, mean_t, seq_last,
         );
         if partial {
-            w.report.flags.push("partial_average".into());
+            w.report.flags.push(FrameFlag::PartialAverage);
         }
         if std::mem::take(&mut self.nonstationary) {
-            w.report.flags.push("nonstationary".into());
+            w.report.flags.push(FrameFlag::Nonstationary);
         }
         out.push(w);
     }

@@ -4,6 +4,7 @@
 //! `offset_v`, so integer codes stay integer (exact averaging downstream).
 
 use super::{FrameError, Stage, Work};
+use crate::frame::FrameFlag;
 use crate::detect::gates::GatePlacer;
 use crate::dsp::baseline::{DriftTracker, OffsetEstimator, robust_offset};
 use crate::scene::{BaselineConfig, BaselineEstimator, Scene};
@@ -49,7 +50,7 @@ impl Stage for Baseline {
         let b = match robust_offset(&mut self.scratch, self.estimator) {
             Some(m) => self.tracker.update(m),
             None => {
-                w.report.flags.push("no_baseline_gate".into());
+                w.report.flags.push(FrameFlag::NoBaselineGate);
                 self.tracker.offset_v().unwrap_or(0.0)
             }
         };

@@ -14,9 +14,10 @@
 
 use crate::detect::gates::GatePlacer;
 use super::{FrameError, Stage, Work};
+use crate::frame::FrameFlag;
 use crate::dsp::interference::{BurstCanceller, BurstLearner, BurstTemplate};
 use crate::dsp::notch::ZeroPhaseFilter;
-use crate::frame::Channel;
+use crate::frame::{Channel, Samples};
 use crate::scene::{DenoiseConfig, DenoiseMethod, Scene};
 
 /// What the stage is doing.
@@ -103,7 +104,7 @@ impl Denoise {
     fn cancel(&mut self, mut w: Work, out: &mut Vec<Work>) {
         match &mut self.state {
             State::Idle => {
-                w.report.flags.push("no_interference_learned".into());
+                w.report.flags.push(FrameFlag::NoInterferenceLearned);
             }
             State::Cancelling {
                 template,
@@ -133,10 +134,8 @@ impl Denoise {
                 match c.cancel(&mut self.volts, &ranges, predicted) {
                     Some(found) => {
                         self.last = Some((pos, found.lag));
-                        let ch = &w.frame.channels[w.source.stop];
-                        let new = Channel::from_volts(ch.name.clone(), ch.role, self.volts.clone());
-                        w.frame.channels[w.source.stop] = new;
-                        w.report.flags.push("interference_cancelled".into());
+                        replace_with_volts(&mut w.frame.channels[w.source.stop], &mut self.volts);
+                        w.report.flags.push(FrameFlag::InterferenceCancelled);
                     }
                     None => self.last = None,
                 }
@@ -159,14 +158,20 @@ impl Denoise {
                     .expect("planned above")
                     .1
                     .apply(&mut self.volts);
-                let ch = &w.frame.channels[w.source.stop];
-                let new = Channel::from_volts(ch.name.clone(), ch.role, self.volts.clone());
-                w.frame.channels[w.source.stop] = new;
+                replace_with_volts(&mut w.frame.channels[w.source.stop], &mut self.volts);
             }
             State::Learning { .. } => unreachable!("learning frames are held, not cancelled"),
         }
         out.push(w);
     }
+}
+
+/// Makes `ch` hold the cleaned `volts` (taken: the channel keeps the buffer;
+/// name and role stay, no copy of either).
+fn replace_with_volts(ch: &mut Channel, volts: &mut Vec<f64>) {
+    ch.samples = Samples::F64(std::mem::take(volts));
+    ch.volts_per_code = 1.0;
+    ch.offset_v = 0.0;
 }
 
 impl Stage for Denoise {

@@ -27,8 +27,9 @@
 //!   freedom (exact in form for CA, an approximation for OS).
 
 use super::{FrameError, Stage, Work};
+use crate::frame::FrameFlag;
 use crate::detect::cfar::{CfarMethod, CfarPlan};
-use crate::detect::colour::{NoiseColour, OutputColour};
+use crate::detect::colour::{output_gain_with, NoiseColour, OutputColour};
 use crate::detect::detector::{local_maxima, local_maxima_above, upcrossings, upcrossings_above, DetectorPlan};
 use crate::detect::empirical::EmpiricalTail;
 use crate::detect::extreme::{threshold_for_report, ReportThreshold};
@@ -90,18 +91,61 @@ struct WhitenState {
 }
 
 /// What the pooled noise colour gave at one version of its estimate (derived
-/// once per change of the estimate, not per frame).
+/// once per change of the estimate, in place).
 #[derive(Debug)]
 struct ColourTerms {
-    /// [`NoiseColour::version`] these were derived at.
-    version: u64,
+    /// [`NoiseColour::version`] these were derived at (None: not yet for this plan).
+    version: Option<u64>,
     /// The detector output's variance gain and lag-1 correlation.
     output: OutputColour,
     /// Correlation time of the noise, samples.
     tau: f64,
     /// Normalised autocorrelation ρ(0..) (empty: white); shared with every
-    /// frame's [`super::NoiseModel::rho`] until the estimate changes.
+    /// frame's [`super::NoiseModel::rho`]; rewritten in place when no frame holds it.
     rho: Arc<[f64]>,
+    /// Scratch: the estimate's corrected lag sums.
+    g: Vec<f64>,
+    /// Scratch: the normalised autocorrelation before it is shared.
+    rho_v: Vec<f64>,
+    /// Scratch: the taps' autocorrelation.
+    acf: Vec<f64>,
+}
+
+impl ColourTerms {
+    fn new() -> ColourTerms {
+        ColourTerms {
+            version: None,
+            output: OutputColour { variance_gain: 1.0, rho1: 0.0 },
+            tau: 1.0,
+            rho: Arc::from(Vec::new()),
+            g: Vec::new(),
+            rho_v: Vec::new(),
+            acf: Vec::new(),
+        }
+    }
+
+    /// Derives the terms from `colour` for the detector `taps` when its
+    /// estimate changed: as `colour.output(taps)`, `colour.correlation_time()`
+    /// and `colour.rho()` (empty where white), without allocating once grown.
+    fn refresh(&mut self, colour: &NoiseColour, taps: &[f64]) {
+        if self.version == Some(colour.version()) {
+            return;
+        }
+        self.version = Some(colour.version());
+        let coloured = colour.rho_into(&mut self.g, &mut self.rho_v);
+        if coloured {
+            self.tau = (1.0 + 2.0 * self.rho_v[1..].iter().sum::<f64>()).max(0.05);
+            self.output = output_gain_with(taps, &self.rho_v, &mut self.acf);
+        } else {
+            self.rho_v.clear();
+            self.tau = 1.0;
+            self.output = output_gain_with(taps, &[1.0], &mut self.acf);
+        }
+        match Arc::get_mut(&mut self.rho) {
+            Some(r) if r.len() == self.rho_v.len() => r.copy_from_slice(&self.rho_v),
+            _ => self.rho = Arc::from(self.rho_v.as_slice()),
+        }
+    }
 }
 
 /// What a CFAR plan was built for: it is rebuilt when any of these change.
@@ -301,7 +345,7 @@ pub struct Detect {
     thresholds: ThresholdCache,
     /// Noise colour pooled over the noise gates: sets the output sigma and correlation.
     colour: Option<NoiseColour>,
-    colour_terms: Option<ColourTerms>,
+    colour_terms: ColourTerms,
     whiten: Option<WhitenState>,
     cfar: Option<CfarState>,
     /// Normalised gate outputs, for the empirical threshold mode.
@@ -321,7 +365,7 @@ impl Detect {
             raw: None,
             thresholds: ThresholdCache::new(scene.detector.pfa, scene.detector.pfa_scope),
             colour: None,
-            colour_terms: None,
+            colour_terms: ColourTerms::new(),
             whiten: scene.detector.whiten.then(|| {
                 let n = scene.noise_gate.forgetting_frames;
                 WhitenState {
@@ -363,7 +407,7 @@ impl Detect {
             };
             // Lags up to the template length are all the output's sigma depends on.
             self.colour = Some(NoiseColour::new(plan.len()));
-            self.colour_terms = None;
+            self.colour_terms.version = None;
             self.raw = Some(RawDetector { dt_s: dt, len: n, shape, plan });
             if let Some(ws) = &mut self.whiten {
                 ws.plan = None;
@@ -389,7 +433,7 @@ impl Stage for Detect {
             None => false,
         };
         if self.whiten.is_some() && !whitened {
-            w.report.flags.push("whiten_warming_up".into());
+            w.report.flags.push(FrameFlag::WhitenWarmingUp);
         }
         // Noise colour (pooled gate autocorrelation): the plain matched
         // filter's output sigma and correlation depend on it. The whitened
@@ -403,15 +447,8 @@ impl Stage for Detect {
         let (out_gain, rho1, tau) = match (&self.whiten, whitened) {
             (Some(ws), true) => (1.0, ws.plan.as_ref().expect("whitened").plan.rho1(), 1.0),
             _ => {
-                if self.colour_terms.as_ref().is_none_or(|c| c.version != colour.version()) {
-                    self.colour_terms = Some(ColourTerms {
-                        version: colour.version(),
-                        output: colour.output(self.raw.as_ref().expect("built above").plan.taps()),
-                        tau: colour.correlation_time(),
-                        rho: colour.rho().unwrap_or_default().into(),
-                    });
-                }
-                let c = self.colour_terms.as_ref().expect("set above");
+                let c = &mut self.colour_terms;
+                c.refresh(colour, self.raw.as_ref().expect("built above").plan.taps());
                 w.noise.rho = Arc::clone(&c.rho);
                 (c.output.variance_gain.sqrt(), c.output.rho1, c.tau)
             }
@@ -471,9 +508,9 @@ impl Stage for Detect {
                 Some(z) => {
                     w.threshold.u = z;
                     w.threshold.t = z / w.threshold.kappa;
-                    w.report.flags.push("empirical_threshold".into());
+                    w.report.flags.push(FrameFlag::EmpiricalThreshold);
                 }
-                None => w.report.flags.push("empirical_threshold_warming_up".into()),
+                None => w.report.flags.push(FrameFlag::EmpiricalThresholdWarmingUp),
             }
         }
         let key = CfarKey {
@@ -549,14 +586,14 @@ impl Stage for Detect {
         let gate_cells = (pre_pos.len() + beyond_pos.len()) as f64 * per_position;
         w.report.false_alarm = self.false_alarms.record(observed, gate_cells, t.p_cell);
         w.report.detector = DetectorSummary {
-            kind: self.kind.name().into(),
+            kind: self.kind.name(),
             pfa_design: self.pfa,
             threshold: thr / raw_norm,
             pfa_cell: t.p_cell,
             cells_effective: t.cells_effective,
         };
         if w.report.false_alarm.excess {
-            w.report.flags.push("false_alarm_excess".into());
+            w.report.flags.push(FrameFlag::FalseAlarmExcess);
         }
         out.push(w);
         Ok(())

@@ -12,6 +12,7 @@
 use std::sync::{Arc, Mutex};
 
 use super::Pipeline;
+use crate::frame::FrameFlag;
 use crate::detect::template::{TemplateError, TemplateLearner};
 use crate::dsp::pulse::{PulseShape, Shape};
 use crate::frame::{Frame, Return};
@@ -107,7 +108,7 @@ pub fn learn_shapes(
         let (mut cleaned, mut start_v, mut sorted) = (Vec::new(), Vec::new(), Vec::new());
         pipeline.set_observer(Box::new(move |w| {
             let to_index = |t_s: f64| (t_s - w.frame.first_sample_offset_s) / w.frame.sample_interval_s;
-            let timed_start = !w.report.flags.iter().any(|f| f.starts_with("no_start") || f == "start_timing_fallback");
+            let timed_start = !w.report.flags.iter().any(|f| f.name().starts_with("no_start") || *f == FrameFlag::StartTimingFallback);
             if let (Some(s), true) = (w.source.start, timed_start) {
                 w.frame.channels[s].volts_into(&mut start_v);
                 sorted.clone_from(&start_v);

@@ -160,6 +160,16 @@ impl Default for ThresholdTerms {
     }
 }
 
+impl Buffers {
+    /// Empties every buffer, keeping its capacity.
+    pub fn clear(&mut self) {
+        self.stop_v.clear();
+        self.detector_output.clear();
+        self.detections.clear();
+        self.components.clear();
+    }
+}
+
 impl Work {
     /// Gates of this frame's stop channel at its time reference.
     pub(crate) fn place_gates(&self, placer: &mut GatePlacer) -> Gates {
@@ -198,6 +208,10 @@ pub struct Pipeline {
     entering: Vec<Work>,
     /// Units the current stage pushes (kept for their capacity).
     leaving: Vec<Work>,
+    /// Units whose report went out: their buffers are reused for the next frames.
+    spare: Vec<Work>,
+    /// Reports handed back by [`Pipeline::recycle`], reused for the next reports.
+    spare_reports: Vec<Report>,
 }
 
 impl std::fmt::Debug for Pipeline {
@@ -238,6 +252,8 @@ impl Pipeline {
             observer: None,
             entering: Vec::new(),
             leaving: Vec::new(),
+            spare: Vec::new(),
+            spare_reports: Vec::new(),
         }
     }
 
@@ -253,10 +269,27 @@ impl Pipeline {
 
     /// Processes one frame; pushes 0..n reports (0 while an average fills).
     /// A refused frame changes nothing else.
+    ///
+    /// In steady state the pipeline allocates nothing per frame when the
+    /// caller hands its reports back once it is done with them:
+    ///
+    /// ```no_run
+    /// # fn run(p: &mut tofwave::pipeline::Pipeline, frames: Vec<tofwave::frame::Frame>) {
+    /// let mut out = Vec::new();
+    /// for frame in frames {
+    ///     p.recycle(&mut out); // empties `out`; the reports' storage is reused
+    ///     p.push(frame, &mut out).ok();
+    ///     // ... use `out` ...
+    /// }
+    /// # }
+    /// ```
     pub fn push(&mut self, frame: Frame, out: &mut Vec<Report>) -> Result<(), FrameError> {
         let mut entering = std::mem::take(&mut self.entering);
         entering.clear();
-        let result = self.validate.process(frame, &mut entering).and_then(|()| self.run_from(0, &mut entering, out));
+        let result = self
+            .validate
+            .process(frame, &mut self.spare, &mut entering)
+            .and_then(|()| self.run_from(0, &mut entering, out));
         self.entering = entering;
         result
     }
@@ -287,15 +320,25 @@ impl Pipeline {
             }
             std::mem::swap(entering, &mut leaving);
         }
-        for w in entering.drain(..) {
+        for mut w in entering.drain(..) {
             if let Some(f) = &mut self.observer {
                 f(&w);
             }
             self.last_noise = Some(w.report.noise);
-            out.push(w.report);
+            let report = std::mem::replace(&mut w.report, self.spare_reports.pop().unwrap_or_default());
+            out.push(report);
+            // The frame is the caller's: dropped now, not held with the spare unit.
+            w.frame = Frame::empty();
+            self.spare.push(w);
         }
         self.leaving = leaving;
         result
+    }
+
+    /// Takes back the reports in `reports` (leaving it empty) so that later
+    /// reports reuse their storage instead of allocating.
+    pub fn recycle(&mut self, reports: &mut Vec<Report>) {
+        self.spare_reports.extend(reports.drain(..));
     }
 
     /// Calls `f` with every finished unit of work.

@@ -10,6 +10,7 @@
 //! N = 0 (the default) every frame is fitted on its own gates alone.
 
 use super::{FrameError, Stage, Work};
+use crate::frame::FrameFlag;
 use crate::detect::gates::GatePlacer;
 use crate::detect::noise::{NoiseFitter, NoiseTracker};
 use crate::scene::Scene;
@@ -23,6 +24,8 @@ pub struct Noise {
     gates: GatePlacer,
     /// Present when the scene asks for a forgetting noise model.
     tracker: Option<NoiseTracker>,
+    /// Scratch for the frame's median when there is no noise gate.
+    sorted: Vec<f64>,
 }
 
 impl Noise {
@@ -34,6 +37,7 @@ impl Noise {
             fitter: NoiseFitter::default(),
             gates: GatePlacer::new(scene),
             tracker: (n > 0).then(|| NoiseTracker::with_time_constant(n as f64)),
+            sorted: Vec::new(),
         }
     }
 }
@@ -60,14 +64,14 @@ impl Stage for Noise {
                     *v = last;
                 }
             }
-            w.report.flags.push(format!("non_finite_samples:{bad}"));
+            w.report.flags.push(FrameFlag::NonFiniteSamples(bad));
         }
         let g = &w.noise.gates;
         let noise = self
             .fitter
             .fit(&[&stop_v[g.pre.clone()], &stop_v[g.beyond.clone()]], s.detector.normality_alpha);
         if (noise.samples as usize) < s.noise_gate.min_samples {
-            w.report.flags.push("noise_gate_small".into());
+            w.report.flags.push(FrameFlag::NoiseGateSmall);
         }
         let mut noise = noise;
         if let Some(tracker) = &mut self.tracker {
@@ -90,20 +94,22 @@ impl Stage for Noise {
         };
         if noise.samples < 2 {
             // No gate: the frame's median stands in for the baseline.
-            let mut sorted = stop_v.clone();
-            sorted.sort_by(f64::total_cmp);
-            noise.mean_v = sorted.get(sorted.len() / 2).copied().unwrap_or(0.0);
+            let sorted = &mut self.sorted;
+            sorted.clear();
+            sorted.extend_from_slice(&stop_v);
+            let mid = sorted.len() / 2;
+            noise.mean_v = if sorted.is_empty() { 0.0 } else { *sorted.select_nth_unstable_by(mid, f64::total_cmp).1 };
         }
         w.noise.sigma_v = noise.sigma_v;
         if !(noise.sigma_v > floor) {
             w.noise.sigma_v = floor;
-            w.report.flags.push(if noise.samples < 2 { "no_noise_estimate".into() } else { "zero_noise".into() });
+            w.report.flags.push(if noise.samples < 2 { FrameFlag::NoNoiseEstimate } else { FrameFlag::ZeroNoise });
         }
         if !noise.gaussian && noise.samples >= 8 {
-            w.report.flags.push("non_gaussian_noise".into());
+            w.report.flags.push(FrameFlag::NonGaussianNoise);
         }
         if noise.contaminated {
-            w.report.flags.push("noise_gate_contaminated".into());
+            w.report.flags.push(FrameFlag::NoiseGateContaminated);
         }
         w.noise.summary = noise;
         w.report.noise = noise;

@@ -9,7 +9,7 @@ use crate::detect::phase::PhaseBias;
 use crate::detect::timing::{crlb_samples, time_pulse, Timed, TimingInput};
 use crate::detect::walk::WalkTable;
 use crate::dsp::pulse::{PulseShape, Shape};
-use crate::frame::Return;
+use crate::frame::{Return, ReturnFlag, ReturnFlags};
 use crate::scene::{DetectorKind, Scene, TimingMethod};
 
 /// Returns closer than this many pulse widths are flagged "overlapping":
@@ -157,7 +157,9 @@ impl Stage for Timing {
                 timed.push((p, t, 0.0));
             }
         }
-        let mut returns = Vec::with_capacity(timed.len());
+        // The report's list keeps its capacity when the report is recycled.
+        let returns = &mut w.report.returns;
+        returns.clear();
         for (rank, &(p, one, misfit)) in timed.iter().enumerate() {
             let timed_peak = one.peak_index;
             // A comparator crossing comes earlier the larger the pulse: the
@@ -182,11 +184,11 @@ impl Stage for Timing {
             let sigma_t = ((sigma_stop * dt).powi(2) + w.reference.t_ref_sigma_s.powi(2)).sqrt();
             let amplitude_v = one.amplitude_v;
             let d = amplitude_v * norm / (w.noise.sigma_v * w.threshold.out_gain);
-            let mut flags = Vec::new();
+            let mut flags = ReturnFlags::default();
             let first = (one.peak_index + lo).floor();
             let last = (one.peak_index + hi).ceil();
             if first < 0.0 || last > (n - 1) as f64 {
-                flags.push("frame_edge".to_string());
+                flags.insert(ReturnFlag::FrameEdge);
             }
             if let Some((clip_lo, clip_hi)) = w.source.clip_v {
                 let a = first.clamp(0.0, (n - 1) as f64) as usize;
@@ -194,24 +196,24 @@ impl Stage for Timing {
                 // Within a quarter step of the rail counts as clipped.
                 let margin = 0.25 * w.source.lsb_v;
                 if x[a..=b].iter().any(|&v| v >= clip_hi - margin || v <= clip_lo + margin) {
-                    flags.push("saturated".to_string());
+                    flags.insert(ReturnFlag::Saturated);
                 }
             }
             let pd = detection_probability(w.threshold.t, d, w.threshold.kappa, w.threshold.nu);
             if pd < 0.5 {
-                flags.push("weak".to_string());
+                flags.insert(ReturnFlag::Weak);
             }
             if !w.noise.summary.gaussian && w.noise.summary.samples >= 8 {
-                flags.push("non_gaussian_noise".to_string());
+                flags.insert(ReturnFlag::NonGaussianNoise);
             }
             if timed.iter().enumerate().any(|(j, o)| j != rank && (o.1.peak_index - timed_peak).abs() < OVERLAP_FWHM * fwhm) {
-                flags.push("overlapping".to_string());
+                flags.insert(ReturnFlag::Overlapping);
             }
             if one.fallback {
-                flags.push("timing_fallback".to_string());
+                flags.insert(ReturnFlag::TimingFallback);
             }
             if misfit > MISFIT_LIMIT {
-                flags.push("shape_mismatch".to_string());
+                flags.insert(ReturnFlag::ShapeMismatch);
             }
             returns.push(Return {
                 range_m: 0.5 * self.c_m_per_s * tof_s,
@@ -227,7 +229,6 @@ impl Stage for Timing {
             });
         }
         returns.sort_by(|a, b| a.tof_s.total_cmp(&b.tof_s));
-        w.report.returns = returns;
         out.push(w);
         Ok(())
     }

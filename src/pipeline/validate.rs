@@ -3,7 +3,10 @@
 //! refused here with the field at fault named.
 
 use super::{Buffers, FrameError, NoiseModel, Source, ThresholdTerms, TimeReference, Work};
-use crate::frame::{channel_key, channel_key_into, ChannelRole, Frame, Report, Samples};
+use crate::detect::gates::Gates;
+use std::sync::Arc;
+use crate::frame::FrameFlag;
+use crate::frame::{channel_key, channel_key_into, ChannelRole, Frame, NoiseSummary, Report, Samples};
 use crate::scene::Scene;
 
 /// Checks frames and starts their work.
@@ -18,6 +21,8 @@ pub struct Validate {
     full_scale_v: Option<(f64, f64)>,
     /// Channel keys of the frame being checked, one at a time (reused).
     key_scratch: String,
+    /// The empty autocorrelation (white noise) every unit starts with, shared.
+    white: Arc<[f64]>,
 }
 
 impl Validate {
@@ -34,6 +39,7 @@ impl Validate {
             full_scale_v: (d.full_scale_low_v != 0.0 || d.full_scale_high_v != 0.0)
                 .then_some((d.full_scale_low_v, d.full_scale_high_v)),
             key_scratch: String::new(),
+            white: Arc::from(Vec::new()),
         }
     }
 
@@ -42,8 +48,9 @@ impl Validate {
         "validate"
     }
 
-    /// Validates `frame` and pushes its work.
-    pub fn process(&mut self, frame: Frame, out: &mut Vec<Work>) -> Result<(), FrameError> {
+    /// Validates `frame` and pushes its work, reusing a unit from `spare`
+    /// (its buffers and report keep their capacity) when there is one.
+    pub fn process(&mut self, frame: Frame, spare: &mut Vec<Work>, out: &mut Vec<Work>) -> Result<(), FrameError> {
         let err = |field: &str, msg: String| Err(FrameError::new(&frame, field, msg));
         if frame.channels.is_empty() {
             return err("channels", "the frame has no channels".into());
@@ -112,35 +119,54 @@ impl Validate {
         let ch = &frame.channels[stop];
         let clip_v = self.full_scale_v.or_else(|| code_limits_v(&ch.samples, ch.volts_per_code, ch.offset_v));
         let lsb_v = if ch.samples.is_integer() { ch.volts_per_code.abs() } else { 0.0 };
-        let seq_last = frame.sequence;
-        let mut report = Report {
-            sensor: frame.sensor_id.clone(),
-            seq_first: frame.sequence,
+        let source = Source {
+            stop,
+            start,
             seq_last: frame.sequence,
             frames_averaged: 1,
-            time_s: frame.trigger_time_s,
-            stages: vec![self.name()],
-            ..Report::default()
+            clip_v,
+            lsb_v,
         };
-        if frame.laser_off {
-            report.flags.push("laser_off".into());
-        }
-        out.push(Work {
-            frame,
-            source: Source {
-                stop,
-                start,
-                seq_last,
-                frames_averaged: 1,
-                clip_v,
-                lsb_v,
+        // A unit of work from an earlier frame keeps its buffers' and report's
+        // capacity; everything else starts afresh.
+        let mut w = match spare.pop() {
+            Some(mut w) => {
+                w.source = source;
+                w.buffers.clear();
+                w.reference = TimeReference::default();
+                w.noise.gates = Gates::default();
+                w.noise.summary = NoiseSummary::default();
+                w.noise.sigma_v = 0.0;
+                w.noise.rho = Arc::clone(&self.white);
+                w.threshold = ThresholdTerms::default();
+                w.report.reset();
+                w
+            }
+            None => Work {
+                frame: Frame::empty(),
+                source,
+                buffers: Buffers::default(),
+                reference: TimeReference::default(),
+                noise: NoiseModel {
+                    rho: Arc::clone(&self.white),
+                    ..NoiseModel::default()
+                },
+                threshold: ThresholdTerms::default(),
+                report: Report::default(),
             },
-            buffers: Buffers::default(),
-            reference: TimeReference::default(),
-            noise: NoiseModel::default(),
-            threshold: ThresholdTerms::default(),
-            report,
-        });
+        };
+        let report = &mut w.report;
+        report.sensor.push_str(&frame.sensor_id);
+        report.seq_first = frame.sequence;
+        report.seq_last = frame.sequence;
+        report.frames_averaged = 1;
+        report.time_s = frame.trigger_time_s;
+        report.stages.push(self.name());
+        if frame.laser_off {
+            report.flags.push(FrameFlag::LaserOff);
+        }
+        w.frame = frame;
+        out.push(w);
         Ok(())
     }
 }

@@ -171,6 +171,19 @@ impl Frame {
         self.len() == 0
     }
 
+    /// A frame with no channels and an empty sensor id (allocates nothing).
+    pub fn empty() -> Frame {
+        Frame {
+            sensor_id: String::new(),
+            sequence: 0,
+            trigger_time_s: 0.0,
+            sample_interval_s: 0.0,
+            first_sample_offset_s: 0.0,
+            channels: Vec::new(),
+            laser_off: false,
+        }
+    }
+
     /// Time of sample `i` relative to the trigger, seconds.
     pub fn sample_time_s(&self, i: f64) -> f64 {
         self.first_sample_offset_s + i * self.sample_interval_s
@@ -192,16 +205,27 @@ impl Frame {
 /// Canonical form of a channel name: vendor spellings of channel n all map
 /// to `"n"`; other names are lower-cased and trimmed.
 pub fn channel_key(name: &str) -> String {
-    let lower = name.trim().to_ascii_lowercase();
+    let mut key = String::with_capacity(name.len());
+    channel_key_into(name, &mut key);
+    key
+}
+
+/// [`channel_key`] written into `key` (cleared first): no allocation once
+/// `key` has grown to the name's length.
+pub fn channel_key_into(name: &str, key: &mut String) {
+    key.clear();
+    key.extend(name.trim().chars().map(|c| c.to_ascii_lowercase()));
+    let lower = key.as_str();
     let stripped = ["channel", "chan", "ch", "c"]
         .iter()
         .find_map(|p| lower.strip_prefix(p))
         .map(|r| r.trim_start_matches([' ', '_', '-']))
-        .unwrap_or(&lower);
+        .unwrap_or(lower);
     if !stripped.is_empty() && stripped.bytes().all(|b| b.is_ascii_digit()) {
-        stripped.trim_start_matches('0').to_string()
-    } else {
-        lower
+        // The number without leading zeros: a suffix of `key`.
+        let digits = stripped.trim_start_matches('0').len();
+        let cut = key.len() - digits;
+        key.drain(..cut);
     }
 }
 
@@ -232,7 +256,7 @@ pub struct NoiseSummary {
 #[derive(Debug, Clone, Default, PartialEq, Serialize)]
 pub struct DetectorSummary {
     /// "matched_filter" or "threshold".
-    pub kind: String,
+    pub kind: &'static str,
     /// Design false-alarm probability per report over the range gate.
     pub pfa_design: f64,
     /// Threshold, in volts of (template) amplitude.
@@ -282,7 +306,254 @@ pub struct Return {
     /// Time of the sample-level peak relative to the trigger, seconds.
     pub t_peak_s: f64,
     /// "saturated", "frame_edge", "weak", "non_gaussian_noise", "overlapping", ...
-    pub flags: Vec<String>,
+    pub flags: ReturnFlags,
+}
+
+/// A condition of one return (JSON: its [`name`](ReturnFlag::name)).
+/// Declared in the order reports list them.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ReturnFlag {
+    /// The pulse reaches past the first or last sample.
+    FrameEdge,
+    /// A sample of the pulse is at (or within a quarter step of) a rail.
+    Saturated,
+    /// Probability of detection below one half at the fitted amplitude.
+    Weak,
+    /// The noise gate failed the normality test.
+    NonGaussianNoise,
+    /// Another return lies within two FWHM.
+    Overlapping,
+    /// The timing method fell back to the sample-level peak.
+    TimingFallback,
+    /// The fitted pulse shape left a residual above the misfit limit.
+    ShapeMismatch,
+}
+
+impl ReturnFlag {
+    /// Every flag, in report order.
+    pub const ALL: [ReturnFlag; 7] = [
+        ReturnFlag::FrameEdge,
+        ReturnFlag::Saturated,
+        ReturnFlag::Weak,
+        ReturnFlag::NonGaussianNoise,
+        ReturnFlag::Overlapping,
+        ReturnFlag::TimingFallback,
+        ReturnFlag::ShapeMismatch,
+    ];
+
+    /// Name in reports (JSON and protobuf).
+    pub fn name(self) -> &'static str {
+        match self {
+            ReturnFlag::FrameEdge => "frame_edge",
+            ReturnFlag::Saturated => "saturated",
+            ReturnFlag::Weak => "weak",
+            ReturnFlag::NonGaussianNoise => "non_gaussian_noise",
+            ReturnFlag::Overlapping => "overlapping",
+            ReturnFlag::TimingFallback => "timing_fallback",
+            ReturnFlag::ShapeMismatch => "shape_mismatch",
+        }
+    }
+}
+
+impl std::fmt::Display for ReturnFlag {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl PartialEq<str> for ReturnFlag {
+    fn eq(&self, other: &str) -> bool {
+        self.name() == other
+    }
+}
+
+impl PartialEq<&str> for ReturnFlag {
+    fn eq(&self, other: &&str) -> bool {
+        self.name() == *other
+    }
+}
+
+/// The flags of one return: a set, listed in [`ReturnFlag::ALL`] order
+/// (no heap allocation).
+#[derive(Clone, Copy, Default, PartialEq, Eq)]
+pub struct ReturnFlags(u8);
+
+impl ReturnFlags {
+    /// Adds `flag`.
+    pub fn insert(&mut self, flag: ReturnFlag) {
+        self.0 |= 1 << flag as u8;
+    }
+
+    /// True when `flag` is set.
+    pub fn contains(&self, flag: ReturnFlag) -> bool {
+        self.0 & (1 << flag as u8) != 0
+    }
+
+    /// True when no flag is set.
+    pub fn is_empty(&self) -> bool {
+        self.0 == 0
+    }
+
+    /// Number of flags set.
+    pub fn len(&self) -> usize {
+        self.0.count_ones() as usize
+    }
+
+    /// The flags set, in report order.
+    pub fn iter(&self) -> ReturnFlagsIter {
+        ReturnFlagsIter { flags: *self, next: 0 }
+    }
+}
+
+/// Iterator over [`ReturnFlags`], in report order.
+#[derive(Debug, Clone)]
+pub struct ReturnFlagsIter {
+    flags: ReturnFlags,
+    next: usize,
+}
+
+impl Iterator for ReturnFlagsIter {
+    type Item = ReturnFlag;
+
+    fn next(&mut self) -> Option<ReturnFlag> {
+        while let Some(&f) = ReturnFlag::ALL.get(self.next) {
+            self.next += 1;
+            if self.flags.contains(f) {
+                return Some(f);
+            }
+        }
+        None
+    }
+}
+
+impl IntoIterator for &ReturnFlags {
+    type Item = ReturnFlag;
+    type IntoIter = ReturnFlagsIter;
+
+    fn into_iter(self) -> ReturnFlagsIter {
+        self.iter()
+    }
+}
+
+impl std::fmt::Debug for ReturnFlags {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_list().entries(self.iter().map(ReturnFlag::name)).finish()
+    }
+}
+
+impl Serialize for ReturnFlags {
+    fn serialize<S: serde::Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        serializer.collect_seq(self.iter().map(ReturnFlag::name))
+    }
+}
+
+/// A frame-level condition of a report (JSON: its name, with a count where
+/// it carries one: `non_finite_samples:3`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FrameFlag {
+    /// The frame said the laser was off.
+    LaserOff,
+    /// The frame has no start channel: the trigger is the reference.
+    NoStartChannel,
+    /// No start pulse above its noise: the trigger is the reference.
+    NoStartPulse,
+    /// The start pulse was timed by the fallback method.
+    StartTimingFallback,
+    /// No quiet samples to measure the baseline on.
+    NoBaselineGate,
+    /// Interference cancellation found no template to learn.
+    NoInterferenceLearned,
+    /// An interference burst was cancelled.
+    InterferenceCancelled,
+    /// The average holds fewer frames than asked (end of input).
+    PartialAverage,
+    /// The averaged frames' noise or returns moved within the group.
+    Nonstationary,
+    /// A frame of the group had the laser off.
+    LaserOffInGroup,
+    /// Non-finite samples in the stop channel (how many).
+    NonFiniteSamples(usize),
+    /// The noise gate holds few samples.
+    NoiseGateSmall,
+    /// Too few noise samples for a noise model.
+    NoNoiseEstimate,
+    /// The noise gate has zero spread.
+    ZeroNoise,
+    /// The noise gate failed the normality test.
+    NonGaussianNoise,
+    /// Robust and plain noise sigma disagree.
+    NoiseGateContaminated,
+    /// Whitening asked for, its noise model not ready yet.
+    WhitenWarmingUp,
+    /// The threshold came from the empirical tail.
+    EmpiricalThreshold,
+    /// Empirical threshold asked for, too few gate outputs yet.
+    EmpiricalThresholdWarmingUp,
+    /// Noise-gate false alarms above the design's interval.
+    FalseAlarmExcess,
+}
+
+impl FrameFlag {
+    /// Name in reports, without the count a flag may carry.
+    pub fn name(&self) -> &'static str {
+        match self {
+            FrameFlag::LaserOff => "laser_off",
+            FrameFlag::NoStartChannel => "no_start_channel",
+            FrameFlag::NoStartPulse => "no_start_pulse",
+            FrameFlag::StartTimingFallback => "start_timing_fallback",
+            FrameFlag::NoBaselineGate => "no_baseline_gate",
+            FrameFlag::NoInterferenceLearned => "no_interference_learned",
+            FrameFlag::InterferenceCancelled => "interference_cancelled",
+            FrameFlag::PartialAverage => "partial_average",
+            FrameFlag::Nonstationary => "nonstationary",
+            FrameFlag::LaserOffInGroup => "laser_off_in_group",
+            FrameFlag::NonFiniteSamples(_) => "non_finite_samples",
+            FrameFlag::NoiseGateSmall => "noise_gate_small",
+            FrameFlag::NoNoiseEstimate => "no_noise_estimate",
+            FrameFlag::ZeroNoise => "zero_noise",
+            FrameFlag::NonGaussianNoise => "non_gaussian_noise",
+            FrameFlag::NoiseGateContaminated => "noise_gate_contaminated",
+            FrameFlag::WhitenWarmingUp => "whiten_warming_up",
+            FrameFlag::EmpiricalThreshold => "empirical_threshold",
+            FrameFlag::EmpiricalThresholdWarmingUp => "empirical_threshold_warming_up",
+            FrameFlag::FalseAlarmExcess => "false_alarm_excess",
+        }
+    }
+}
+
+impl std::fmt::Display for FrameFlag {
+    /// The flag as reports spell it (`non_finite_samples:3`).
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            FrameFlag::NonFiniteSamples(n) => write!(f, "{}:{n}", self.name()),
+            _ => f.write_str(self.name()),
+        }
+    }
+}
+
+impl PartialEq<str> for FrameFlag {
+    /// Compares with the flag as reports spell it.
+    fn eq(&self, other: &str) -> bool {
+        match self {
+            FrameFlag::NonFiniteSamples(_) => self.to_string() == other,
+            _ => self.name() == other,
+        }
+    }
+}
+
+impl PartialEq<&str> for FrameFlag {
+    fn eq(&self, other: &&str) -> bool {
+        self == *other
+    }
+}
+
+impl Serialize for FrameFlag {
+    fn serialize<S: serde::Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        match self {
+            FrameFlag::NonFiniteSamples(_) => serializer.collect_str(self),
+            _ => serializer.serialize_str(self.name()),
+        }
+    }
 }
 
 /// Output for one processed frame or averaged group (JSON contract).
@@ -298,8 +569,8 @@ pub struct Report {
     pub frames_averaged: u32,
     /// Trigger time of the first frame, seconds.
     pub time_s: f64,
-    /// Pipeline stages that ran, in order.
-    pub stages: Vec<String>,
+    /// Pipeline stages that ran, in order (each stage's `name()`).
+    pub stages: Vec<&'static str>,
     /// Noise model used for detection.
     pub noise: NoiseSummary,
     /// Detector and threshold.
@@ -312,11 +583,99 @@ pub struct Report {
     pub t_start_s: f64,
     /// One-sigma uncertainty of `t_start_s`, seconds (0 when the trigger is the reference).
     pub t_start_sigma_s: f64,
-    /// Frame-level flags ("no_start_pulse", "laser_off", "noise_gate_small", ...).
-    pub flags: Vec<String>,
+    /// Frame-level flags ("no_start_pulse", "laser_off", "noise_gate_small", ...),
+    /// in the order the stages raised them.
+    pub flags: Vec<FrameFlag>,
     /// Averaged reports: realised SNR gain of the average, dB: the noise-gate
     /// sigma of the single frames (rms) over that of the averaged frame, for a
     /// return that adds coherently (aligned, stationary). Absent without averaging.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub snr_gain_db: Option<f64>,
+}
+
+impl Report {
+    /// Empties the report for reuse, keeping the capacity of its lists and
+    /// strings (a recycled report costs no allocation).
+    pub fn reset(&mut self) {
+        let Report {
+            sensor,
+            seq_first,
+            seq_last,
+            frames_averaged,
+            time_s,
+            stages,
+            noise,
+            detector,
+            false_alarm,
+            returns,
+            t_start_s,
+            t_start_sigma_s,
+            flags,
+            snr_gain_db,
+        } = self;
+        sensor.clear();
+        stages.clear();
+        returns.clear();
+        flags.clear();
+        *seq_first = 0;
+        *seq_last = 0;
+        *frames_averaged = 0;
+        *time_s = 0.0;
+        *noise = NoiseSummary::default();
+        *detector = DetectorSummary::default();
+        *false_alarm = FalseAlarmStats::default();
+        *t_start_s = 0.0;
+        *t_start_sigma_s = 0.0;
+        *snr_gain_db = None;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn channel_keys_match_vendor_spellings() {
+        for name in ["CH2", "Ch2", "C2", "2", "channel 2", " chan_02 ", "ch-2"] {
+            assert_eq!(channel_key(name), "2", "{name:?}");
+        }
+        assert_eq!(channel_key(" Stop "), "stop");
+        assert_eq!(channel_key("Coax"), "coax");
+        assert_eq!(channel_key("C000"), "");
+        let mut key = String::from("left over");
+        channel_key_into("Channel 7", &mut key);
+        assert_eq!(key, "7");
+    }
+
+    #[test]
+    fn flags_serialise_as_their_names_in_report_order() {
+        let mut f = ReturnFlags::default();
+        f.insert(ReturnFlag::ShapeMismatch);
+        f.insert(ReturnFlag::FrameEdge);
+        f.insert(ReturnFlag::Weak);
+        assert_eq!(serde_json::to_string(&f).unwrap(), r#"["frame_edge","weak","shape_mismatch"]"#);
+        assert_eq!(f.len(), 3);
+        assert!(f.contains(ReturnFlag::Weak) && !f.contains(ReturnFlag::Saturated));
+        let frame = vec![FrameFlag::LaserOff, FrameFlag::NonFiniteSamples(3), FrameFlag::ZeroNoise];
+        assert_eq!(serde_json::to_string(&frame).unwrap(), r#"["laser_off","non_finite_samples:3","zero_noise"]"#);
+        assert!(frame[1] == "non_finite_samples:3" && frame[2] == "zero_noise");
+        for (i, a) in ReturnFlag::ALL.iter().enumerate() {
+            assert!(ReturnFlag::ALL[i + 1..].iter().all(|b| a.name() != b.name()));
+        }
+    }
+
+    #[test]
+    fn a_reset_report_equals_a_new_one() {
+        let mut r = Report {
+            sensor: "s".into(),
+            seq_first: 3,
+            stages: vec!["validate"],
+            returns: vec![Return::default()],
+            flags: vec![FrameFlag::LaserOff],
+            snr_gain_db: Some(1.0),
+            ..Report::default()
+        };
+        r.reset();
+        assert_eq!(r, Report::default());
+    }
 }

@@ -83,7 +83,7 @@ fn integer_code_average_is_the_exact_mean() {
     let seen: Arc<Mutex<Vec<Vec<f64>>>> = Arc::default();
     let sink = seen.clone();
     p.set_observer(Box::new(move |w| {
-        sink.lock().unwrap().push(w.stop_v.clone())
+        sink.lock().unwrap().push(w.buffers.stop_v.clone())
     }));
     let mut r = rng(3);
     let mut sums = vec![0i64; len];
@@ -219,7 +219,7 @@ fn averaged_amplitude(align: AveragingAlign, jitter: impl Fn(u64) -> f64) -> f64
     let seen: Arc<Mutex<Vec<Vec<f64>>>> = Arc::default();
     let sink = seen.clone();
     p.set_observer(Box::new(move |w| {
-        sink.lock().unwrap().push(w.stop_v.clone())
+        sink.lock().unwrap().push(w.buffers.stop_v.clone())
     }));
     let mut out = Vec::new();
     for k in 0..64 {
@@ -296,7 +296,7 @@ fn median_average_rejects_sporadic_bursts() {
         let seen: Arc<Mutex<Vec<Vec<f64>>>> = Arc::default();
         let sink = seen.clone();
         p.set_observer(Box::new(move |w| {
-            sink.lock().unwrap().push(w.stop_v.clone())
+            sink.lock().unwrap().push(w.buffers.stop_v.clone())
         }));
         let mut r = rng(9);
         let mut out = Vec::new();
@@ -457,7 +457,7 @@ fn baseline_stage_removes_a_drifting_offset() {
         s.noise_mean_v = 0.2 + 1e-3 * k as f64;
         p.push(s.frame(&scene, k, &mut r), &mut out).unwrap();
     }
-    assert!(out.iter().all(|r| r.stages.iter().any(|s| s == "baseline")));
+    assert!(out.iter().all(|r| r.stages.iter().any(|s| *s == "baseline")));
     // Steady state of the smoothed offset lags a ramp by slope (1 − α)/α = 1 mV.
     let late: Vec<f64> = out[20..].iter().map(|r| r.noise.mean_v).collect();
     let mean = late.iter().sum::<f64>() / late.len() as f64;

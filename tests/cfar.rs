@@ -187,7 +187,7 @@ fn pipeline_false_reports(
     frames: u64,
     seed: u64,
     step_at: usize,
-) -> (u64, Vec<String>) {
+) -> (u64, Vec<&'static str>) {
     let mut scene = Scene::default_scene();
     scene.detector.pfa = 1e-2;
     scene.detector.cfar = cfar;
@@ -228,9 +228,9 @@ fn pipeline_runs_cfar_when_the_scene_asks_and_tames_the_step() {
     let (fixed, stages) = pipeline_false_reports(CfarKind::Off, frames, 5, 650);
     assert!(!stages.iter().any(|s| s.starts_with("cfar")), "{stages:?}");
     let (ca, stages) = pipeline_false_reports(CfarKind::Ca, frames, 6, 650);
-    assert!(stages.iter().any(|s| s == "cfar_ca"), "{stages:?}");
+    assert!(stages.iter().any(|s| *s == "cfar_ca"), "{stages:?}");
     let (os, stages) = pipeline_false_reports(CfarKind::Os, frames, 7, 650);
-    assert!(stages.iter().any(|s| s == "cfar_os"), "{stages:?}");
+    assert!(stages.iter().any(|s| *s == "cfar_os"), "{stages:?}");
     let ci = |hits: u64| clopper_pearson(hits, frames, 0.99);
     eprintln!(
         "pipeline, design 1e-2 per report: reports with a false return of {frames}, sigma steps 4x mid range gate: fixed {fixed} (99 % CP {:.3?}), CA {ca} ({:.3?}), OS {os} ({:.3?})",

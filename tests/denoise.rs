@@ -5,7 +5,6 @@
 use std::sync::{Arc, Mutex};
 use tofwave::detect::noise_model::Moments;
 use tofwave::math::stats::clopper_pearson;
-use tofwave::dsp::pulse::Shape;
 use tofwave::frame::Report;
 use tofwave::physics::{Simulator, Truth};
 use tofwave::pipeline::Pipeline;
@@ -71,10 +70,10 @@ fn run_fixed(
     let seen: Arc<Mutex<Vec<Seen>>> = Arc::default();
     let sink = seen.clone();
     p.set_observer(Box::new(move |w| {
-        let g = &w.gates;
+        let g = &w.noise.gates;
         sink.lock().unwrap().push((
             w.report.seq_first,
-            w.stop_v.clone(),
+            w.buffers.stop_v.clone(),
             g.range.clone(),
             vec![g.pre.clone(), g.beyond.clone()],
         ));
@@ -176,9 +175,9 @@ fn burst_cancellation_removes_spurious_returns_without_weakening_the_return() {
         let sink = xs.clone();
         let d2 = det.clone();
         p.set_observer(Box::new(move |w| {
-            for r in [w.gates.pre.clone(), w.gates.beyond.clone()] {
+            for r in [w.noise.gates.pre.clone(), w.noise.gates.beyond.clone()] {
                 for q in r.step_by(4) {
-                    if let Some(v) = d2.output(&w.stop_v, q) {
+                    if let Some(v) = d2.output(&w.buffers.stop_v, q) {
                         sink.lock().unwrap().push(v);
                     }
                 }
@@ -381,6 +380,6 @@ fn burst_cancellation_removes_spurious_returns_without_weakening_the_return() {
     assert!(
         cancelled
             .iter()
-            .all(|r| r.stages.iter().any(|s| s == "denoise"))
+            .all(|r| r.stages.iter().any(|s| *s == "denoise"))
     );
 }

@@ -103,9 +103,9 @@ fn without_forgetting_each_frame_is_fitted_on_its_own_gates() {
     let sink = seen.clone();
     p.set_observer(Box::new(move |w| {
         sink.lock().unwrap().push((
-            w.stop_v.clone(),
-            w.gates.pre.clone(),
-            w.gates.beyond.clone(),
+            w.buffers.stop_v.clone(),
+            w.noise.gates.pre.clone(),
+            w.noise.gates.beyond.clone(),
         ))
     }));
     let mut rng = ChaCha8Rng::seed_from_u64(2);

@@ -36,8 +36,8 @@ fn assert_finite(r: &Report) {
     assert!(!json.contains("null"), "non-finite number in {json}");
 }
 
-fn has(flags: &[String], f: &str) -> bool {
-    flags.iter().any(|x| x.starts_with(f))
+fn has<T: std::fmt::Display>(flags: impl IntoIterator<Item = T>, f: &str) -> bool {
+    flags.into_iter().any(|x| x.to_string().starts_with(f))
 }
 
 fn pulse_frame(scene: &Scene, amp: f64, sigma: f64, tof_s: f64) -> Frame {
@@ -58,7 +58,7 @@ fn zero_sigma_gate_gives_a_flagged_finite_detection() {
     // (samples) is off by at most h²/8·|x''|/|x'| = 0.041/σ samples: 0.023
     // for the start pulse (σ = 1.79), 0.009 for the return (σ = 4.79); the
     // timing kernel holds a noise-free pulse within 0.05 samples
-    // (detect::timing's test). Start and stop each: 0.1 sample, 1.5 cm.
+    // (detect::pulse_timing's test). Start and stop each: 0.1 sample, 1.5 cm.
     // (Measured: -0.033 ns, -4.9 mm.) One sample of error is 15 cm.
     let dt = 1e-9;
     let tof_err = r.returns[0].tof_s - 100e-9;

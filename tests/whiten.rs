@@ -15,7 +15,7 @@ use tofwave::detect::kernels::DetectorPlan;
 use tofwave::detect::finite_gate::detection_probability;
 use tofwave::math::special::{q, q_inv};
 use tofwave::math::stats::clopper_pearson;
-use tofwave::dsp::pulse::{PulseShape, Shape};
+use tofwave::dsp::pulse::PulseShape;
 use tofwave::frame::{Channel, ChannelRole, Frame};
 use tofwave::pipeline::Pipeline;
 use tofwave::scene::{RangeGateConfig, Scene, TimingMethod};
@@ -59,7 +59,7 @@ fn scene(whiten: bool, pfa: f64, max_m: f64) -> Scene {
 
 /// Reports with a return among `frames` noise-only frames (1000 samples,
 /// 300 before the trigger, a 75 m range gate), and the last report's stages.
-fn false_reports(whiten: bool, pfa: f64, frames: u64, seed: u64, phi: f64) -> (u64, Vec<String>) {
+fn false_reports(whiten: bool, pfa: f64, frames: u64, seed: u64, phi: f64) -> (u64, Vec<&'static str>) {
     let mut p = Pipeline::new(&scene(whiten, pfa, 75.0), "white");
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let mut out = Vec::new();
@@ -86,7 +86,7 @@ fn check_false_alarms(phi: f64, seed: u64) {
         "whitened MF, AR(1) phi {phi}: {hits} of {frames} noise-only reports had a return, rate {:.4}, 99 % CP [{lo:.4}, {hi:.4}], design {pfa}; stages {stages:?}",
         hits as f64 / frames as f64
     );
-    assert!(stages.iter().any(|s| s == "whiten"), "{stages:?}");
+    assert!(stages.iter().any(|s| *s == "whiten"), "{stages:?}");
     assert!(lo <= pfa && pfa <= hi, "design {pfa} outside [{lo}, {hi}]");
     // The plain matched filter sizes its threshold from the pooled noise
     // colour (detect::colour): near the design, but not exact once the
@@ -98,7 +98,7 @@ fn check_false_alarms(phi: f64, seed: u64) {
     eprintln!(
         "plain MF in the same noise: {plain} of {plain_frames} reports had a false return (design {pfa}); stages {stages:?}"
     );
-    assert!(!stages.iter().any(|s| s == "whiten"), "{stages:?}");
+    assert!(!stages.iter().any(|s| *s == "whiten"), "{stages:?}");
     let (lo, hi) = clopper_pearson(plain, plain_frames, 0.99);
     assert!(hi >= 0.5 * pfa && lo <= 5.0 * pfa, "plain MF rate [{lo}, {hi}] far from design {pfa}");
 }
@@ -159,11 +159,11 @@ fn whitened_detection_beats_the_plain_matched_filter_and_follows_theory() {
     p.set_observer(Box::new(move |w| {
         // unit-σ statistic, threshold (unit σ), Student-t threshold, kappa, nu
         *sink.lock().unwrap() = Some((
-            w.detector_output[PEAK] / w.sigma_v,
-            w.threshold_u,
-            w.threshold_t,
-            w.kappa,
-            w.nu,
+            w.buffers.detector_output[PEAK] / w.noise.sigma_v,
+            w.threshold.u,
+            w.threshold.t,
+            w.threshold.kappa,
+            w.threshold.nu,
         ));
     }));
     let mut rng = ChaCha8Rng::seed_from_u64(21);
@@ -174,7 +174,7 @@ fn whitened_detection_beats_the_plain_matched_filter_and_follows_theory() {
         p.push(frame(ar1(&mut rng, N, PHI), PRE, seq), &mut out)
             .unwrap();
     }
-    assert!(out[0].stages.iter().any(|s| s == "whiten"));
+    assert!(out[0].stages.iter().any(|s| *s == "whiten"));
     let u = q_inv(out[0].detector.pfa_cell);
     let trials = if cfg!(debug_assertions) { 300 } else { 3000 };
     for target in [0.2, 0.5, 0.9] {
@@ -239,7 +239,7 @@ fn whitening_waits_for_a_noise_model_and_default_scene_has_no_whiten_stage() {
     let mut out = Vec::new();
     p.push(frame(ar1(&mut rng, 1000, 0.9), 300, 0), &mut out)
         .unwrap();
-    assert!(!out[0].stages.iter().any(|s| s == "whiten"));
+    assert!(!out[0].stages.iter().any(|s| *s == "whiten"));
     // A frame without noise gates (no pre-trigger samples, gate beyond the frame): no model, no stage.
     let mut sc = scene(true, 1e-2, 75.0);
     sc.noise_gate.beyond_range = false;
@@ -248,7 +248,7 @@ fn whitening_waits_for_a_noise_model_and_default_scene_has_no_whiten_stage() {
     p.push(frame(ar1(&mut rng, 600, 0.9), 0, 0), &mut out)
         .unwrap();
     assert!(
-        !out[0].stages.iter().any(|s| s == "whiten"),
+        !out[0].stages.iter().any(|s| *s == "whiten"),
         "{:?}",
         out[0].stages
     );

@@ -103,8 +103,17 @@ impl NoiseColour {
     /// quarter of a frame's gate samples, whichever is less), or `None` before
     /// any noise sample has been seen or when the pooled variance is zero.
     pub fn rho(&self) -> Option<Vec<f64>> {
+        let mut rho = Vec::new();
+        self.rho_into(&mut Vec::new(), &mut rho).then_some(rho)
+    }
+
+    /// [`rho`](NoiseColour::rho) written into `out` (cleared first; `g` is
+    /// scratch), so a per-frame refresh does not allocate; false where `rho`
+    /// gives `None`.
+    pub fn rho_into(&self, g: &mut Vec<f64>, out: &mut Vec<f64>) -> bool {
+        out.clear();
         if self.counts[0] < 2.0 || !(self.sums[0] > 0.0) {
-            return None;
+            return false;
         }
         // Centring each frame on its own gate mean takes the mean's variance,
         // σ²τ/n, off every product's expectation: for white noise on a
@@ -130,15 +139,17 @@ impl NoiseColour {
             }
         }
         let v = if b < 0.9 { (a / (1.0 - b)).max(0.0) } else { 0.0 };
-        let mut g = vec![0.0; lags + 1];
+        g.clear();
+        g.resize(lags + 1, 0.0);
         for (k, gk) in g.iter_mut().enumerate() {
             *gk = if self.counts[k] > 0.0 { (self.sums[k] + v * self.centring[k]) / self.counts[k] } else { 0.0 };
         }
         let c0 = g[0];
         if !(c0 > 0.0) {
-            return None;
+            return false;
         }
-        Some(g.iter().map(|gk| (gk / c0).clamp(-1.0, 1.0)).collect())
+        out.extend(g.iter().map(|gk| (gk / c0).clamp(-1.0, 1.0)));
+        true
     }
 
     /// Integrated correlation time in samples, τ = 1 + 2 Σ_{k≥1} ρ(k): the
@@ -176,9 +187,17 @@ pub struct OutputColour {
 /// Returns r(0) and r(1)/r(0). A non-positive r(0) (an autocorrelation
 /// estimate that is not positive definite) falls back to white noise.
 pub fn output_gain(taps: &[f64], rho: &[f64]) -> OutputColour {
+    output_gain_with(taps, rho, &mut Vec::new())
+}
+
+/// [`output_gain`] with the taps' autocorrelation written to `acf` (scratch
+/// kept by the caller, so a per-frame call does not allocate).
+pub fn output_gain_with(taps: &[f64], rho: &[f64], acf: &mut Vec<f64>) -> OutputColour {
     let len = taps.len() as isize;
     // The taps' autocorrelation A_h(j), once.
-    let acf: Vec<f64> = (0..taps.len()).map(|j| taps[..taps.len() - j].iter().zip(&taps[j..]).map(|(x, y)| x * y).sum()).collect();
+    acf.clear();
+    acf.extend((0..taps.len()).map(|j| taps[..taps.len() - j].iter().zip(&taps[j..]).map(|(x, y)| x * y).sum::<f64>()));
+    let acf = &*acf;
     let a = |j: isize| -> f64 { acf.get(j.unsigned_abs()).copied().unwrap_or(0.0) };
     let kmax = (rho.len() as isize - 1).min(len);
     let r = |m: isize| -> f64 {

@@ -1,6 +1,13 @@
 //! Where in a frame returns are sought (range gate) and where the noise model
 //! is fitted and false alarms are counted (noise gates), in sample indices.
+//!
+//! [`GatePlacer`] is the one place that turns a scene's geometry and a
+//! frame's time reference into gates: the noise stage and the stages before
+//! it (baseline, denoise, average) each hold one.
 
+use crate::dsp::pulse::Shape;
+use crate::frame::Frame;
+use crate::scene::{PulseConfig, Scene};
 use std::ops::Range;
 
 /// Inputs that place the gates on one frame.
@@ -82,6 +89,121 @@ impl Gates {
     }
 }
 
+/// Places a frame's range and noise gates from the scene sections that
+/// decide them (return pulse, calibration, medium, range and noise gates,
+/// timing fraction); the pulse shape is rebuilt only when the sampling
+/// period changes.
+#[derive(Debug)]
+pub struct GatePlacer {
+    /// Return pulse (`return_pulse`): its support and FWHM widen the gates.
+    pulse_cfg: PulseConfig,
+    /// Timing fraction (`timing.fraction`): where on the pulse a range is measured.
+    fraction: f64,
+    /// Calibrated system delay (`calibration.delay_s`), s.
+    delay_s: f64,
+    /// Speed of light in the scene's medium, m/s.
+    c_m_per_s: f64,
+    /// Range gate (`range_gate.min_m`, `range_gate.max_m`), m.
+    range_m: (f64, f64),
+    /// Noise-gate guard (`noise_gate.guard_s`), s.
+    guard_s: f64,
+    /// Noise gates used (`noise_gate.pre_trigger`, `noise_gate.beyond_range`).
+    pre: bool,
+    /// See `pre`.
+    beyond: bool,
+    /// Return-pulse shape for the current sampling period.
+    pulse: Option<(f64, Shape)>,
+}
+
+/// The noise gates that are not empty (at most two ranges), without a heap
+/// allocation per frame.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct QuietRanges {
+    ranges: [Range<usize>; 2],
+    len: usize,
+}
+
+impl QuietRanges {
+    /// The non-empty ranges, in frame order.
+    pub fn as_slice(&self) -> &[Range<usize>] {
+        &self.ranges[..self.len]
+    }
+
+    fn from_ranges(ranges: [Range<usize>; 2]) -> QuietRanges {
+        let mut q = QuietRanges::default();
+        for r in ranges {
+            if !r.is_empty() {
+                q.ranges[q.len] = r;
+                q.len += 1;
+            }
+        }
+        q
+    }
+}
+
+impl std::ops::Deref for QuietRanges {
+    type Target = [Range<usize>];
+
+    fn deref(&self) -> &[Range<usize>] {
+        self.as_slice()
+    }
+}
+
+impl GatePlacer {
+    /// Copies the sections of `scene` that place gates.
+    pub fn new(scene: &Scene) -> GatePlacer {
+        GatePlacer {
+            pulse_cfg: scene.return_pulse.clone(),
+            fraction: scene.timing.fraction,
+            delay_s: scene.calibration.delay_s,
+            c_m_per_s: scene.c_medium_m_per_s(),
+            range_m: (scene.range_gate.min_m, scene.range_gate.max_m),
+            guard_s: scene.noise_gate.guard_s,
+            pre: scene.noise_gate.pre_trigger,
+            beyond: scene.noise_gate.beyond_range,
+            pulse: None,
+        }
+    }
+
+    /// Gates of a frame whose stop channel has `samples` samples, timed from
+    /// `t_ref_s` (the start stage's time reference, relative to the trigger).
+    pub fn place(&mut self, frame: &Frame, samples: usize, t_ref_s: f64) -> Gates {
+        let dt = frame.sample_interval_s;
+        if self.pulse.as_ref().is_none_or(|p| p.0 != dt) {
+            self.pulse = Some((dt, self.pulse_cfg.shape(dt)));
+        }
+        let pulse = &self.pulse.as_ref().expect("set above").1;
+        let (lo, hi) = pulse.support();
+        Gates::place(&GateInputs {
+            samples,
+            dt_s: dt,
+            first_sample_offset_s: frame.first_sample_offset_s,
+            t_ref_s,
+            delay_s: self.delay_s,
+            c_m_per_s: self.c_m_per_s,
+            min_range_m: self.range_m.0,
+            max_range_m: self.range_m.1,
+            support_lo: lo,
+            support_hi: hi,
+            timing_offset: pulse.fraction_offset(self.fraction),
+            guard_s: self.guard_s,
+            pre: self.pre,
+            beyond: self.beyond,
+            margin: pulse.fwhm(),
+        })
+    }
+
+    /// Sample ranges free of returns: the whole frame when the laser is off,
+    /// else the non-empty noise gates.
+    pub fn quiet_ranges(&mut self, frame: &Frame, samples: usize, t_ref_s: f64) -> QuietRanges {
+        if frame.laser_off {
+            return QuietRanges::from_ranges([0..frame.len(), 0..0]);
+        }
+        let g = self.place(frame, samples, t_ref_s);
+        QuietRanges::from_ranges([g.pre, g.beyond])
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -113,6 +235,15 @@ mod tests {
         assert_eq!(g.range, 505..1506);
         assert_eq!(g.pre, 0..465);
         assert_eq!(g.beyond, 1595..2500);
+    }
+
+    #[test]
+    fn quiet_ranges_keep_only_non_empty_gates_in_order() {
+        let q = QuietRanges::from_ranges([0..0, 5..9]);
+        assert_eq!(q.as_slice(), &[5..9]);
+        let q = QuietRanges::from_ranges([1..3, 5..9]);
+        assert_eq!(q.as_slice(), &[1..3, 5..9]);
+        assert!(QuietRanges::from_ranges([0..0, 4..4]).is_empty());
     }
 
     #[test]

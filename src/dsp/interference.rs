@@ -53,6 +53,11 @@ struct Xcorr {
     inv: Arc<dyn ComplexToReal<f64>>,
     buf: Vec<f64>,
     spec: Vec<Complex<f64>>,
+    /// Scratch of the forward and inverse plans (kept: `process` would
+    /// allocate its own on every call).
+    fwd_scratch: Vec<Complex<f64>>,
+    /// See `fwd_scratch`.
+    inv_scratch: Vec<Complex<f64>>,
 }
 
 impl std::fmt::Debug for Xcorr {
@@ -68,12 +73,15 @@ impl Xcorr {
         let fwd = planner.plan_fft_forward(n);
         let inv = planner.plan_fft_inverse(n);
         let spec = fwd.make_output_vec();
+        let (fwd_scratch, inv_scratch) = (fwd.make_scratch_vec(), inv.make_scratch_vec());
         Xcorr {
             n,
             fwd,
             inv,
             buf: vec![0.0; n],
             spec,
+            fwd_scratch,
+            inv_scratch,
         }
     }
 
@@ -89,7 +97,7 @@ impl Xcorr {
         let m = x.len().min(self.n);
         self.buf[..m].copy_from_slice(&x[..m]);
         self.fwd
-            .process(&mut self.buf, out)
+            .process_with_scratch(&mut self.buf, out, &mut self.fwd_scratch)
             .expect("buffers sized by the plan");
     }
 
@@ -107,7 +115,7 @@ impl Xcorr {
             s.im = 0.0;
         }
         self.inv
-            .process(&mut self.spec, &mut self.buf)
+            .process_with_scratch(&mut self.spec, &mut self.buf, &mut self.inv_scratch)
             .expect("buffers sized by the plan");
         let scale = 1.0 / self.n as f64;
         for (o, v) in out.iter_mut().zip(&self.buf) {

@@ -28,8 +28,9 @@
 //! (length, sampling, offset, start channel) closes the group early, flagged
 //! `partial_average`.
 
-use super::baseline::GatePlacer;
+use crate::detect::gates::GatePlacer;
 use super::{FrameError, Stage, Work};
+use crate::frame::FrameFlag;
 use crate::detect::noise_model::Moments;
 use crate::dsp::accumulate::{CodeAccumulator, mean_from_sums, robust_average};
 use crate::dsp::fracdelay::FractionalDelay;
@@ -201,7 +202,7 @@ pub struct Average {
 }
 
 fn has_start_pulse(w: &Work) -> bool {
-    w.start.is_some() && !w.report.flags.iter().any(|f| f == "no_start_pulse")
+    w.source.start.is_some() && !w.report.flags.iter().any(|f| *f == FrameFlag::NoStartPulse)
 }
 
 impl Average {
@@ -233,7 +234,7 @@ impl Average {
         a.len() == b.len()
             && a.sample_interval_s == b.sample_interval_s
             && (a.first_sample_offset_s - b.first_sample_offset_s).abs() <= a.sample_interval_s
-            && g.start.is_some() == w.start.is_some()
+            && g.source.start.is_some() == w.source.start.is_some()
     }
 
     /// Shift (samples, positive: later) that moves `w`'s start pulse to the reference.
@@ -241,16 +242,16 @@ impl Average {
         if self.cfg.align != AveragingAlign::Start || !has_start_pulse(w) {
             return None;
         }
-        let r = *self.reference_s.get_or_insert(w.t_ref_s);
-        let d = (r - w.t_ref_s) / w.frame.sample_interval_s;
+        let r = *self.reference_s.get_or_insert(w.reference.t_ref_s);
+        let d = (r - w.reference.t_ref_s) / w.frame.sample_interval_s;
         (d.abs() > 1e-9).then_some(d)
     }
 
     /// Gate variance of `v` (the frame's stop channel in volts).
     fn gate_variance(&mut self, w: &Work, v: &[f64]) -> f64 {
         let mut m = Moments::default();
-        for r in self.gates.quiet_ranges(w) {
-            v[r].iter()
+        for r in w.quiet_ranges(&mut self.gates).iter() {
+            v[r.clone()].iter()
                 .filter(|x| x.is_finite())
                 .for_each(|&x| m.push(x));
         }
@@ -271,7 +272,7 @@ impl Average {
 
     fn add_to_group(&mut self, g: &mut Group, w: &Work) {
         let shift = self.shift_of(w);
-        let stop = &w.frame.channels[w.stop];
+        let stop = &w.frame.channels[w.source.stop];
         let mut volts = std::mem::take(&mut self.volts);
         let mut shifted = std::mem::take(&mut self.shifted);
         match shift {
@@ -286,12 +287,12 @@ impl Average {
             }
         }
         g.var_sum += self.gate_variance(w, &volts);
-        g.t_var_sum += w.t_ref_sigma_s * w.t_ref_sigma_s;
+        g.t_var_sum += w.reference.t_ref_sigma_s * w.reference.t_ref_sigma_s;
         if has_start_pulse(w) {
-            g.t_sum_s += w.t_ref_s;
+            g.t_sum_s += w.reference.t_ref_s;
             g.t_count += 1;
         }
-        if let (Some(acc), Some(s)) = (&mut g.start, w.start) {
+        if let (Some(acc), Some(s)) = (&mut g.start, w.source.start) {
             let ch = &w.frame.channels[s];
             match shift {
                 Some(d) => {
@@ -309,7 +310,7 @@ impl Average {
         let n = w.frame.len();
         let mut g = Group {
             stop: Acc::new(n),
-            start: w.start.map(|_| Acc::new(n)),
+            start: w.source.start.map(|_| Acc::new(n)),
             var_sum: 0.0,
             t_var_sum: 0.0,
             t_sum_s: 0.0,
@@ -334,18 +335,18 @@ impl Average {
         mean_t_s: Option<f64>,
         seq_last: u64,
     ) -> Work {
-        let stop_name = w.frame.channels[w.stop].name.clone();
+        let stop_name = w.frame.channels[w.source.stop].name.clone();
         let mut channels = vec![Channel::from_volts(stop_name, ChannelRole::Stop, stop)];
-        if let (Some(s), Some(v)) = (w.start, start) {
+        if let (Some(s), Some(v)) = (w.source.start, start) {
             let name = w.frame.channels[s].name.clone();
             channels.push(Channel::from_volts(name, ChannelRole::Start, v));
         }
         w.frame.channels = channels;
-        w.stop = 0;
-        w.start = w.start.map(|_| 1);
-        w.frames_averaged = count;
-        w.lsb_v /= count as f64;
-        w.seq_last = seq_last;
+        w.source.stop = 0;
+        w.source.start = w.source.start.map(|_| 1);
+        w.source.frames_averaged = count;
+        w.source.lsb_v /= count as f64;
+        w.source.seq_last = seq_last;
         // Aligned: every frame's start sits at the reference. Unaligned: the
         // returns sit, on average, at the frames' mean start instant.
         if let Some(r) = self
@@ -353,9 +354,9 @@ impl Average {
             .filter(|_| has_start_pulse(&w))
             .or(mean_t_s)
         {
-            w.t_ref_s = r;
+            w.reference.t_ref_s = r;
             w.report.t_start_s = r;
-            w.t_ref_sigma_s = t_var_sum.sqrt() / count as f64;
+            w.reference.t_ref_sigma_s = t_var_sum.sqrt() / count as f64;
         }
         w.report.frames_averaged = count;
         w.report.seq_last = seq_last;
@@ -378,7 +379,7 @@ impl Average {
         let stop = g.stop.mean_v();
         let start = g.start.as_mut().map(|a| a.mean_v());
         let count = g.count();
-        let seq_last = g.first.seq_last;
+        let seq_last = g.first.source.seq_last;
         let mean_t = (g.t_count > 0).then(|| g.t_sum_s / g.t_count as f64);
         let mut w = self.finish(
             g.first,
@@ -391,10 +392,10 @@ impl Average {
             seq_last,
         );
         if partial {
-            w.report.flags.push("partial_average".into());
+            w.report.flags.push(FrameFlag::PartialAverage);
         }
         if std::mem::take(&mut self.nonstationary) {
-            w.report.flags.push("nonstationary".into());
+            w.report.flags.push(FrameFlag::Nonstationary);
         }
         self.reference_s = None;
         out.push(w);
@@ -412,7 +413,7 @@ impl Average {
         }
         let guard = self.cfg.stationarity_block;
         let laser_off = w.frame.laser_off;
-        let seq = w.seq_last;
+        let seq = w.source.seq_last;
         // Without a guard the block is the group itself.
         let slot = if guard == 0 {
             &mut self.group
@@ -422,16 +423,16 @@ impl Average {
         match slot.take() {
             Some(mut g) => {
                 self.add_to_group(&mut g, &w);
-                g.first.seq_last = seq;
+                g.first.source.seq_last = seq;
                 if laser_off
                     && !g
                         .first
                         .report
                         .flags
                         .iter()
-                        .any(|f| f == "laser_off" || f == "laser_off_in_group")
+                        .any(|f| matches!(f, FrameFlag::LaserOff | FrameFlag::LaserOffInGroup))
                 {
-                    g.first.report.flags.push("laser_off_in_group".into());
+                    g.first.report.flags.push(FrameFlag::LaserOffInGroup);
                 }
                 let slot = if guard == 0 {
                     &mut self.group
@@ -494,14 +495,14 @@ impl Average {
                     g.t_var_sum += b.t_var_sum;
                     g.t_sum_s += b.t_sum_s;
                     g.t_count += b.t_count;
-                    g.first.seq_last = b.first.seq_last;
+                    g.first.source.seq_last = b.first.source.seq_last;
                     g.first.report.flags.extend(
                         b.first
                             .report
                             .flags
                             .iter()
-                            .filter(|f| *f == "laser_off_in_group")
-                            .cloned(),
+                            .filter(|f| **f == FrameFlag::LaserOffInGroup)
+                            .copied(),
                     );
                     self.group = Some(g);
                 }
@@ -527,8 +528,8 @@ impl Average {
         if e.is_nan() || e <= 0.0 {
             return false;
         }
-        let gates = self.gates.place(w);
-        let quiet = self.gates.quiet_ranges(w);
+        let gates = w.place_gates(&mut self.gates);
+        let quiet = w.quiet_ranges(&mut self.gates);
         let a = PeakFit::new(older, &h, peak_idx, e, &gates.range, &quiet);
         let b = PeakFit::new(newer, &h, peak_idx, e, &gates.range, &quiet);
         let (Some(a), Some(b)) = (a, b) else {
@@ -574,8 +575,8 @@ impl Average {
         let shift = self.shift_of(&w).unwrap_or(0.0);
         let mut raw = std::mem::take(&mut self.scratch);
         let mut stop = Vec::new();
-        Self::aligned(&w.frame.channels[w.stop], shift, &mut raw, &mut stop);
-        let start = w.start.map(|s| {
+        Self::aligned(&w.frame.channels[w.source.stop], shift, &mut raw, &mut stop);
+        let start = w.source.start.map(|s| {
             let mut v = Vec::new();
             Self::aligned(&w.frame.channels[s], shift, &mut raw, &mut v);
             v
@@ -635,7 +636,7 @@ impl Average {
             return;
         };
         let mut first = front.work.clone();
-        let seq_last = self.kept.back().map_or(first.seq_last, |k| k.work.seq_last);
+        let seq_last = self.kept.back().map_or(first.source.seq_last, |k| k.work.source.seq_last);
         first.report.seq_first = front.work.report.seq_first;
         first.report.time_s = front.work.report.time_s;
         let count = self.kept.len() as u32;
@@ -643,7 +644,7 @@ impl Average {
         let t_var_sum: f64 = self
             .kept
             .iter()
-            .map(|k| k.work.t_ref_sigma_s * k.work.t_ref_sigma_s)
+            .map(|k| k.work.reference.t_ref_sigma_s * k.work.reference.t_ref_sigma_s)
             .sum();
         let trim = match self.cfg.method {
             AveragingMethod::Mean => 0.0,
@@ -657,7 +658,7 @@ impl Average {
             o
         };
         let stop = stat(self.kept.iter().map(|k| k.stop.as_slice()).collect());
-        let start = first.start.map(|_| {
+        let start = first.source.start.map(|_| {
             stat(
                 self.kept
                     .iter()
@@ -666,23 +667,23 @@ impl Average {
             )
         });
         if self.kept.iter().any(|k| k.work.frame.laser_off) && !first.frame.laser_off {
-            first.report.flags.push("laser_off_in_group".into());
+            first.report.flags.push(FrameFlag::LaserOffInGroup);
         }
         let starts: Vec<f64> = self
             .kept
             .iter()
             .filter(|k| has_start_pulse(&k.work))
-            .map(|k| k.work.t_ref_s)
+            .map(|k| k.work.reference.t_ref_s)
             .collect();
         let mean_t = (!starts.is_empty()).then(|| starts.iter().sum::<f64>() / starts.len() as f64);
         let mut w = self.finish(
             first, stop, start, count, var_sum, t_var_sum, mean_t, seq_last,
         );
         if partial {
-            w.report.flags.push("partial_average".into());
+            w.report.flags.push(FrameFlag::PartialAverage);
         }
         if std::mem::take(&mut self.nonstationary) {
-            w.report.flags.push("nonstationary".into());
+            w.report.flags.push(FrameFlag::Nonstationary);
         }
         out.push(w);
     }

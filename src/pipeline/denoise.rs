@@ -12,11 +12,12 @@
 //! `interference_cancelled`; if learning found no burst the frames pass
 //! unchanged, flagged `no_interference_learned`.
 
-use super::baseline::GatePlacer;
+use crate::detect::gates::GatePlacer;
 use super::{FrameError, Stage, Work};
+use crate::frame::FrameFlag;
 use crate::dsp::interference::{BurstCanceller, BurstLearner, BurstTemplate};
 use crate::dsp::notch::ZeroPhaseFilter;
-use crate::frame::Channel;
+use crate::frame::{Channel, Samples};
 use crate::scene::{DenoiseConfig, DenoiseMethod, Scene};
 
 /// What the stage is doing.
@@ -103,7 +104,7 @@ impl Denoise {
     fn cancel(&mut self, mut w: Work, out: &mut Vec<Work>) {
         match &mut self.state {
             State::Idle => {
-                w.report.flags.push("no_interference_learned".into());
+                w.report.flags.push(FrameFlag::NoInterferenceLearned);
             }
             State::Cancelling {
                 template,
@@ -118,14 +119,14 @@ impl Denoise {
                     )));
                 }
                 let c = canceller.as_mut().expect("planned above");
-                let ranges = self.gates.quiet_ranges(&w);
+                let ranges = w.quiet_ranges(&mut self.gates);
                 let pos = abs_pos(&w);
                 let predicted = self
                     .last
                     .filter(|_| self.cfg.predict)
                     .map(|(p, lag)| (lag + (pos - p) as f64).round() as i64)
                     .filter(|&l| l > -(n as i64) && l < template.values.len() as i64);
-                w.frame.channels[w.stop].volts_into(&mut self.volts);
+                w.frame.channels[w.source.stop].volts_into(&mut self.volts);
                 if self.volts.len() != n {
                     out.push(w);
                     return;
@@ -133,10 +134,8 @@ impl Denoise {
                 match c.cancel(&mut self.volts, &ranges, predicted) {
                     Some(found) => {
                         self.last = Some((pos, found.lag));
-                        let ch = &w.frame.channels[w.stop];
-                        let new = Channel::from_volts(ch.name.clone(), ch.role, self.volts.clone());
-                        w.frame.channels[w.stop] = new;
-                        w.report.flags.push("interference_cancelled".into());
+                        replace_with_volts(&mut w.frame.channels[w.source.stop], &mut self.volts);
+                        w.report.flags.push(FrameFlag::InterferenceCancelled);
                     }
                     None => self.last = None,
                 }
@@ -154,19 +153,25 @@ impl Denoise {
                     };
                     *plan = Some((dt, f));
                 }
-                w.frame.channels[w.stop].volts_into(&mut self.volts);
+                w.frame.channels[w.source.stop].volts_into(&mut self.volts);
                 plan.as_ref()
                     .expect("planned above")
                     .1
                     .apply(&mut self.volts);
-                let ch = &w.frame.channels[w.stop];
-                let new = Channel::from_volts(ch.name.clone(), ch.role, self.volts.clone());
-                w.frame.channels[w.stop] = new;
+                replace_with_volts(&mut w.frame.channels[w.source.stop], &mut self.volts);
             }
             State::Learning { .. } => unreachable!("learning frames are held, not cancelled"),
         }
         out.push(w);
     }
+}
+
+/// Makes `ch` hold the cleaned `volts` (taken: the channel keeps the buffer;
+/// name and role stay, no copy of either).
+fn replace_with_volts(ch: &mut Channel, volts: &mut Vec<f64>) {
+    ch.samples = Samples::F64(std::mem::take(volts));
+    ch.volts_per_code = 1.0;
+    ch.offset_v = 0.0;
 }
 
 impl Stage for Denoise {
@@ -177,8 +182,8 @@ impl Stage for Denoise {
     fn process(&mut self, w: Work, out: &mut Vec<Work>) -> Result<(), FrameError> {
         if let State::Learning { held, .. } = &self.state {
             let fresh = held.is_empty().then(|| self.learner_for(&w));
-            let ranges = self.gates.quiet_ranges(&w);
-            w.frame.channels[w.stop].volts_into(&mut self.volts);
+            let ranges = w.quiet_ranges(&mut self.gates);
+            w.frame.channels[w.source.stop].volts_into(&mut self.volts);
             let State::Learning { learner, held } = &mut self.state else {
                 unreachable!("matched above")
             };

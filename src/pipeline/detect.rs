@@ -27,21 +27,24 @@
 //!   freedom (exact in form for CA, an approximation for OS).
 
 use super::{FrameError, Stage, Work};
+use crate::frame::FrameFlag;
 use crate::detect::cfar::{CfarMethod, CfarPlan};
-use crate::detect::colour::NoiseColour;
+use crate::detect::colour::{output_gain_with, NoiseColour, OutputColour};
 use crate::detect::kernels::{local_maxima, local_maxima_above, upcrossings, upcrossings_above, DetectorPlan};
-use crate::detect::whiten::{ArModel, Whitener};
-use crate::math::autocov::AutocovarianceAccumulator;
+use crate::detect::empirical::EmpiricalTail;
 use crate::detect::extreme::{threshold_for_report, ReportThreshold};
 use crate::detect::finite_gate::mean_error_inflation;
 use crate::math::stats::t_quantile_from_z;
 use crate::math::special;
+use crate::detect::resolve::Resolver;
 use crate::math::stats::clopper_pearson;
+use crate::detect::whiten::{ArModel, Whitener};
+use crate::math::autocov::AutocovarianceAccumulator;
 use crate::dsp::pulse::Shape;
 use crate::frame::{DetectorSummary, FalseAlarmStats};
-use crate::detect::empirical::EmpiricalTail;
-use crate::detect::resolve::Resolver;
 use crate::scene::{CfarKind, DetectorKind, PfaScope, Scene, ThresholdMode, TimingMethod};
+use std::ops::Range;
+use std::sync::Arc;
 
 /// At most this many pulses are resolved per report.
 const MAX_RESOLVED: usize = 32;
@@ -51,6 +54,28 @@ const WHITEN_SAMPLES_PER_COEFFICIENT: f64 = 10.0;
 
 /// Whitening refits at most this many frames apart (without forgetting).
 const WHITEN_REFIT_FRAMES: u64 = 64;
+
+/// The plain (unwhitened) detector for one sampling period and frame length.
+#[derive(Debug)]
+struct RawDetector {
+    /// Sampling period it was built for, s.
+    dt_s: f64,
+    /// Longest frame it runs on, samples.
+    len: usize,
+    /// Return-pulse shape at `dt_s` (the resolver and the whitened template use it).
+    shape: Shape,
+    /// Matched filter (or plain threshold) plan.
+    plan: DetectorPlan,
+}
+
+/// The whitened matched filter and the frame length it was planned for.
+#[derive(Debug)]
+struct WhitenedPlan {
+    /// Longest frame it runs on, samples.
+    len: usize,
+    /// Matched filter for the prewhitened template.
+    plan: DetectorPlan,
+}
 
 /// Prewhitening state: the accumulated gate autocovariance and the filter.
 #[derive(Debug)]
@@ -62,9 +87,78 @@ struct WhitenState {
     acc: AutocovarianceAccumulator,
     frames: u64,
     whitener: Option<Whitener>,
-    /// Whitened matched filter and the frame length it was planned for.
-    plan: Option<(usize, DetectorPlan)>,
+    plan: Option<WhitenedPlan>,
+    /// The whitened stop channel.
     z: Vec<f64>,
+}
+
+/// What the pooled noise colour gave at one version of its estimate (derived
+/// once per change of the estimate, in place).
+#[derive(Debug)]
+struct ColourTerms {
+    /// [`NoiseColour::version`] these were derived at (None: not yet for this plan).
+    version: Option<u64>,
+    /// The detector output's variance gain and lag-1 correlation.
+    output: OutputColour,
+    /// Correlation time of the noise, samples.
+    tau: f64,
+    /// Normalised autocorrelation ρ(0..) (empty: white); shared with every
+    /// frame's [`super::NoiseModel::rho`]; rewritten in place when no frame holds it.
+    rho: Arc<[f64]>,
+    /// Scratch: the estimate's corrected lag sums.
+    g: Vec<f64>,
+    /// Scratch: the normalised autocorrelation before it is shared.
+    rho_v: Vec<f64>,
+    /// Scratch: the taps' autocorrelation.
+    acf: Vec<f64>,
+}
+
+impl ColourTerms {
+    fn new() -> ColourTerms {
+        ColourTerms {
+            version: None,
+            output: OutputColour { variance_gain: 1.0, rho1: 0.0 },
+            tau: 1.0,
+            rho: Arc::from(Vec::new()),
+            g: Vec::new(),
+            rho_v: Vec::new(),
+            acf: Vec::new(),
+        }
+    }
+
+    /// Derives the terms from `colour` for the detector `taps` when its
+    /// estimate changed: as `colour.output(taps)`, `colour.correlation_time()`
+    /// and `colour.rho()` (empty where white), without allocating once grown.
+    fn refresh(&mut self, colour: &NoiseColour, taps: &[f64]) {
+        if self.version == Some(colour.version()) {
+            return;
+        }
+        self.version = Some(colour.version());
+        let coloured = colour.rho_into(&mut self.g, &mut self.rho_v);
+        if coloured {
+            self.tau = (1.0 + 2.0 * self.rho_v[1..].iter().sum::<f64>()).max(0.05);
+            self.output = output_gain_with(taps, &self.rho_v, &mut self.acf);
+        } else {
+            self.rho_v.clear();
+            self.tau = 1.0;
+            self.output = output_gain_with(taps, &[1.0], &mut self.acf);
+        }
+        match Arc::get_mut(&mut self.rho) {
+            Some(r) if r.len() == self.rho_v.len() => r.copy_from_slice(&self.rho_v),
+            _ => self.rho = Arc::from(self.rho_v.as_slice()),
+        }
+    }
+}
+
+/// What a CFAR plan was built for: it is rebuilt when any of these change.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct CfarKey {
+    /// Detector template length, taps.
+    template_len: usize,
+    /// Tap index of the template peak.
+    peak_tap: usize,
+    /// Per-cell false-alarm probability (its bits: compared exactly).
+    p_cell_bits: u64,
 }
 
 /// CFAR settings and the plan for the current template.
@@ -74,10 +168,170 @@ struct CfarState {
     guard: usize,
     training: usize,
     rank: usize,
-    /// Built for (template length, peak tap, per-cell probability).
-    plan: Option<((usize, usize, u64), CfarPlan)>,
+    /// The plan and what it was built for (None where the settings give no plan).
+    plan: Option<(CfarKey, CfarPlan)>,
+    /// Training-cell input (mean removed), reused.
     e: Vec<f64>,
+    /// Per-cell thresholds on the detector output, volts-equivalent.
     thresholds: Vec<f64>,
+}
+
+impl CfarState {
+    /// Rebuilds the plan when `key` changed.
+    fn refresh(&mut self, key: CfarKey, p_cell: f64) {
+        if self.plan.as_ref().is_none_or(|p| p.0 != key) {
+            let method = match self.kind {
+                CfarKind::Os => CfarMethod::OrderedStatistic { rank: self.rank },
+                _ => CfarMethod::CellAveraging,
+            };
+            let p_cell = p_cell.clamp(f64::MIN_POSITIVE, 0.5);
+            self.plan = CfarPlan::new(method, self.guard, self.training, key.template_len, key.peak_tap, p_cell)
+                .ok()
+                .map(|p| (key, p));
+        }
+    }
+}
+
+/// Per-cell CFAR thresholds on the detector output: the training cells are
+/// `input` less `mean` (written to `e`), and `gain` turns the input's sigma
+/// into the output's in volts-equivalent (the whitening scale times the
+/// colour's output gain). `out` gets one threshold per output cell.
+fn cfar_thresholds(plan: &mut CfarPlan, input: &[f64], mean: f64, gain: f64, e: &mut Vec<f64>, out: &mut Vec<f64>) {
+    e.clear();
+    e.extend(input.iter().map(|v| v - mean));
+    plan.thresholds(e, out);
+    for v in out.iter_mut() {
+        *v *= gain;
+    }
+}
+
+/// Range-gate size and output lag-1 correlation, rounded so that a pooled
+/// estimate that barely moves reuses a solved threshold.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct ThresholdKey {
+    /// Cells (peak positions) in the range gate.
+    cells: usize,
+    /// round(200 · ln(1 − ρ1)): 0.5 % relative steps of 1 − ρ1.
+    decorrelation: i32,
+}
+
+impl ThresholdKey {
+    fn new(cells: usize, rho1: f64) -> ThresholdKey {
+        ThresholdKey {
+            cells,
+            decorrelation: ((1.0 - rho1).max(1e-12).ln() * 200.0).round() as i32,
+        }
+    }
+
+    /// The lag-1 correlation the key stands for.
+    fn rho1(&self) -> f64 {
+        1.0 - (self.decorrelation as f64 / 200.0).exp()
+    }
+}
+
+/// Thresholds that hold the design false-alarm probability, solved once per
+/// key (solving costs ~1 ms) and kept for the last [`ThresholdCache::CAPACITY`] keys.
+#[derive(Debug)]
+struct ThresholdCache {
+    /// Design false-alarm probability.
+    pfa: f64,
+    /// Per report over the range gate, or per sample.
+    scope: PfaScope,
+    /// Solved thresholds, oldest first.
+    solved: Vec<(ThresholdKey, ReportThreshold)>,
+}
+
+impl ThresholdCache {
+    /// Keys kept.
+    const CAPACITY: usize = 16;
+
+    fn new(pfa: f64, scope: PfaScope) -> ThresholdCache {
+        ThresholdCache {
+            pfa,
+            scope,
+            solved: Vec::with_capacity(Self::CAPACITY),
+        }
+    }
+
+    /// The threshold for a range gate of `cells` cells whose detector output
+    /// has lag-1 correlation `rho1`. What the threshold depends on is 1 − ρ1
+    /// (the up-crossing rate goes as its square root), so that is rounded.
+    fn get(&mut self, cells: usize, rho1: f64) -> ReportThreshold {
+        let key = ThresholdKey::new(cells, rho1);
+        if let Some(t) = self.solved.iter().find(|t| t.0 == key) {
+            return t.1;
+        }
+        let t = match self.scope {
+            PfaScope::Report => threshold_for_report(self.pfa, cells.max(1), key.rho1()),
+            PfaScope::Sample => ReportThreshold {
+                u: special::q_inv(self.pfa),
+                p_cell: self.pfa,
+                cells_effective: cells as f64,
+            },
+        };
+        if self.solved.len() >= Self::CAPACITY {
+            self.solved.remove(0);
+        }
+        self.solved.push((key, t));
+        t
+    }
+}
+
+/// The detection threshold on the detector output, volts-equivalent.
+#[derive(Debug, Clone, Copy)]
+enum Level<'a> {
+    /// One level for every cell.
+    Fixed(f64),
+    /// One level per output cell (CFAR).
+    PerCell(&'a [f64]),
+}
+
+impl Level<'_> {
+    /// Local maxima of `y` above the level inside `range`, strongest first, into `out`.
+    fn peaks(self, y: &[f64], range: Range<usize>, out: &mut Vec<usize>) {
+        match self {
+            Level::Fixed(thr) => local_maxima(y, range, thr, out),
+            Level::PerCell(thr) => local_maxima_above(y, range, thr, out),
+        }
+    }
+
+    /// Up-crossings of the level by `y` inside `range`.
+    fn upcrossings(self, y: &[f64], range: Range<usize>) -> u64 {
+        match self {
+            Level::Fixed(thr) => upcrossings(y, range, thr),
+            Level::PerCell(thr) => upcrossings_above(y, range, thr),
+        }
+    }
+}
+
+/// Threshold crossings in the noise gates, where no return can be, counted
+/// against the design per-cell probability cumulatively per sensor.
+#[derive(Debug, Default)]
+struct FalseAlarmCounter {
+    /// Noise-gate crossings since the pipeline started.
+    observed: u64,
+    /// Effective noise-gate cells since the pipeline started.
+    cells: f64,
+}
+
+impl FalseAlarmCounter {
+    /// Adds one frame: `observed` crossings over `gate_cells` effective cells
+    /// at design per-cell probability `p_cell`; returns the running statistics
+    /// with the 95 % Clopper-Pearson interval of the per-cell rate.
+    fn record(&mut self, observed: u64, gate_cells: f64, p_cell: f64) -> FalseAlarmStats {
+        self.observed += observed;
+        self.cells += gate_cells;
+        let trials = self.cells.round() as u64;
+        let (lo, hi) = clopper_pearson(self.observed.min(trials), trials, 0.95);
+        FalseAlarmStats {
+            expected_per_frame: gate_cells * p_cell,
+            observed: self.observed,
+            cells: self.cells,
+            rate: if self.cells > 0.0 { self.observed as f64 / self.cells } else { 0.0 },
+            ci95: [lo, hi],
+            excess: trials > 0 && lo > p_cell,
+        }
+    }
 }
 
 /// Runs the detector on the stop channel.
@@ -85,26 +339,20 @@ struct CfarState {
 pub struct Detect {
     kind: DetectorKind,
     pfa: f64,
-    scope: PfaScope,
     pulse_cfg: crate::scene::PulseConfig,
     /// Maximum-likelihood timing resolves overlapping returns here.
     resolve: bool,
     resolver: Resolver,
-    plan: Option<(f64, usize, Shape, DetectorPlan)>,
-    /// Thresholds already solved, by range-gate size and output lag-1 correlation (rounded).
-    thresholds: Vec<((usize, i32), ReportThreshold)>,
+    raw: Option<RawDetector>,
+    thresholds: ThresholdCache,
     /// Noise colour pooled over the noise gates: sets the output sigma and correlation.
     colour: Option<NoiseColour>,
-    /// What the colour estimate gave at its version: output colour, τ, ρ.
-    colour_cache: Option<(u64, crate::detect::colour::OutputColour, f64, Vec<f64>)>,
+    colour_terms: ColourTerms,
     whiten: Option<WhitenState>,
     cfar: Option<CfarState>,
     /// Normalised gate outputs, for the empirical threshold mode.
     tail: Option<EmpiricalTail>,
-    /// Noise-gate crossings since the pipeline started.
-    observed_total: u64,
-    /// Effective noise-gate cells since the pipeline started.
-    cells_total: f64,
+    false_alarms: FalseAlarmCounter,
 }
 
 impl Detect {
@@ -113,14 +361,13 @@ impl Detect {
         Detect {
             kind: scene.detector.kind,
             pfa: scene.detector.pfa,
-            scope: scene.detector.pfa_scope,
             pulse_cfg: scene.return_pulse.clone(),
             resolve: scene.timing.method == TimingMethod::Ml && scene.detector.kind == DetectorKind::MatchedFilter,
             resolver: Resolver::default(),
-            plan: None,
-            thresholds: Vec::new(),
+            raw: None,
+            thresholds: ThresholdCache::new(scene.detector.pfa, scene.detector.pfa_scope),
             colour: None,
-            colour_cache: None,
+            colour_terms: ColourTerms::new(),
             whiten: scene.detector.whiten.then(|| {
                 let n = scene.noise_gate.forgetting_frames;
                 WhitenState {
@@ -147,34 +394,27 @@ impl Detect {
                 }
             }),
             tail: (scene.detector.threshold_mode == ThresholdMode::Empirical).then(EmpiricalTail::default),
-            observed_total: 0,
-            cells_total: 0.0,
+            false_alarms: FalseAlarmCounter::default(),
         }
     }
 
-    fn threshold(&mut self, cells: usize, rho1: f64) -> ReportThreshold {
-        // Solving costs ~1 ms: the correlation is rounded so that a pooled
-        // estimate that barely moves reuses the solved threshold. What the
-        // threshold depends on is 1 − ρ1 (the up-crossing rate goes as its
-        // square root), so that is rounded, to 0.5 % relative steps.
-        let key = (cells, ((1.0 - rho1).max(1e-12).ln() * 200.0).round() as i32);
-        let rho1 = 1.0 - (key.1 as f64 / 200.0).exp();
-        if let Some(t) = self.thresholds.iter().find(|t| t.0 == key) {
-            return t.1;
+    /// Builds the raw detector (and resets what depends on it) when the
+    /// sampling period changes or a longer frame arrives.
+    fn plan_raw(&mut self, dt: f64, n: usize) {
+        if self.raw.as_ref().is_none_or(|p| p.dt_s != dt || p.len < n) {
+            let shape = self.pulse_cfg.shape(dt);
+            let plan = match self.kind {
+                DetectorKind::MatchedFilter => DetectorPlan::matched_filter(&shape, n),
+                DetectorKind::Threshold => DetectorPlan::threshold(n),
+            };
+            // Lags up to the template length are all the output's sigma depends on.
+            self.colour = Some(NoiseColour::new(plan.len()));
+            self.colour_terms.version = None;
+            self.raw = Some(RawDetector { dt_s: dt, len: n, shape, plan });
+            if let Some(ws) = &mut self.whiten {
+                ws.plan = None;
+            }
         }
-        let t = match self.scope {
-            PfaScope::Report => threshold_for_report(self.pfa, cells.max(1), rho1),
-            PfaScope::Sample => ReportThreshold {
-                u: special::q_inv(self.pfa),
-                p_cell: self.pfa,
-                cells_effective: cells as f64,
-            },
-        };
-        if self.thresholds.len() >= 16 {
-            self.thresholds.remove(0);
-        }
-        self.thresholds.push((key, t));
-        t
     }
 }
 
@@ -185,172 +425,147 @@ impl Stage for Detect {
 
     fn process(&mut self, mut w: Work, out: &mut Vec<Work>) -> Result<(), FrameError> {
         let dt = w.frame.sample_interval_s;
-        let n = w.stop_v.len();
-        if self.plan.as_ref().is_none_or(|p| p.0 != dt || p.1 < n) {
-            let shape = self.pulse_cfg.shape(dt);
-            let plan = match self.kind {
-                DetectorKind::MatchedFilter => DetectorPlan::matched_filter(&shape, n),
-                DetectorKind::Threshold => DetectorPlan::threshold(n),
-            };
-            // Lags up to the template length are all the output's sigma depends on.
-            self.colour = Some(NoiseColour::new(plan.len()));
-            self.colour_cache = None;
-            self.plan = Some((dt, n, shape, plan));
-            if let Some(ws) = &mut self.whiten {
-                ws.plan = None;
-            }
-        }
+        let n = w.buffers.stop_v.len();
+        self.plan_raw(dt, n);
         let whitened = match &mut self.whiten {
             Some(ws) => {
-                let shape = &self.plan.as_ref().expect("built above").2;
+                let shape = &self.raw.as_ref().expect("built above").shape;
                 update_whitener(ws, &w, shape, n)
             }
             None => false,
         };
         if self.whiten.is_some() && !whitened {
-            w.report.flags.push("whiten_warming_up".into());
+            w.report.flags.push(FrameFlag::WhitenWarmingUp);
         }
         // Noise colour (pooled gate autocorrelation): the plain matched
         // filter's output sigma and correlation depend on it. The whitened
         // filter's output is white with unit sigma by construction.
         let colour = self.colour.as_mut().expect("built with the plan");
-        if w.noise.samples >= 2 {
-            let (pre, beyond) = (&w.stop_v[w.gates.pre.clone()], &w.stop_v[w.gates.beyond.clone()]);
-            colour.add_frame(&[pre, beyond], w.noise.mean_v);
+        if w.noise.summary.samples >= 2 {
+            let stop_v = &w.buffers.stop_v;
+            let (pre, beyond) = (&stop_v[w.noise.gates.pre.clone()], &stop_v[w.noise.gates.beyond.clone()]);
+            colour.add_frame(&[pre, beyond], w.noise.summary.mean_v);
         }
         let (out_gain, rho1, tau) = match (&self.whiten, whitened) {
-            (Some(ws), true) => (1.0, ws.plan.as_ref().expect("whitened").1.rho1(), 1.0),
+            (Some(ws), true) => (1.0, ws.plan.as_ref().expect("whitened").plan.rho1(), 1.0),
             _ => {
-                // Derived once per change of the pooled estimate.
-                if self.colour_cache.as_ref().is_none_or(|c| c.0 != colour.version()) {
-                    let oc = colour.output(self.plan.as_ref().expect("built above").3.taps());
-                    let rho = colour.rho().unwrap_or_default();
-                    self.colour_cache = Some((colour.version(), oc, colour.correlation_time(), rho));
-                }
-                let (_, oc, tau, rho) = self.colour_cache.as_ref().expect("set above");
-                w.noise_rho.clone_from(rho);
-                (oc.variance_gain.sqrt(), oc.rho1, *tau)
+                let c = &mut self.colour_terms;
+                c.refresh(colour, self.raw.as_ref().expect("built above").plan.taps());
+                w.noise.rho = Arc::clone(&c.rho);
+                (c.output.variance_gain.sqrt(), c.output.rho1, c.tau)
             }
         };
-        w.out_gain = out_gain;
-        let cells = w.gates.range.len();
-        let t = self.threshold(cells, rho1);
+        w.threshold.out_gain = out_gain;
+        let cells = w.noise.gates.range.len();
+        let t = self.thresholds.get(cells, rho1);
         let white_dof = match (&self.whiten, whitened) {
             (Some(ws), true) => Some(ws.acc.samples() - 1.0 - ws.order as f64),
             _ => None,
         };
-        let (_, _, _, raw_plan) = self.plan.as_mut().expect("built above");
-        let raw_norm = raw_plan.norm();
+        let raw = self.raw.as_mut().expect("built above");
+        let raw_norm = raw.plan.norm();
         // The plan whose output is thresholded, its input (for CFAR training
         // cells) and the factor from its unit-σ output to volts-equivalent.
         let (plan, input, scale): (&mut DetectorPlan, &[f64], f64) = match (&mut self.whiten, whitened) {
             (Some(ws), true) => {
                 let wh = ws.whitener.as_ref().expect("whitened");
-                wh.apply(&w.stop_v, w.noise.mean_v, &mut ws.z);
-                let plan = &mut ws.plan.as_mut().expect("whitened").1;
+                wh.apply(&w.buffers.stop_v, w.noise.summary.mean_v, &mut ws.z);
+                let plan = &mut ws.plan.as_mut().expect("whitened").plan;
                 let sigma_eff = raw_norm / plan.norm();
                 plan.run(&ws.z, 0.0);
                 (plan, &ws.z, sigma_eff)
             }
             _ => {
-                raw_plan.run(&w.stop_v, w.noise.mean_v);
-                (raw_plan, &w.stop_v, 1.0)
+                raw.plan.run(&w.buffers.stop_v, w.noise.summary.mean_v);
+                (&mut raw.plan, &w.buffers.stop_v, 1.0)
             }
         };
         let dc_gain = plan.dc_gain();
-        let pre_pos = plan.positions_inside(&w.gates.pre);
-        let beyond_pos = plan.positions_inside(&w.gates.beyond);
-        w.detector_output.clear();
-        w.detector_output.extend(plan.output().iter().map(|v| v * scale));
+        let pre_pos = plan.positions_inside(&w.noise.gates.pre);
+        let beyond_pos = plan.positions_inside(&w.noise.gates.beyond);
+        w.buffers.detector_output.clear();
+        w.buffers.detector_output.extend(plan.output().iter().map(|v| v * scale));
         if whitened {
             // Unit σ in whitened units is σ_eff volts-equivalent.
-            w.sigma_v = scale;
+            w.noise.sigma_v = scale;
             let last = w.report.stages.len().saturating_sub(1);
-            w.report.stages.insert(last, "whiten".into());
+            w.report.stages.insert(last, "whiten");
         }
         // The gate's mean and sigma are estimates: Student-t on the inflated
         // sigma keeps the design pfa for any gate size (see detect::finite_gate).
-        let samples = w.noise.samples;
-        w.nu = if samples > 1 { (samples - 1) as f64 } else { f64::INFINITY };
+        let samples = w.noise.summary.samples;
+        w.threshold.nu = if samples > 1 { (samples - 1) as f64 } else { f64::INFINITY };
         if let Some(m) = white_dof {
             // σ comes from the AR fit over every gate sample accumulated.
-            w.nu = if m > 1.0 { m } else { f64::INFINITY };
+            w.threshold.nu = if m > 1.0 { m } else { f64::INFINITY };
         }
         // The gate mean's error is σ²τ/n (τ: correlation time in samples); in
         // units of the output variance σ²g that is n·g/τ effective samples.
         let mean_samples = (samples as f64 * out_gain * out_gain / tau).round().max(1.0) as u64;
-        w.kappa = mean_error_inflation(dc_gain, if samples == 0 { 0 } else { mean_samples });
-        w.threshold_t = t_quantile_from_z(t.u, w.nu);
-        w.threshold_u = w.threshold_t * w.kappa;
+        w.threshold.kappa = mean_error_inflation(dc_gain, if samples == 0 { 0 } else { mean_samples });
+        w.threshold.t = t_quantile_from_z(t.u, w.threshold.nu);
+        w.threshold.u = w.threshold.t * w.threshold.kappa;
         if let Some(tail) = &self.tail {
             match tail.quantile(t.p_cell) {
                 Some(z) => {
-                    w.threshold_u = z;
-                    w.threshold_t = z / w.kappa;
-                    w.report.flags.push("empirical_threshold".into());
+                    w.threshold.u = z;
+                    w.threshold.t = z / w.threshold.kappa;
+                    w.report.flags.push(FrameFlag::EmpiricalThreshold);
                 }
-                None => w.report.flags.push("empirical_threshold_warming_up".into()),
+                None => w.report.flags.push(FrameFlag::EmpiricalThresholdWarmingUp),
             }
         }
-        let cfar_on = if let Some(cs) = &mut self.cfar {
-            let key = (plan.len(), plan.peak_tap(), t.p_cell.to_bits());
-            if cs.plan.as_ref().is_none_or(|p| p.0 != key) {
-                let method = match cs.kind {
-                    CfarKind::Os => CfarMethod::OrderedStatistic { rank: cs.rank },
-                    _ => CfarMethod::CellAveraging,
-                };
-                let p_cell = t.p_cell.clamp(f64::MIN_POSITIVE, 0.5);
-                cs.plan = CfarPlan::new(method, cs.guard, cs.training, key.0, key.1, p_cell).ok().map(|p| (key, p));
-            }
-            match &mut cs.plan {
-                Some((_, cp)) => {
-                    // Training cells: the detector's own input, mean removed
-                    // (the whitened input is already zero-mean).
-                    let mean = if whitened { 0.0 } else { w.noise.mean_v };
-                    cs.e.clear();
-                    cs.e.extend(input.iter().map(|v| v - mean));
-                    cp.thresholds(&cs.e, &mut cs.thresholds);
-                    // The training cells give the input's sigma; the output's
-                    // is out_gain times it (1 for white or whitened noise).
-                    for v in &mut cs.thresholds {
-                        *v *= scale * out_gain;
-                    }
-                    // Pd and score: Student-t with the full window's cells.
-                    let alpha = cp.factor(cp.full_window());
-                    w.threshold_t = alpha;
-                    w.threshold_u = alpha;
-                    w.kappa = 1.0;
-                    w.nu = cp.full_window() as f64;
-                    w.report.stages.push(cs.kind.name().into());
-                    true
-                }
-                None => false,
-            }
-        } else {
-            false
+        let key = CfarKey {
+            template_len: plan.len(),
+            peak_tap: plan.peak_tap(),
+            p_cell_bits: t.p_cell.to_bits(),
         };
-        let thr = w.threshold_u * w.sigma_v * out_gain;
-        match (&self.cfar, cfar_on) {
-            (Some(cs), true) => {
-                local_maxima_above(&w.detector_output, w.gates.range.clone(), &cs.thresholds, &mut w.detections)
+        let cfar_on = match &mut self.cfar {
+            Some(cs) => {
+                cs.refresh(key, t.p_cell);
+                match &mut cs.plan {
+                    Some((_, cp)) => {
+                        // Training cells: the detector's own input, mean removed
+                        // (the whitened input is already zero-mean). The
+                        // training cells give the input's sigma; the output's
+                        // is out_gain times it (1 for white or whitened noise).
+                        let mean = if whitened { 0.0 } else { w.noise.summary.mean_v };
+                        cfar_thresholds(cp, input, mean, scale * out_gain, &mut cs.e, &mut cs.thresholds);
+                        // Pd and score: Student-t with the full window's cells.
+                        let alpha = cp.factor(cp.full_window());
+                        w.threshold.t = alpha;
+                        w.threshold.u = alpha;
+                        w.threshold.kappa = 1.0;
+                        w.threshold.nu = cp.full_window() as f64;
+                        w.report.stages.push(cs.kind.name());
+                        true
+                    }
+                    None => false,
+                }
             }
-            _ => local_maxima(&w.detector_output, w.gates.range.clone(), thr, &mut w.detections),
-        }
-        w.components.clear();
-        if w.noise.samples < 2 {
+            None => false,
+        };
+        let thr = w.threshold.u * w.noise.sigma_v * out_gain;
+        let level = match (&self.cfar, cfar_on) {
+            (Some(cs), true) => Level::PerCell(&cs.thresholds),
+            _ => Level::Fixed(thr),
+        };
+        level.peaks(&w.buffers.detector_output, w.noise.gates.range.clone(), &mut w.buffers.detections);
+        w.buffers.components.clear();
+        if w.noise.summary.samples < 2 {
             // Without a noise estimate there is no threshold to hold a false-alarm
             // rate: nothing is declared detected (the report says no_noise_estimate).
-            w.detections.clear();
+            w.buffers.detections.clear();
         }
-        if self.resolve && !whitened && !cfar_on && !w.detections.is_empty() {
-            let (_, _, shape, raw_plan) = self.plan.as_mut().expect("built above");
-            w.components = self.resolver.resolve(
-                &w.stop_v,
-                w.noise.mean_v,
-                w.sigma_v,
-                shape,
-                raw_plan,
-                w.gates.range.clone(),
+        if self.resolve && !whitened && !cfar_on && !w.buffers.detections.is_empty() {
+            let raw = self.raw.as_mut().expect("built above");
+            w.buffers.components = self.resolver.resolve(
+                &w.buffers.stop_v,
+                w.noise.summary.mean_v,
+                w.noise.sigma_v,
+                &raw.shape,
+                &mut raw.plan,
+                w.noise.gates.range.clone(),
                 thr,
                 MAX_RESOLVED,
             );
@@ -358,42 +573,29 @@ impl Stage for Detect {
         // Empirical false alarms: excursions above the same threshold in the
         // noise gates, where no return can be. Each gate position counts as
         // cells_effective / cells effective cells, as in the range gate.
-        let y = &w.detector_output;
+        let y = &w.buffers.detector_output;
         if let Some(tail) = &mut self.tail {
             for p in pre_pos.clone().chain(beyond_pos.clone()) {
-                tail.add(y[p] / (w.sigma_v * out_gain));
+                tail.add(y[p] / (w.noise.sigma_v * out_gain));
             }
         }
-        let observed = match (&self.cfar, cfar_on) {
-            (Some(cs), true) => {
-                upcrossings_above(y, pre_pos.clone(), &cs.thresholds)
-                    + upcrossings_above(y, beyond_pos.clone(), &cs.thresholds)
-            }
-            _ => upcrossings(y, pre_pos.clone(), thr) + upcrossings(y, beyond_pos.clone(), thr),
+        let level = match (&self.cfar, cfar_on) {
+            (Some(cs), true) => Level::PerCell(&cs.thresholds),
+            _ => Level::Fixed(thr),
         };
+        let observed = level.upcrossings(y, pre_pos.clone()) + level.upcrossings(y, beyond_pos.clone());
         let per_position = if cells > 0 { t.cells_effective / cells as f64 } else { 1.0 };
         let gate_cells = (pre_pos.len() + beyond_pos.len()) as f64 * per_position;
-        self.observed_total += observed;
-        self.cells_total += gate_cells;
-        let trials = self.cells_total.round() as u64;
-        let (lo, hi) = clopper_pearson(self.observed_total.min(trials), trials, 0.95);
+        w.report.false_alarm = self.false_alarms.record(observed, gate_cells, t.p_cell);
         w.report.detector = DetectorSummary {
-            kind: self.kind.name().into(),
+            kind: self.kind.name(),
             pfa_design: self.pfa,
             threshold: thr / raw_norm,
             pfa_cell: t.p_cell,
             cells_effective: t.cells_effective,
         };
-        w.report.false_alarm = FalseAlarmStats {
-            expected_per_frame: gate_cells * t.p_cell,
-            observed: self.observed_total,
-            cells: self.cells_total,
-            rate: if self.cells_total > 0.0 { self.observed_total as f64 / self.cells_total } else { 0.0 },
-            ci95: [lo, hi],
-            excess: trials > 0 && lo > t.p_cell,
-        };
         if w.report.false_alarm.excess {
-            w.report.flags.push("false_alarm_excess".into());
+            w.report.flags.push(FrameFlag::FalseAlarmExcess);
         }
         out.push(w);
         Ok(())
@@ -403,15 +605,16 @@ impl Stage for Detect {
 /// Adds this frame's noise gates to the whitener's autocovariance and refits
 /// when due; true when a whitening filter is ready for this frame.
 fn update_whitener(ws: &mut WhitenState, w: &Work, shape: &Shape, n: usize) -> bool {
-    if w.noise.samples >= 2 {
+    let stop_v = &w.buffers.stop_v;
+    if w.noise.summary.samples >= 2 {
         ws.acc.forget(ws.lambda);
-        ws.acc.add_segment(&w.stop_v[w.gates.pre.clone()], w.noise.mean_v);
-        ws.acc.add_segment(&w.stop_v[w.gates.beyond.clone()], w.noise.mean_v);
+        ws.acc.add_segment(&stop_v[w.noise.gates.pre.clone()], w.noise.summary.mean_v);
+        ws.acc.add_segment(&stop_v[w.noise.gates.beyond.clone()], w.noise.summary.mean_v);
         ws.frames += 1;
     }
     let enough = ws.acc.samples() >= WHITEN_SAMPLES_PER_COEFFICIENT * (ws.order + 1) as f64;
     let due = ws.whitener.is_none()
-        || ws.plan.as_ref().is_none_or(|p| p.0 < n)
+        || ws.plan.as_ref().is_none_or(|p| p.len < n)
         || ws.frames.is_power_of_two()
         || ws.frames.is_multiple_of(ws.refit_frames);
     if enough
@@ -421,8 +624,131 @@ fn update_whitener(ws: &mut WhitenState, w: &Work, shape: &Shape, n: usize) -> b
         let wh = Whitener::new(&model);
         let (taps, peak_tap) = shape.template();
         let g = wh.whiten_template(&taps);
-        ws.plan = Some((n, DetectorPlan::from_template(g, peak_tap, n)));
+        ws.plan = Some(WhitenedPlan {
+            len: n,
+            plan: DetectorPlan::from_template(g, peak_tap, n),
+        });
         ws.whitener = Some(wh);
     }
-    ws.whitener.is_some() && ws.plan.as_ref().is_some_and(|p| p.0 >= n)
+    ws.whitener.is_some() && ws.plan.as_ref().is_some_and(|p| p.len >= n)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn threshold_per_sample_is_the_gaussian_quantile() {
+        let mut c = ThresholdCache::new(1e-3, PfaScope::Sample);
+        let t = c.get(500, 0.3);
+        assert_eq!(t.u, special::q_inv(1e-3));
+        assert_eq!(t.p_cell, 1e-3);
+        assert_eq!(t.cells_effective, 500.0);
+    }
+
+    #[test]
+    fn threshold_per_report_solves_at_the_rounded_correlation_and_is_kept() {
+        let mut c = ThresholdCache::new(1e-3, PfaScope::Report);
+        let rho1 = 0.61;
+        let key = ThresholdKey::new(1000, rho1);
+        // The rounded correlation is within 0.25 % of 1 − ρ1.
+        assert!(((1.0 - key.rho1()) / (1.0 - rho1) - 1.0).abs() < 0.0026);
+        let t = c.get(1000, rho1);
+        assert_eq!(t, threshold_for_report(1e-3, 1000, key.rho1()));
+        // A correlation that rounds to the same key reuses the solved threshold.
+        assert_eq!(c.get(1000, rho1 + 1e-6), t);
+        assert_eq!(c.solved.len(), 1);
+        // The per-cell probability holds the report's: 1 − (1 − p)^cells_eff = P.
+        let p_report = -(t.cells_effective * (-t.p_cell).ln_1p()).exp_m1();
+        assert!((p_report / 1e-3 - 1.0).abs() < 1e-6, "{p_report}");
+    }
+
+    #[test]
+    fn threshold_cache_keeps_the_latest_keys() {
+        let mut c = ThresholdCache::new(1e-2, PfaScope::Sample);
+        for cells in 1..=ThresholdCache::CAPACITY + 3 {
+            c.get(cells, 0.0);
+        }
+        assert_eq!(c.solved.len(), ThresholdCache::CAPACITY);
+        assert_eq!(c.solved[0].0.cells, 4);
+    }
+
+    #[test]
+    fn cfar_thresholds_are_the_plans_on_the_mean_removed_input_scaled() {
+        let input: Vec<f64> = (0..300).map(|i| 0.2 + ((i * 7919) % 101) as f64 / 101.0 - 0.5).collect();
+        let (mean, gain) = (0.2, 1.7);
+        for method in [CfarMethod::CellAveraging, CfarMethod::OrderedStatistic { rank: 12 }] {
+            let mut plan = CfarPlan::new(method, 2, 8, 5, 2, 1e-3).expect("valid");
+            let (mut e, mut got) = (Vec::new(), Vec::new());
+            cfar_thresholds(&mut plan, &input, mean, gain, &mut e, &mut got);
+            let centred: Vec<f64> = input.iter().map(|v| v - mean).collect();
+            let mut want = Vec::new();
+            CfarPlan::new(method, 2, 8, 5, 2, 1e-3).expect("valid").thresholds(&centred, &mut want);
+            assert_eq!(got.len(), input.len());
+            for (g, w) in got.iter().zip(&want) {
+                assert_eq!(*g, w * gain);
+            }
+        }
+    }
+
+    #[test]
+    fn cfar_ca_threshold_on_unit_power_is_the_full_window_factor() {
+        // |e| = 1 everywhere: the training power is 1 in every full window.
+        let input: Vec<f64> = (0..100).map(|i| if i % 2 == 0 { 1.5 } else { -0.5 }).collect();
+        let mut plan = CfarPlan::new(CfarMethod::CellAveraging, 1, 4, 1, 0, 1e-2).expect("valid");
+        let alpha = plan.factor(plan.full_window());
+        let (mut e, mut out) = (Vec::new(), Vec::new());
+        cfar_thresholds(&mut plan, &input, 0.5, 2.0, &mut e, &mut out);
+        for (p, v) in out.iter().enumerate().take(95).skip(5) {
+            assert!((v - 2.0 * alpha).abs() < 1e-12, "cell {p}: {v}");
+        }
+        // The first cell has only right-hand training cells; none at all gives +∞.
+        let mut lone = CfarPlan::new(CfarMethod::CellAveraging, 200, 4, 1, 0, 1e-2).expect("valid");
+        cfar_thresholds(&mut lone, &input, 0.5, 2.0, &mut e, &mut out);
+        assert!(out.iter().all(|v| *v == f64::INFINITY));
+    }
+
+    /// Naive reference: each index of `range` above the level whose
+    /// predecessor in the range is not (the range opening above counts).
+    fn naive_upcrossings(y: &[f64], range: Range<usize>, level: &dyn Fn(usize) -> f64) -> u64 {
+        let start = range.start;
+        range
+            .filter(|&p| y[p] > level(p) && (p == start || !(y[p - 1] > level(p - 1))))
+            .count() as u64
+    }
+
+    #[test]
+    fn noise_gate_crossings_match_a_naive_count() {
+        let y: Vec<f64> = (0..400).map(|i| ((i as f64) * 0.37).sin() + 0.3 * ((i as f64) * 1.9).cos()).collect();
+        let per_cell: Vec<f64> = (0..400).map(|i| 0.5 + 0.001 * i as f64).collect();
+        for range in [1..400, 10..50, 200..201, 300..300] {
+            let fixed = Level::Fixed(0.8).upcrossings(&y, range.clone());
+            assert_eq!(fixed, naive_upcrossings(&y, range.clone(), &|_| 0.8), "{range:?}");
+            let cells = Level::PerCell(&per_cell).upcrossings(&y, range.clone());
+            assert_eq!(cells, naive_upcrossings(&y, range.clone(), &|p| per_cell[p]), "{range:?}");
+        }
+    }
+
+    #[test]
+    fn false_alarm_counter_accumulates_and_bounds_the_rate() {
+        let mut c = FalseAlarmCounter::default();
+        let s = c.record(0, 0.0, 5e-3);
+        assert_eq!((s.observed, s.cells, s.rate, s.excess), (0, 0.0, 0.0, false));
+        let s = c.record(3, 1000.4, 5e-3);
+        assert_eq!(s.expected_per_frame, 1000.4 * 5e-3);
+        let s = c.record(5, 999.8, 5e-3);
+        assert_eq!(s.observed, 8);
+        assert_eq!(s.cells, 1000.4 + 999.8);
+        assert_eq!(s.rate, 8.0 / (1000.4 + 999.8));
+        assert_eq!(s.expected_per_frame, 999.8 * 5e-3);
+        assert_eq!(s.ci95, {
+            let (lo, hi) = clopper_pearson(8, 2000, 0.95);
+            [lo, hi]
+        });
+        // 8 in 2000 (0.4 %) is not above a 0.5 % design: its interval holds it.
+        assert!(!s.excess && s.ci95[0] < 5e-3 && s.ci95[1] > 5e-3);
+        // 40 in 3000 (1.3 %) is: the lower end of its 95 % interval is above 0.5 %.
+        let s = c.record(32, 1000.0, 5e-3);
+        assert!(s.excess, "{s:?}");
+    }
 }

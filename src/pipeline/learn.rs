@@ -12,6 +12,7 @@
 use std::sync::{Arc, Mutex};
 
 use super::Pipeline;
+use crate::frame::FrameFlag;
 use crate::detect::template::{TemplateError, TemplateLearner};
 use crate::dsp::pulse::PulseShape;
 use crate::frame::{Frame, Return};
@@ -107,14 +108,14 @@ pub fn learn_shapes(
         let (mut cleaned, mut start_v, mut sorted) = (Vec::new(), Vec::new(), Vec::new());
         pipeline.set_observer(Box::new(move |w| {
             let to_index = |t_s: f64| (t_s - w.frame.first_sample_offset_s) / w.frame.sample_interval_s;
-            let timed_start = !w.report.flags.iter().any(|f| f.starts_with("no_start") || f == "start_timing_fallback");
-            if let (Some(s), true) = (w.start, timed_start) {
+            let timed_start = !w.report.flags.iter().any(|f| f.name().starts_with("no_start") || *f == FrameFlag::StartTimingFallback);
+            if let (Some(s), true) = (w.source.start, timed_start) {
                 w.frame.channels[s].volts_into(&mut start_v);
                 sorted.clone_from(&start_v);
                 sorted.sort_by(f64::total_cmp);
                 let baseline = sorted[sorted.len() / 2];
                 let amplitude = sorted[sorted.len() - 1] - baseline;
-                sl.lock().expect("not poisoned").add(&start_v, baseline, to_index(w.t_ref_s) - start_offset, amplitude);
+                sl.lock().expect("not poisoned").add(&start_v, baseline, to_index(w.reference.t_ref_s) - start_offset, amplitude);
             }
             // Noise that fails the normality test (e.g. coarse quantisation) does not spoil a shot.
             let clean = |r: &Return| r.flags.iter().all(|f| f == "non_gaussian_noise");
@@ -123,7 +124,7 @@ pub fn learn_shapes(
                     continue;
                 }
                 cleaned.clear();
-                cleaned.extend_from_slice(&w.stop_v);
+                cleaned.extend_from_slice(&w.buffers.stop_v);
                 let last = cleaned.len().saturating_sub(1);
                 for (j, o) in w.report.returns.iter().enumerate() {
                     if j == i {
@@ -136,7 +137,7 @@ pub fn learn_shapes(
                         *v -= o.amplitude_v * shape.value_and_slope(k as f64 - p).0;
                     }
                 }
-                l.lock().expect("not poisoned").add(&cleaned, w.noise.mean_v, to_index(r.t_peak_s), r.amplitude_v);
+                l.lock().expect("not poisoned").add(&cleaned, w.noise.summary.mean_v, to_index(r.t_peak_s), r.amplitude_v);
             }
         }));
         let mut reports = Vec::new();

@@ -17,9 +17,10 @@ mod start;
 mod timing;
 mod validate;
 
-use crate::detect::gates::Gates;
+use crate::detect::gates::{GatePlacer, Gates, QuietRanges};
 use crate::frame::{Frame, NoiseSummary, Report};
 use crate::scene::Scene;
+use std::sync::Arc;
 
 /// A frame the pipeline refused; the pipeline itself carries on.
 #[derive(Debug, Clone, thiserror::Error)]
@@ -47,11 +48,32 @@ impl FrameError {
 }
 
 /// One unit of work moving through the stages: a frame (or an averaged group)
-/// and what the stages have found so far.
+/// and what the stages have found so far, in named parts. Each part says
+/// which stage writes it and which stages read it; a stage reads only parts
+/// written before it (validate → start → baseline → denoise → average →
+/// noise → detect → timing).
 #[derive(Debug, Clone)]
 pub struct Work {
     /// The frame (after averaging: the mean frame, F64 volts).
     pub frame: Frame,
+    /// Which channels hold what and how the stop channel was digitised.
+    pub source: Source,
+    /// Per-sample buffers, kept with their capacity from frame to frame.
+    pub buffers: Buffers,
+    /// The time reference.
+    pub reference: TimeReference,
+    /// Gates and noise model of the stop channel.
+    pub noise: NoiseModel,
+    /// The detector's threshold terms.
+    pub threshold: ThresholdTerms,
+    /// The report being built; every stage may add flags to it.
+    pub report: Report,
+}
+
+/// Where the channels are and how the stop channel was digitised. Written by
+/// validate (average rewrites it for the mean frame); read by every stage.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Source {
     /// Index of the stop channel in `frame.channels`.
     pub stop: usize,
     /// Index of the start channel, if the frame has one.
@@ -64,38 +86,100 @@ pub struct Work {
     pub clip_v: Option<(f64, f64)>,
     /// Quantisation step of the stop channel, volts (0 for float data).
     pub lsb_v: f64,
-    /// Stop channel in volts.
+}
+
+/// Buffers sized by the frame, reused across frames so that the per-frame
+/// path does not allocate once they have grown.
+#[derive(Debug, Clone, Default)]
+pub struct Buffers {
+    /// Stop channel in volts. Written by noise; read by detect and timing.
     pub stop_v: Vec<f64>,
+    /// Detector output indexed by peak position. Written by detect; read by timing.
+    pub detector_output: Vec<f64>,
+    /// Detected peak positions, strongest first. Written by detect; read by timing.
+    pub detections: Vec<usize>,
+    /// Pulses resolved by successive cancellation (maximum-likelihood timing
+    /// only). Written by detect; read by timing (which then times these
+    /// instead of `detections`).
+    pub components: Vec<crate::detect::resolve::Component>,
+}
+
+/// The frame's time reference. Written by start (average replaces it with
+/// the group's); read by baseline, denoise, average and noise (gate
+/// placement) and timing (time of flight).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct TimeReference {
     /// Time reference relative to the trigger, s.
     pub t_ref_s: f64,
     /// One-sigma uncertainty of the reference, s.
     pub t_ref_sigma_s: f64,
+}
+
+/// Gates and noise model of the stop channel. Written by noise (detect
+/// replaces `sigma_v` by σ_eff when it whitens, and sets `rho`); read by
+/// detect and timing.
+#[derive(Debug, Clone, Default)]
+pub struct NoiseModel {
     /// Range and noise gates on this frame.
     pub gates: Gates,
-    /// Noise model of the stop channel.
-    pub noise: NoiseSummary,
+    /// Noise model of the stop channel (as reported).
+    pub summary: NoiseSummary,
     /// Noise sigma used for thresholds (floored where the gate had none).
     pub sigma_v: f64,
-    /// Detector output indexed by peak position.
-    pub detector_output: Vec<f64>,
-    /// Detected peak positions, strongest first.
-    pub detections: Vec<usize>,
-    /// Pulses resolved by successive cancellation (maximum-likelihood timing only).
-    pub components: Vec<crate::detect::resolve::Component>,
+    /// Normalised noise autocorrelation ρ(0..) pooled over the noise gates
+    /// (empty: white). Shared with detect's colour estimate, not copied.
+    pub rho: Arc<[f64]>,
+}
+
+/// What the threshold is in noise units and how the detector output's sigma
+/// relates to the noise sigma. Written by detect; read by timing (scores and
+/// the probability of detection).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ThresholdTerms {
     /// Threshold in units of the fitted noise sigma.
-    pub threshold_u: f64,
+    pub u: f64,
     /// Student-t threshold in units of the inflated output sigma (sigma * kappa).
-    pub threshold_t: f64,
+    pub t: f64,
     /// Inflation of the output sigma by the gate's mean error.
     pub kappa: f64,
     /// Degrees of freedom of the gate's sigma.
     pub nu: f64,
     /// Detector output sigma per unit of `sigma_v` (√g of the noise colour; 1 for white noise).
     pub out_gain: f64,
-    /// Normalised noise autocorrelation ρ(0..) pooled over the noise gates (empty: white).
-    pub noise_rho: Vec<f64>,
-    /// The report being built.
-    pub report: Report,
+}
+
+impl Default for ThresholdTerms {
+    fn default() -> ThresholdTerms {
+        ThresholdTerms {
+            u: 0.0,
+            t: 0.0,
+            kappa: 1.0,
+            nu: f64::INFINITY,
+            out_gain: 1.0,
+        }
+    }
+}
+
+impl Buffers {
+    /// Empties every buffer, keeping its capacity.
+    pub fn clear(&mut self) {
+        self.stop_v.clear();
+        self.detector_output.clear();
+        self.detections.clear();
+        self.components.clear();
+    }
+}
+
+impl Work {
+    /// Gates of this frame's stop channel at its time reference.
+    pub(crate) fn place_gates(&self, placer: &mut GatePlacer) -> Gates {
+        placer.place(&self.frame, self.frame.channels[self.source.stop].samples.len(), self.reference.t_ref_s)
+    }
+
+    /// This frame's quiet sample ranges (see [`GatePlacer::quiet_ranges`]).
+    pub(crate) fn quiet_ranges(&self, placer: &mut GatePlacer) -> QuietRanges {
+        placer.quiet_ranges(&self.frame, self.frame.channels[self.source.stop].samples.len(), self.reference.t_ref_s)
+    }
 }
 
 /// A pipeline step.
@@ -120,8 +204,14 @@ pub struct Pipeline {
     stages: Vec<Box<dyn Stage>>,
     last_noise: Option<NoiseSummary>,
     observer: Option<Observer>,
-    a: Vec<Work>,
-    b: Vec<Work>,
+    /// Units entering the next stage (kept for their capacity).
+    entering: Vec<Work>,
+    /// Units the current stage pushes (kept for their capacity).
+    leaving: Vec<Work>,
+    /// Units whose report went out: their buffers are reused for the next frames.
+    spare: Vec<Work>,
+    /// Reports handed back by [`Pipeline::recycle`], reused for the next reports.
+    spare_reports: Vec<Report>,
 }
 
 impl std::fmt::Debug for Pipeline {
@@ -160,8 +250,10 @@ impl Pipeline {
             stages,
             last_noise: None,
             observer: None,
-            a: Vec::new(),
-            b: Vec::new(),
+            entering: Vec::new(),
+            leaving: Vec::new(),
+            spare: Vec::new(),
+            spare_reports: Vec::new(),
         }
     }
 
@@ -177,48 +269,76 @@ impl Pipeline {
 
     /// Processes one frame; pushes 0..n reports (0 while an average fills).
     /// A refused frame changes nothing else.
+    ///
+    /// In steady state the pipeline allocates nothing per frame when the
+    /// caller hands its reports back once it is done with them:
+    ///
+    /// ```no_run
+    /// # fn run(p: &mut tofwave::pipeline::Pipeline, frames: Vec<tofwave::frame::Frame>) {
+    /// let mut out = Vec::new();
+    /// for frame in frames {
+    ///     p.recycle(&mut out); // empties `out`; the reports' storage is reused
+    ///     p.push(frame, &mut out).ok();
+    ///     // ... use `out` ...
+    /// }
+    /// # }
+    /// ```
     pub fn push(&mut self, frame: Frame, out: &mut Vec<Report>) -> Result<(), FrameError> {
-        let mut a = std::mem::take(&mut self.a);
-        a.clear();
-        let result = self.validate.process(frame, &mut a).and_then(|()| self.run_from(0, &mut a, out));
-        self.a = a;
+        let mut entering = std::mem::take(&mut self.entering);
+        entering.clear();
+        let result = self
+            .validate
+            .process(frame, &mut self.spare, &mut entering)
+            .and_then(|()| self.run_from(0, &mut entering, out));
+        self.entering = entering;
         result
     }
 
     /// Emits what a partly filled average holds (end of input).
     pub fn flush(&mut self, out: &mut Vec<Report>) {
         for i in 0..self.stages.len() {
-            let mut a = Vec::new();
-            self.stages[i].flush(&mut a);
-            if !a.is_empty() {
+            let mut entering = Vec::new();
+            self.stages[i].flush(&mut entering);
+            if !entering.is_empty() {
                 // Errors past validation are not expected; a failing flush loses only that group.
-                let _ = self.run_from(i + 1, &mut a, out);
+                let _ = self.run_from(i + 1, &mut entering, out);
             }
         }
     }
 
-    fn run_from(&mut self, first: usize, a: &mut Vec<Work>, out: &mut Vec<Report>) -> Result<(), FrameError> {
-        let mut b = std::mem::take(&mut self.b);
+    /// Runs `entering` through the stages from index `first` on.
+    fn run_from(&mut self, first: usize, entering: &mut Vec<Work>, out: &mut Vec<Report>) -> Result<(), FrameError> {
+        let mut leaving = std::mem::take(&mut self.leaving);
         let mut result = Ok(());
         for stage in &mut self.stages[first..] {
-            b.clear();
-            for mut w in a.drain(..) {
-                w.report.stages.push(stage.name().to_string());
-                if let Err(e) = stage.process(w, &mut b) {
+            leaving.clear();
+            for mut w in entering.drain(..) {
+                w.report.stages.push(stage.name());
+                if let Err(e) = stage.process(w, &mut leaving) {
                     result = Err(e);
                 }
             }
-            std::mem::swap(a, &mut b);
+            std::mem::swap(entering, &mut leaving);
         }
-        for w in a.drain(..) {
+        for mut w in entering.drain(..) {
             if let Some(f) = &mut self.observer {
                 f(&w);
             }
             self.last_noise = Some(w.report.noise);
-            out.push(w.report);
+            let report = std::mem::replace(&mut w.report, self.spare_reports.pop().unwrap_or_default());
+            out.push(report);
+            // The frame is the caller's: dropped now, not held with the spare unit.
+            w.frame = Frame::empty();
+            self.spare.push(w);
         }
-        self.b = b;
+        self.leaving = leaving;
         result
+    }
+
+    /// Takes back the reports in `reports` (leaving it empty) so that later
+    /// reports reuse their storage instead of allocating.
+    pub fn recycle(&mut self, reports: &mut Vec<Report>) {
+        self.spare_reports.extend(reports.drain(..));
     }
 
     /// Calls `f` with every finished unit of work.

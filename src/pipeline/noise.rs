@@ -10,7 +10,8 @@
 //! N = 0 (the default) every frame is fitted on its own gates alone.
 
 use super::{FrameError, Stage, Work};
-use super::baseline::GatePlacer;
+use crate::frame::FrameFlag;
+use crate::detect::gates::GatePlacer;
 use crate::detect::noise_model::{NoiseFitter, NoiseTracker};
 use crate::scene::Scene;
 
@@ -23,6 +24,8 @@ pub struct Noise {
     gates: GatePlacer,
     /// Present when the scene asks for a forgetting noise model.
     tracker: Option<NoiseTracker>,
+    /// Scratch for the frame's median when there is no noise gate.
+    sorted: Vec<f64>,
 }
 
 impl Noise {
@@ -34,6 +37,7 @@ impl Noise {
             fitter: NoiseFitter::default(),
             gates: GatePlacer::new(scene),
             tracker: (n > 0).then(|| NoiseTracker::with_time_constant(n as f64)),
+            sorted: Vec::new(),
         }
     }
 }
@@ -45,9 +49,9 @@ impl Stage for Noise {
 
     fn process(&mut self, mut w: Work, out: &mut Vec<Work>) -> Result<(), FrameError> {
         let s = &self.scene;
-        let mut stop_v = std::mem::take(&mut w.stop_v);
-        w.frame.channels[w.stop].volts_into(&mut stop_v);
-        w.gates = self.gates.place(&w);
+        let mut stop_v = std::mem::take(&mut w.buffers.stop_v);
+        w.frame.channels[w.source.stop].volts_into(&mut stop_v);
+        w.noise.gates = w.place_gates(&mut self.gates);
         // Non-finite samples (a float capture's NaN/Inf) are held at the last
         // finite value so nothing downstream sees them; the report says how many.
         let bad = stop_v.iter().filter(|v| !v.is_finite()).count();
@@ -60,14 +64,14 @@ impl Stage for Noise {
                     *v = last;
                 }
             }
-            w.report.flags.push(format!("non_finite_samples:{bad}"));
+            w.report.flags.push(FrameFlag::NonFiniteSamples(bad));
         }
-        let g = &w.gates;
+        let g = &w.noise.gates;
         let noise = self
             .fitter
             .fit(&[&stop_v[g.pre.clone()], &stop_v[g.beyond.clone()]], s.detector.normality_alpha);
         if (noise.samples as usize) < s.noise_gate.min_samples {
-            w.report.flags.push("noise_gate_small".into());
+            w.report.flags.push(FrameFlag::NoiseGateSmall);
         }
         let mut noise = noise;
         if let Some(tracker) = &mut self.tracker {
@@ -83,31 +87,33 @@ impl Stage for Noise {
         // A gate with no spread (noise-free or clipped data) still needs a
         // finite threshold: floor sigma at the quantisation noise, or at 1e-12
         // of the signal scale for float data.
-        let floor = if w.lsb_v > 0.0 {
-            w.lsb_v / 12f64.sqrt()
+        let floor = if w.source.lsb_v > 0.0 {
+            w.source.lsb_v / 12f64.sqrt()
         } else {
             1e-12 * noise.mean_v.abs().max(1e-3)
         };
         if noise.samples < 2 {
             // No gate: the frame's median stands in for the baseline.
-            let mut sorted = stop_v.clone();
-            sorted.sort_by(f64::total_cmp);
-            noise.mean_v = sorted.get(sorted.len() / 2).copied().unwrap_or(0.0);
+            let sorted = &mut self.sorted;
+            sorted.clear();
+            sorted.extend_from_slice(&stop_v);
+            let mid = sorted.len() / 2;
+            noise.mean_v = if sorted.is_empty() { 0.0 } else { *sorted.select_nth_unstable_by(mid, f64::total_cmp).1 };
         }
-        w.sigma_v = noise.sigma_v;
+        w.noise.sigma_v = noise.sigma_v;
         if !(noise.sigma_v > floor) {
-            w.sigma_v = floor;
-            w.report.flags.push(if noise.samples < 2 { "no_noise_estimate".into() } else { "zero_noise".into() });
+            w.noise.sigma_v = floor;
+            w.report.flags.push(if noise.samples < 2 { FrameFlag::NoNoiseEstimate } else { FrameFlag::ZeroNoise });
         }
         if !noise.gaussian && noise.samples >= 8 {
-            w.report.flags.push("non_gaussian_noise".into());
+            w.report.flags.push(FrameFlag::NonGaussianNoise);
         }
         if noise.contaminated {
-            w.report.flags.push("noise_gate_contaminated".into());
+            w.report.flags.push(FrameFlag::NoiseGateContaminated);
         }
-        w.noise = noise;
+        w.noise.summary = noise;
         w.report.noise = noise;
-        w.stop_v = stop_v;
+        w.buffers.stop_v = stop_v;
         out.push(w);
         Ok(())
     }

@@ -4,6 +4,7 @@
 //! plus `channels.reference_offset_s`, and the report says so.
 
 use super::{FrameError, Stage, Work};
+use crate::frame::FrameFlag;
 use crate::detect::kernels::DetectorPlan;
 use crate::math::select::mad_sigma;
 use crate::detect::phase::PhaseBias;
@@ -52,11 +53,11 @@ impl Stage for Start {
     }
 
     fn process(&mut self, mut w: Work, out: &mut Vec<Work>) -> Result<(), FrameError> {
-        w.t_ref_s = self.reference_offset_s;
-        w.t_ref_sigma_s = 0.0;
-        let Some(s) = w.start else {
-            w.report.flags.push("no_start_channel".into());
-            w.report.t_start_s = w.t_ref_s;
+        w.reference.t_ref_s = self.reference_offset_s;
+        w.reference.t_ref_sigma_s = 0.0;
+        let Some(s) = w.source.start else {
+            w.report.flags.push(FrameFlag::NoStartChannel);
+            w.report.t_start_s = w.reference.t_ref_s;
             out.push(w);
             return Ok(());
         };
@@ -110,8 +111,8 @@ impl Stage for Start {
         let sigma = (sigma * sigma + lsb * lsb / 12.0).sqrt().max(f64::MIN_POSITIVE);
         let amplitude = x[peak] - baseline;
         if !(amplitude >= self.min_amplitude_v.max(6.0 * sigma)) {
-            w.report.flags.push("no_start_pulse".into());
-            w.report.t_start_s = w.t_ref_s;
+            w.report.flags.push(FrameFlag::NoStartPulse);
+            w.report.t_start_s = w.reference.t_ref_s;
             out.push(w);
             return Ok(());
         }
@@ -152,13 +153,13 @@ impl Stage for Start {
                 timed.sigma_samples = timed.sigma_samples.hypot(pb.rms());
             }
         }
-        w.t_ref_s = w.frame.sample_time_s(timed.index);
-        w.t_ref_sigma_s = timed.sigma_samples * dt;
+        w.reference.t_ref_s = w.frame.sample_time_s(timed.index);
+        w.reference.t_ref_sigma_s = timed.sigma_samples * dt;
         if timed.fallback {
-            w.report.flags.push("start_timing_fallback".into());
+            w.report.flags.push(FrameFlag::StartTimingFallback);
         }
-        w.report.t_start_s = w.t_ref_s;
-        w.report.t_start_sigma_s = w.t_ref_sigma_s;
+        w.report.t_start_s = w.reference.t_ref_s;
+        w.report.t_start_sigma_s = w.reference.t_ref_sigma_s;
         out.push(w);
         Ok(())
     }

@@ -9,7 +9,7 @@ use crate::detect::phase::PhaseBias;
 use crate::detect::pulse_timing::{crlb_samples, time_pulse, Timed, TimingInput};
 use crate::detect::walk::WalkTable;
 use crate::dsp::pulse::{PulseShape, Shape};
-use crate::frame::Return;
+use crate::frame::{Return, ReturnFlag, ReturnFlags};
 use crate::scene::{DetectorKind, Scene, TimingMethod};
 
 /// Returns closer than this many pulse widths are flagged "overlapping":
@@ -37,21 +37,30 @@ pub struct Timing {
     template_timed: bool,
     /// Leading-edge walk table (leading-edge timing with a calibrated table only).
     walk: Option<WalkTable>,
+    /// Each pulse of the current frame: where the detector found it, how it
+    /// was timed, how well the shape fitted (kept between frames).
+    timed: Vec<(usize, Timed, f64)>,
+    /// Scratch for the normalised pulse slope and its autocorrelation.
+    slope: Vec<f64>,
+    /// See `slope`.
+    acf: Vec<f64>,
 }
 
 /// Variance gain of coloured noise (normalised autocorrelation `rho`) on the
 /// unit-energy slope of `pulse` with its peak at `peak_index` (1 for white noise).
-fn slope_colour_gain(pulse: &Shape, n: usize, peak_index: f64, rho: &[f64]) -> f64 {
+/// `slope` and `acf` are scratch, kept between calls.
+fn slope_colour_gain(pulse: &Shape, n: usize, peak_index: f64, rho: &[f64], slope: &mut Vec<f64>, acf: &mut Vec<f64>) -> f64 {
     let (lo, hi) = pulse.support();
     let first = (peak_index + lo).floor().max(0.0) as usize;
     let last = ((peak_index + hi).ceil().max(0.0) as usize).min(n.saturating_sub(1));
-    let mut slope: Vec<f64> = (first..=last).map(|k| pulse.value_and_slope(k as f64 - peak_index).1).collect();
+    slope.clear();
+    slope.extend((first..=last).map(|k| pulse.value_and_slope(k as f64 - peak_index).1));
     let e = slope.iter().map(|v| v * v).sum::<f64>().sqrt();
     if !(e > 0.0) {
         return 1.0;
     }
     slope.iter_mut().for_each(|v| *v /= e);
-    crate::detect::colour::output_gain(&slope, rho).variance_gain
+    crate::detect::colour::output_gain_with(slope, rho, acf).variance_gain
 }
 
 impl Timing {
@@ -76,6 +85,9 @@ impl Timing {
             } else {
                 None
             },
+            timed: Vec::with_capacity(MAX_RETURNS),
+            slope: Vec::new(),
+            acf: Vec::new(),
         }
     }
 }
@@ -99,15 +111,16 @@ impl Stage for Timing {
         }
         let (_, pulse, norm) = self.pulse.as_ref().expect("set above");
         let (pulse, norm) = (pulse, *norm);
-        let x = &w.stop_v;
+        let x = &w.buffers.stop_v;
         let n = x.len();
         let (lo, hi) = pulse.support();
         let fwhm = pulse.fwhm();
         // Each pulse: where the detector found it, how it was timed, how well the shape fitted.
-        let mut timed: Vec<(usize, Timed, f64)> = Vec::with_capacity(w.detections.len().min(MAX_RETURNS));
-        if !w.components.is_empty() {
-            for c in w.components.iter().take(MAX_RETURNS) {
-                let crlb = crlb_samples(pulse, n, c.peak_index, c.amplitude_v, w.sigma_v);
+        let timed = &mut self.timed;
+        timed.clear();
+        if !w.buffers.components.is_empty() {
+            for c in w.buffers.components.iter().take(MAX_RETURNS) {
+                let crlb = crlb_samples(pulse, n, c.peak_index, c.amplitude_v, w.noise.sigma_v);
                 let t = Timed {
                     index: c.peak_index + pulse.fraction_offset(self.fraction),
                     peak_index: c.peak_index,
@@ -119,14 +132,14 @@ impl Stage for Timing {
                 timed.push((c.detected_at, t, c.misfit));
             }
         } else {
-            for &p in w.detections.iter().take(MAX_RETURNS) {
+            for &p in w.buffers.detections.iter().take(MAX_RETURNS) {
                 let mut t = time_pulse(
                     self.method,
                     &TimingInput {
                         x,
-                        mean_v: w.noise.mean_v,
-                        sigma_v: w.sigma_v,
-                        y: &w.detector_output,
+                        mean_v: w.noise.summary.mean_v,
+                        sigma_v: w.noise.sigma_v,
+                        y: &w.buffers.detector_output,
                         norm,
                         pulse,
                         peak: p,
@@ -144,7 +157,9 @@ impl Stage for Timing {
                 timed.push((p, t, 0.0));
             }
         }
-        let mut returns = Vec::with_capacity(timed.len());
+        // The report's list keeps its capacity when the report is recycled.
+        let returns = &mut w.report.returns;
+        returns.clear();
         for (rank, &(p, one, misfit)) in timed.iter().enumerate() {
             let timed_peak = one.peak_index;
             // A comparator crossing comes earlier the larger the pulse: the
@@ -155,58 +170,58 @@ impl Stage for Timing {
                 _ => 0.0,
             };
             let t_stop_s = w.frame.sample_time_s(one.index) - walk_s;
-            let tof_s = t_stop_s - w.t_ref_s - self.delay_s;
+            let tof_s = t_stop_s - w.reference.t_ref_s - self.delay_s;
             // Template-based estimators fit as if the noise were white; in
             // coloured noise their variance is the sandwich
             // σ²·ṡᵀRṡ / (A²(ṡᵀṡ)²): the white bound times the colour's gain on
             // the normalised slope. (Crossing methods read one sample's noise,
             // which colour does not change.)
-            let sigma_stop = if self.template_timed && !w.noise_rho.is_empty() && one.sigma_samples.is_finite() {
-                one.sigma_samples * slope_colour_gain(pulse, n, one.peak_index, &w.noise_rho).sqrt()
+            let sigma_stop = if self.template_timed && !w.noise.rho.is_empty() && one.sigma_samples.is_finite() {
+                one.sigma_samples * slope_colour_gain(pulse, n, one.peak_index, &w.noise.rho, &mut self.slope, &mut self.acf).sqrt()
             } else {
                 one.sigma_samples
             };
-            let sigma_t = ((sigma_stop * dt).powi(2) + w.t_ref_sigma_s.powi(2)).sqrt();
+            let sigma_t = ((sigma_stop * dt).powi(2) + w.reference.t_ref_sigma_s.powi(2)).sqrt();
             let amplitude_v = one.amplitude_v;
-            let d = amplitude_v * norm / (w.sigma_v * w.out_gain);
-            let mut flags = Vec::new();
+            let d = amplitude_v * norm / (w.noise.sigma_v * w.threshold.out_gain);
+            let mut flags = ReturnFlags::default();
             let first = (one.peak_index + lo).floor();
             let last = (one.peak_index + hi).ceil();
             if first < 0.0 || last > (n - 1) as f64 {
-                flags.push("frame_edge".to_string());
+                flags.insert(ReturnFlag::FrameEdge);
             }
-            if let Some((clip_lo, clip_hi)) = w.clip_v {
+            if let Some((clip_lo, clip_hi)) = w.source.clip_v {
                 let a = first.clamp(0.0, (n - 1) as f64) as usize;
                 let b = last.clamp(0.0, (n - 1) as f64) as usize;
                 // Within a quarter step of the rail counts as clipped.
-                let margin = 0.25 * w.lsb_v;
+                let margin = 0.25 * w.source.lsb_v;
                 if x[a..=b].iter().any(|&v| v >= clip_hi - margin || v <= clip_lo + margin) {
-                    flags.push("saturated".to_string());
+                    flags.insert(ReturnFlag::Saturated);
                 }
             }
-            let pd = detection_probability(w.threshold_t, d, w.kappa, w.nu);
+            let pd = detection_probability(w.threshold.t, d, w.threshold.kappa, w.threshold.nu);
             if pd < 0.5 {
-                flags.push("weak".to_string());
+                flags.insert(ReturnFlag::Weak);
             }
-            if !w.noise.gaussian && w.noise.samples >= 8 {
-                flags.push("non_gaussian_noise".to_string());
+            if !w.noise.summary.gaussian && w.noise.summary.samples >= 8 {
+                flags.insert(ReturnFlag::NonGaussianNoise);
             }
             if timed.iter().enumerate().any(|(j, o)| j != rank && (o.1.peak_index - timed_peak).abs() < OVERLAP_FWHM * fwhm) {
-                flags.push("overlapping".to_string());
+                flags.insert(ReturnFlag::Overlapping);
             }
             if one.fallback {
-                flags.push("timing_fallback".to_string());
+                flags.insert(ReturnFlag::TimingFallback);
             }
             if misfit > MISFIT_LIMIT {
-                flags.push("shape_mismatch".to_string());
+                flags.insert(ReturnFlag::ShapeMismatch);
             }
             returns.push(Return {
                 range_m: 0.5 * self.c_m_per_s * tof_s,
                 range_sigma_m: 0.5 * self.c_m_per_s * sigma_t,
                 tof_s,
                 amplitude_v,
-                snr_db: 20.0 * (amplitude_v.abs().max(f64::MIN_POSITIVE) / w.sigma_v).log10(),
-                score: w.detector_output[p] / (w.threshold_u * w.sigma_v * w.out_gain),
+                snr_db: 20.0 * (amplitude_v.abs().max(f64::MIN_POSITIVE) / w.noise.sigma_v).log10(),
+                score: w.buffers.detector_output[p] / (w.threshold.u * w.noise.sigma_v * w.threshold.out_gain),
                 pd,
                 t_stop_s,
                 t_peak_s: w.frame.sample_time_s(one.peak_index),
@@ -214,7 +229,6 @@ impl Stage for Timing {
             });
         }
         returns.sort_by(|a, b| a.tof_s.total_cmp(&b.tof_s));
-        w.report.returns = returns;
         out.push(w);
         Ok(())
     }

@@ -2,9 +2,11 @@
 //! channels. The only stage that turns a frame into work; a bad frame is
 //! refused here with the field at fault named.
 
-use super::{FrameError, Work};
+use super::{Buffers, FrameError, NoiseModel, Source, ThresholdTerms, TimeReference, Work};
 use crate::detect::gates::Gates;
-use crate::frame::{channel_key, ChannelRole, Frame, NoiseSummary, Report, Samples};
+use std::sync::Arc;
+use crate::frame::FrameFlag;
+use crate::frame::{channel_key, channel_key_into, ChannelRole, Frame, NoiseSummary, Report, Samples};
 use crate::scene::Scene;
 
 /// Checks frames and starts their work.
@@ -17,6 +19,10 @@ pub struct Validate {
     sample_interval_s: f64,
     samples_per_frame: usize,
     full_scale_v: Option<(f64, f64)>,
+    /// Channel keys of the frame being checked, one at a time (reused).
+    key_scratch: String,
+    /// The empty autocorrelation (white noise) every unit starts with, shared.
+    white: Arc<[f64]>,
 }
 
 impl Validate {
@@ -32,6 +38,8 @@ impl Validate {
             samples_per_frame: d.samples_per_frame,
             full_scale_v: (d.full_scale_low_v != 0.0 || d.full_scale_high_v != 0.0)
                 .then_some((d.full_scale_low_v, d.full_scale_high_v)),
+            key_scratch: String::new(),
+            white: Arc::from(Vec::new()),
         }
     }
 
@@ -40,8 +48,9 @@ impl Validate {
         "validate"
     }
 
-    /// Validates `frame` and pushes its work.
-    pub fn process(&mut self, frame: Frame, out: &mut Vec<Work>) -> Result<(), FrameError> {
+    /// Validates `frame` and pushes its work, reusing a unit from `spare`
+    /// (its buffers and report keep their capacity) when there is one.
+    pub fn process(&mut self, frame: Frame, spare: &mut Vec<Work>, out: &mut Vec<Work>) -> Result<(), FrameError> {
         let err = |field: &str, msg: String| Err(FrameError::new(&frame, field, msg));
         if frame.channels.is_empty() {
             return err("channels", "the frame has no channels".into());
@@ -83,7 +92,13 @@ impl Validate {
                 format!("{n} samples per channel, the scene's digitiser.samples_per_frame is {}", self.samples_per_frame),
             );
         }
-        let by_key = |key: &str| frame.channels.iter().position(|c| channel_key(&c.name) == key);
+        let scratch = &mut self.key_scratch;
+        let mut by_key = |key: &str| {
+            frame.channels.iter().position(|c| {
+                channel_key_into(&c.name, scratch);
+                scratch == key
+            })
+        };
         let by_role = |role| frame.channels.iter().position(|c| c.role == role);
         let stop = by_role(ChannelRole::Stop).or_else(|| by_key(&self.stop_key)).or_else(|| {
             // A capture with a single channel is the stop channel, timed from the trigger.
@@ -104,43 +119,54 @@ impl Validate {
         let ch = &frame.channels[stop];
         let clip_v = self.full_scale_v.or_else(|| code_limits_v(&ch.samples, ch.volts_per_code, ch.offset_v));
         let lsb_v = if ch.samples.is_integer() { ch.volts_per_code.abs() } else { 0.0 };
-        let mut report = Report {
-            sensor: frame.sensor_id.clone(),
-            seq_first: frame.sequence,
-            seq_last: frame.sequence,
-            frames_averaged: 1,
-            time_s: frame.trigger_time_s,
-            stages: vec![self.name().to_string()],
-            ..Report::default()
-        };
-        if frame.laser_off {
-            report.flags.push("laser_off".into());
-        }
-        out.push(Work {
-            seq_last: frame.sequence,
-            frame,
+        let source = Source {
             stop,
             start,
+            seq_last: frame.sequence,
             frames_averaged: 1,
             clip_v,
             lsb_v,
-            stop_v: Vec::new(),
-            t_ref_s: 0.0,
-            t_ref_sigma_s: 0.0,
-            gates: Gates::default(),
-            noise: NoiseSummary::default(),
-            sigma_v: 0.0,
-            detector_output: Vec::new(),
-            detections: Vec::new(),
-            components: Vec::new(),
-            threshold_u: 0.0,
-            threshold_t: 0.0,
-            kappa: 1.0,
-            nu: f64::INFINITY,
-            out_gain: 1.0,
-            noise_rho: Vec::new(),
-            report,
-        });
+        };
+        // A unit of work from an earlier frame keeps its buffers' and report's
+        // capacity; everything else starts afresh.
+        let mut w = match spare.pop() {
+            Some(mut w) => {
+                w.source = source;
+                w.buffers.clear();
+                w.reference = TimeReference::default();
+                w.noise.gates = Gates::default();
+                w.noise.summary = NoiseSummary::default();
+                w.noise.sigma_v = 0.0;
+                w.noise.rho = Arc::clone(&self.white);
+                w.threshold = ThresholdTerms::default();
+                w.report.reset();
+                w
+            }
+            None => Work {
+                frame: Frame::empty(),
+                source,
+                buffers: Buffers::default(),
+                reference: TimeReference::default(),
+                noise: NoiseModel {
+                    rho: Arc::clone(&self.white),
+                    ..NoiseModel::default()
+                },
+                threshold: ThresholdTerms::default(),
+                report: Report::default(),
+            },
+        };
+        let report = &mut w.report;
+        report.sensor.push_str(&frame.sensor_id);
+        report.seq_first = frame.sequence;
+        report.seq_last = frame.sequence;
+        report.frames_averaged = 1;
+        report.time_s = frame.trigger_time_s;
+        report.stages.push(self.name());
+        if frame.laser_off {
+            report.flags.push(FrameFlag::LaserOff);
+        }
+        w.frame = frame;
+        out.push(w);
         Ok(())
     }
 }

@@ -45,10 +45,10 @@ pub fn report_to_proto(r: &Report, json: String) -> proto::Report {
         seq_last: r.seq_last,
         frames_averaged: r.frames_averaged,
         time_s: r.time_s,
-        stages: r.stages.clone(),
+        stages: r.stages.iter().map(|s| s.to_string()).collect(),
         noise: Some(noise_to_proto(&r.noise)),
         detector: Some(proto::Detector {
-            kind: r.detector.kind.clone(),
+            kind: r.detector.kind.to_string(),
             pfa_design: r.detector.pfa_design,
             threshold: r.detector.threshold,
             pfa_cell: r.detector.pfa_cell,
@@ -75,12 +75,12 @@ pub fn report_to_proto(r: &Report, json: String) -> proto::Report {
                 score: x.score,
                 pd: x.pd,
                 t_stop_s: x.t_stop_s,
-                flags: x.flags.clone(),
+                flags: x.flags.iter().map(|f| f.name().to_string()).collect(),
             })
             .collect(),
         t_start_s: r.t_start_s,
         t_start_sigma_s: r.t_start_sigma_s,
-        flags: r.flags.clone(),
+        flags: r.flags.iter().map(|f| f.to_string()).collect(),
         json,
     }
 }

@@ -9,12 +9,12 @@
 
 use proptest::prelude::*;
 use tofwave::frame::{ChannelRole, Frame};
-use tofwave::physics::config::SimulationConfig;
+use tofwave::scene::simulation::SimulationConfig;
 use tofwave::physics::photodetector::StateSpace;
 use tofwave::physics::digitiser::Quantiser;
 use tofwave::physics::link_budget::{self, Q_E, excess_noise_factor};
 use tofwave::physics::simulator::peak_response_v;
-use tofwave::physics::{PhysicsError, Simulator};
+use tofwave::physics::{SimulationError, Simulator};
 use tofwave::scene::Scene;
 
 const SCENES: [&str; 8] = [
@@ -681,7 +681,7 @@ full_scale_high_v = 1.0
     );
     let plain = Scene::default_scene();
     match Simulator::new(&plain) {
-        Err(e @ PhysicsError::MissingSection { .. }) => {
+        Err(e @ SimulationError::MissingSection { .. }) => {
             assert!(e.to_string().contains("[simulation]"), "{e}")
         }
         other => panic!("{other:?}"),

@@ -9,7 +9,7 @@ use super::BenchError;
 use crate::dsp::pulse::PulseShape;
 use crate::frame::{Frame, Report};
 use crate::physics::Simulator;
-use crate::physics::config::NoiseConfig;
+use crate::scene::simulation::NoiseConfig;
 use crate::physics::simulator::Truth;
 use crate::pipeline::Pipeline;
 use crate::scene::{DetectorKind, PfaScope, Scene, TimingMethod};

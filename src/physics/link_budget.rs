@@ -8,7 +8,7 @@
 //! garbled Eq. 9.14) `i_n = sqrt(2q (I_d + R_o P_total) M² F B + i_tia²)` with
 //! McIntyre's excess noise `F = M (1 − (1−k)((M−1)/M)²)`.
 
-use super::config::{SimulationConfig, TargetConfig, TargetKind};
+use crate::scene::simulation::{SimulationConfig, TargetConfig, TargetKind};
 use serde::Serialize;
 use std::f64::consts::PI;
 

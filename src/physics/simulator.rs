@@ -23,8 +23,8 @@
 //! (different rise times and electrical delays of the two paths) stays in, and
 //! is what `calibrate` learns. `range_m` is the geometric range.
 
-use super::PhysicsError;
-use super::config::{LaserPulseShape, RingingConfig, SimulationConfig};
+use crate::scene::simulation::SimulationError;
+use crate::scene::simulation::{LaserPulseShape, RingingConfig, SimulationConfig};
 use super::photodetector::{Chain, StateSpace, coast, periodic_state, run_chain};
 use super::digitiser::{FineWave, Quantiser};
 use super::link_budget::{self, LinkBudgetLine, Q_E};
@@ -746,7 +746,7 @@ impl NoiseGenerators {
         tb: &TimeBase,
         stop: &StopChannel,
         start: &StartChannel,
-    ) -> Result<NoiseGenerators, PhysicsError> {
+    ) -> Result<NoiseGenerators, SimulationError> {
         let dt = tb.dt;
         let lin = stop.chain.linear();
         let nf = lin.discretise(dt);
@@ -797,7 +797,7 @@ impl NoiseGenerators {
                 } else {
                     f64::INFINITY
                 };
-                c_for_skew(needed).ok_or(PhysicsError::Invalid(FieldError::new(
+                c_for_skew(needed).ok_or(SimulationError::Invalid(FieldError::new(
                     "simulation.noise.skewness",
                     format!("{g} (needs innovation skewness {needed:.3} through this chain)"),
                     "a skewness the chain can deliver: |skewness| < 2.83 x the chain's skew transfer",
@@ -890,11 +890,11 @@ impl Simulator {
     /// and waveform, the start chain and waveform, the truth of the start
     /// crossing and of every return, the noise generators, the interference
     /// burst, and the noise-free samples of a jitter-free digitiser.
-    pub fn new(scene: &Scene) -> Result<Simulator, PhysicsError> {
+    pub fn new(scene: &Scene) -> Result<Simulator, SimulationError> {
         let cfg = scene
             .simulation
             .clone()
-            .ok_or(PhysicsError::MissingSection {
+            .ok_or(SimulationError::MissingSection {
                 section: "simulation",
                 needed_by: "the simulator (add a [simulation] section to the scene)",
             })?;

@@ -12,6 +12,8 @@
 //! - `gates`: `[range_gate]`, `[noise_gate]`;
 //! - `detector`, `timing`, `averaging`, `baseline`, `denoise`: the section of that name;
 //! - `calibration`: `[calibration]` and the calibration file;
+//! - [`simulation`]: `[simulation]`, which drives `physics` (its many
+//!   section types keep their module path: `scene::simulation::X`);
 //! - here: [`Scene`], `[medium]`, loading and the order of the checks.
 //!
 //! Every type is re-exported here: its path is `scene::X` whatever file holds it.
@@ -25,6 +27,7 @@ mod detector;
 mod digitiser;
 mod gates;
 mod pulse;
+pub mod simulation;
 mod timing;
 
 pub use averaging::{AveragingAlign, AveragingConfig, AveragingMethod, AveragingMode};
@@ -81,7 +84,7 @@ pub enum SceneError {
         /// File path or "embedded default".
         origin: String,
         /// The physics layer's error, naming the field and the allowed range.
-        source: crate::physics::PhysicsError,
+        source: simulation::SimulationError,
     },
 }
 
@@ -134,7 +137,7 @@ pub struct Scene {
     /// What `tofwave simulate` synthesises for this scene (laser, targets,
     /// receiver, noise, digitiser); absent in scenes of real sensors.
     #[serde(default)]
-    pub simulation: Option<crate::physics::SimulationConfig>,
+    pub simulation: Option<simulation::SimulationConfig>,
 }
 
 fn default_name() -> String {

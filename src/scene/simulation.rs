@@ -1,4 +1,4 @@
-//! `[simulation]`: the scene section that drives the simulator.
+//! `[simulation]`: the scene section that drives the simulator (`physics`).
 //!
 //! Every effect is modelled only when its section is present, so a scene says
 //! exactly which physics it wants: no `[simulation.atmosphere]` means no
@@ -6,9 +6,25 @@
 //! All types are serde with `deny_unknown_fields`; [`SimulationConfig::validate`]
 //! checks every value and names the dotted field and its allowed range.
 
-use super::PhysicsError;
-use crate::scene::check::{check, FieldError, Range};
+use super::check::{check, FieldError, Range};
 use serde::{Deserialize, Serialize};
+
+/// Errors of the `[simulation]` section and of building a simulator from it.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SimulationError {
+    /// A value out of its allowed range (the field is dotted, e.g.
+    /// `simulation.targets[1].range_m`).
+    #[error(transparent)]
+    Invalid(#[from] FieldError),
+    /// A section an effect depends on is missing.
+    #[error("missing [{section}] section: needed by {needed_by}")]
+    MissingSection {
+        /// Dotted section name.
+        section: &'static str,
+        /// What needs it.
+        needed_by: &'static str,
+    },
+}
 
 /// The whole `[simulation]` section.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -653,7 +669,7 @@ fn default_stop_name() -> String {
 impl SimulationConfig {
     /// Checks every value against its allowed range; errors name the dotted
     /// field (`simulation.targets[1].range_m`) and the allowed range.
-    pub fn validate(&self) -> Result<(), PhysicsError> {
+    pub fn validate(&self) -> Result<(), SimulationError> {
         self.digitiser.validate()?;
         if let Some(l) = &self.laser {
             l.validate()?;
@@ -691,38 +707,38 @@ impl SimulationConfig {
         let optical = (laser_on && !self.targets.is_empty()) || self.background.is_some();
         if optical {
             if self.receiver.is_none() {
-                return Err(PhysicsError::MissingSection {
+                return Err(SimulationError::MissingSection {
                     section: "simulation.receiver",
                     needed_by: "targets or background light",
                 });
             }
             if self.apd.is_none() {
-                return Err(PhysicsError::MissingSection {
+                return Err(SimulationError::MissingSection {
                     section: "simulation.apd",
                     needed_by: "targets or background light",
                 });
             }
             if self.tia.is_none() {
-                return Err(PhysicsError::MissingSection {
+                return Err(SimulationError::MissingSection {
                     section: "simulation.tia",
                     needed_by: "targets or background light",
                 });
             }
         }
         if !self.targets.is_empty() && self.laser.is_none() {
-            return Err(PhysicsError::MissingSection {
+            return Err(SimulationError::MissingSection {
                 section: "simulation.laser",
                 needed_by: "targets",
             });
         }
         if self.start.is_some() && self.laser.is_none() {
-            return Err(PhysicsError::MissingSection {
+            return Err(SimulationError::MissingSection {
                 section: "simulation.laser",
                 needed_by: "the start channel",
             });
         }
         if self.apd.is_some() && self.tia.is_none() {
-            return Err(PhysicsError::MissingSection {
+            return Err(SimulationError::MissingSection {
                 section: "simulation.tia",
                 needed_by: "the APD",
             });

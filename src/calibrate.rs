@@ -105,9 +105,12 @@ pub fn calibrate(
             delay_s: fit.delay_s,
             walk_amplitude_v: fit.amplitude_v.clone(),
             walk_delay_s: fit.walk_delay_s.clone(),
+            ..Default::default()
         };
         walk_fit = Some(fit);
     }
+    // The delay's own uncertainty enters every range measured with it.
+    calibration.delay_sigma_s = (var / n).sqrt();
     let file = CalibrationFile {
         calibration,
         measurement: CalibrationMeasurement {

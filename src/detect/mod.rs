@@ -15,6 +15,8 @@ pub mod kernels;
 pub mod pulse_timing;
 /// Sub-sample phase bias of the interpolating timing methods, measured and removed.
 pub mod phase;
+/// Measured bias and one-sigma width of each timing method by measured SNR.
+pub mod error_table;
 /// Learning the pulse shape from aligned shots (equivalent time).
 pub mod template;
 /// Thresholds and Pd with the noise mean and sigma estimated from a finite gate.

@@ -180,20 +180,41 @@ fn constant_fraction(input: &TimingInput) -> Option<Timed> {
     }
     let level = input.mean_v + input.fraction * a;
     let t = crossing::rising_before(input.x, level, search_start(input, k), k)?;
-    let i = t.floor() as usize;
-    let slope = input.x[(i + 1).min(input.x.len() - 1)] - input.x[i];
-    // The level itself carries the peak's noise scaled by the fraction.
+    // Small-signal σ: the noise at the crossing, plus the peak's scaled by
+    // the fraction, over the model's slope there (a slope read from two noisy
+    // samples would swing with the noise it is meant to scale).
+    let slope = a * model_slope(input.pulse, input.fraction);
     let sigma = input.sigma_v * (1.0 + input.fraction * input.fraction).sqrt() / slope.max(f64::MIN_POSITIVE);
     Some(finish(input, k as f64, a, t, Some(sigma)))
 }
 
+/// Slope of the unit-peak shape where its leading edge crosses `fraction`, per sample.
+fn model_slope(pulse: &Shape, fraction: f64) -> f64 {
+    pulse.value_and_slope(pulse.fraction_offset(fraction.clamp(1e-3, 0.999))).1.abs()
+}
+
+/// Above this fraction of the fitted peak a fixed level crosses where the
+/// pulse is flat: the crossing is noise, and the method falls back.
+const LEADING_EDGE_MAX_FRACTION: f64 = 0.9;
+
 fn leading_edge(input: &TimingInput) -> Option<Timed> {
     let (k, a) = raw_peak(input);
+    let r = input.leading_edge_v / a;
+    if !(a > 0.0 && r < LEADING_EDGE_MAX_FRACTION) {
+        return None;
+    }
     let level = input.mean_v + input.leading_edge_v;
     let t = crossing::first_rising(input.x, level, search_start(input, k), k + 1)?;
-    let i = t.floor() as usize;
-    let slope = input.x[(i + 1).min(input.x.len() - 1)] - input.x[i];
-    let sigma = input.sigma_v / slope.max(f64::MIN_POSITIVE);
+    // A fixed level crosses a larger pulse earlier (walk): the model moves
+    // the crossing to the timing fraction's point of a pulse of the fitted
+    // amplitude, so every method reports the same point of the pulse. A
+    // calibrated walk table then removes what the model leaves.
+    let t = t + input.pulse.fraction_offset(input.fraction) - input.pulse.fraction_offset(r);
+    // Small-signal σ: the noise at the crossing, plus the fitted amplitude's
+    // (through the walk correction, scaled by the level's fraction), over
+    // the model's slope at the crossing.
+    let slope = a * model_slope(input.pulse, r);
+    let sigma = input.sigma_v * (1.0 + r * r).sqrt() / slope.max(f64::MIN_POSITIVE);
     Some(finish(input, k as f64, a, t, Some(sigma)))
 }
 

@@ -7,10 +7,11 @@ use super::{FrameError, Stage, Work};
 use crate::frame::FrameFlag;
 use crate::detect::kernels::DetectorPlan;
 use crate::math::select::mad_sigma;
-use crate::detect::phase::PhaseBias;
+use crate::detect::error_table::ErrorTable;
 use crate::detect::pulse_timing::{time_pulse, TimingInput};
 use crate::dsp::pulse::Shape;
 use crate::scene::{Scene, TimingMethod};
+use std::sync::Arc;
 
 /// Times the start pulse.
 #[derive(Debug)]
@@ -23,8 +24,10 @@ pub struct Start {
     pulse_cfg: crate::scene::PulseConfig,
     /// Plan for the current sampling period (rebuilt when it changes).
     plan: Option<(f64, Shape, DetectorPlan)>,
-    /// Phase bias of the method on the start shape, removed from every estimate.
-    phase: Option<PhaseBias>,
+    /// Measured bias and width of the method on the start shape by SNR.
+    errors: Option<Arc<ErrorTable>>,
+    /// The same for the peak interpolation a failed crossing falls back to.
+    fallback_errors: Option<Arc<ErrorTable>>,
     volts: Vec<f64>,
     scratch: Vec<f64>,
 }
@@ -40,7 +43,8 @@ impl Start {
             reference_offset_s: scene.channels.reference_offset_s,
             pulse_cfg: scene.start_pulse.clone(),
             plan: None,
-            phase: None,
+            errors: None,
+            fallback_errors: None,
             volts: Vec::new(),
             scratch: Vec::new(),
         }
@@ -79,7 +83,8 @@ impl Stage for Start {
         if self.plan.as_ref().is_none_or(|p| p.0 != dt || p.2.len() > n + 1) {
             let pulse = self.pulse_cfg.shape(dt);
             let plan = DetectorPlan::matched_filter(&pulse, n);
-            self.phase = PhaseBias::measure(self.method, &pulse, self.fraction, true);
+            self.errors = ErrorTable::get(self.method, &pulse, self.fraction, true);
+            self.fallback_errors = ErrorTable::get(TimingMethod::PeakParabolic, &pulse, self.fraction, true);
             self.plan = Some((dt, pulse, plan));
         }
         let (lo, hi) = self.plan.as_ref().expect("built above").1.support();
@@ -146,12 +151,9 @@ impl Stage for Start {
         );
         timed.index += a as f64;
         timed.peak_index += a as f64;
-        if let Some(pb) = &self.phase {
-            if pb.is_smooth() {
-                timed.index = pb.correct(timed.index);
-            } else {
-                timed.sigma_samples = timed.sigma_samples.hypot(pb.rms());
-            }
+        let table = if timed.fallback { &self.fallback_errors } else { &self.errors };
+        if let Some(table) = table {
+            (timed.index, timed.sigma_samples) = table.correct(timed.index, timed.amplitude_v / sigma);
         }
         w.reference.t_ref_s = w.frame.sample_time_s(timed.index);
         w.reference.t_ref_sigma_s = timed.sigma_samples * dt;

@@ -5,9 +5,10 @@
 use super::{FrameError, Stage, Work};
 use crate::detect::finite_gate::detection_probability;
 use crate::detect::resolve::MISFIT_LIMIT;
-use crate::detect::phase::PhaseBias;
+use crate::detect::error_table::ErrorTable;
 use crate::detect::pulse_timing::{crlb_samples, time_pulse, Timed, TimingInput};
 use crate::detect::walk::WalkTable;
+use std::sync::Arc;
 use crate::dsp::pulse::{PulseShape, Shape};
 use crate::frame::{Return, ReturnFlag, ReturnFlags};
 use crate::scene::{DetectorKind, Scene, TimingMethod};
@@ -26,13 +27,17 @@ pub struct Timing {
     fraction: f64,
     leading_edge_v: f64,
     delay_s: f64,
+    /// Standard error of the calibrated delay, s.
+    delay_sigma_s: f64,
     c_m_per_s: f64,
     matched: bool,
     pulse_cfg: crate::scene::PulseConfig,
     /// Shape and its template norm for the current sampling period.
     pulse: Option<(f64, Shape, f64)>,
-    /// Phase bias of the method on this shape, removed from every estimate.
-    phase: Option<PhaseBias>,
+    /// Measured bias and width of the method by SNR (none for leading edge).
+    errors: Option<Arc<ErrorTable>>,
+    /// The same for the peak interpolation a failed crossing falls back to.
+    fallback_errors: Option<Arc<ErrorTable>>,
     /// The method fits the template (peak interpolation or maximum likelihood).
     template_timed: bool,
     /// Leading-edge walk table (leading-edge timing with a calibrated table only).
@@ -71,11 +76,13 @@ impl Timing {
             fraction: scene.timing.fraction,
             leading_edge_v: scene.timing.leading_edge_v,
             delay_s: scene.calibration.delay_s,
+            delay_sigma_s: scene.calibration.delay_sigma_s,
             c_m_per_s: scene.c_medium_m_per_s(),
             matched: scene.detector.kind == DetectorKind::MatchedFilter,
             pulse_cfg: scene.return_pulse.clone(),
             pulse: None,
-            phase: None,
+            errors: None,
+            fallback_errors: None,
             template_timed: matches!(
                 scene.timing.method,
                 TimingMethod::Ml | TimingMethod::PeakParabolic | TimingMethod::PeakGaussian
@@ -106,7 +113,8 @@ impl Stage for Timing {
             } else {
                 1.0
             };
-            self.phase = PhaseBias::measure(self.method, &shape, self.fraction, self.matched);
+            self.errors = ErrorTable::get(self.method, &shape, self.fraction, self.matched);
+            self.fallback_errors = ErrorTable::get(TimingMethod::PeakParabolic, &shape, self.fraction, self.matched);
             self.pulse = Some((dt, shape, norm));
         }
         let (_, pulse, norm) = self.pulse.as_ref().expect("set above");
@@ -147,12 +155,11 @@ impl Stage for Timing {
                         leading_edge_v: self.leading_edge_v,
                     },
                 );
-                if let Some(pb) = &self.phase {
-                    if pb.is_smooth() {
-                        t.index = pb.correct(t.index);
-                    } else {
-                        t.sigma_samples = t.sigma_samples.hypot(pb.rms());
-                    }
+                // The method's measured bias and width at the SNR it measured
+                // (a failed crossing falls back to the parabolic peak's table).
+                let table = if t.fallback { &self.fallback_errors } else { &self.errors };
+                if let Some(table) = table {
+                    (t.index, t.sigma_samples) = table.correct(t.index, t.amplitude_v / w.noise.sigma_v);
                 }
                 timed.push((p, t, 0.0));
             }
@@ -181,7 +188,8 @@ impl Stage for Timing {
             } else {
                 one.sigma_samples
             };
-            let sigma_t = ((sigma_stop * dt).powi(2) + w.reference.t_ref_sigma_s.powi(2)).sqrt();
+            let sigma_t =
+                ((sigma_stop * dt).powi(2) + w.reference.t_ref_sigma_s.powi(2) + self.delay_sigma_s.powi(2)).sqrt();
             let amplitude_v = one.amplitude_v;
             let d = amplitude_v * norm / (w.noise.sigma_v * w.threshold.out_gain);
             let mut flags = ReturnFlags::default();

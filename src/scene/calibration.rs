@@ -12,6 +12,10 @@ use std::path::Path;
 pub struct CalibrationConfig {
     /// Fixed start-to-stop delay, seconds.
     pub delay_s: f64,
+    /// Standard error of `delay_s`, seconds (from `tofwave calibrate`): it
+    /// enters every range's uncertainty. 0: the delay is taken as exact.
+    #[serde(skip_serializing_if = "is_zero")]
+    pub delay_sigma_s: f64,
     /// Leading-edge walk table: return amplitudes, volts, strictly increasing.
     /// Empty: no walk correction.
     #[serde(skip_serializing_if = "Vec::is_empty")]
@@ -23,10 +27,17 @@ pub struct CalibrationConfig {
     pub walk_delay_s: Vec<f64>,
 }
 
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
+}
+
 impl CalibrationConfig {
     /// Checks `[calibration]`: the delay and the walk table.
     pub fn validate(&self) -> Result<(), FieldError> {
-        check(&[("calibration.delay_s", self.delay_s.into(), Range::closed(-1.0, 1.0), "[-1, 1] s")])?;
+        check(&[
+            ("calibration.delay_s", self.delay_s.into(), Range::closed(-1.0, 1.0), "[-1, 1] s"),
+            ("calibration.delay_sigma_s", self.delay_sigma_s.into(), Range::closed(0.0, 1.0), "[0, 1] s"),
+        ])?;
         self.validate_walk()
     }
 

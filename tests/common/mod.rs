@@ -9,6 +9,9 @@ use tofwave::dsp::pulse::{Pulse, PulseShape};
 use tofwave::frame::{Channel, ChannelRole, Frame, Samples};
 use tofwave::scene::Scene;
 
+/// Independent frame generator built from the prototype's description alone.
+pub mod seedgen;
+
 /// What to synthesise.
 #[derive(Debug, Clone)]
 pub struct Synth {

@@ -141,6 +141,7 @@ fn walk_table_removes_leading_edge_walk() {
             delay_s: fit.delay_s,
             walk_amplitude_v: fit.amplitude_v.clone(),
             walk_delay_s: fit.walk_delay_s.clone(),
+            delay_sigma_s: 0.0,
         },
         measurement: CalibrationMeasurement {
             known_range_m: 0.0,
@@ -198,9 +199,12 @@ fn walk_table_removes_leading_edge_walk() {
         "walk without the table: {:.2} ns from 0.05 V to 2 V",
         max_plain - min_plain
     );
+    // The raw comparator walk over this span is several ns; the timing
+    // method removes it with the pulse model (to 0.18 ns measured), the
+    // table removes the rest.
     assert!(
-        max_plain - min_plain > 3.0,
-        "the walk to be removed is several ns: {}",
+        max_plain - min_plain < 0.5,
+        "the model leaves a walk of {} ns",
         max_plain - min_plain
     );
 }
@@ -347,9 +351,11 @@ fn calibrate_walk_on_the_command_line() {
         "with the table: worst mean error {} m",
         worst.0
     );
+    // Without the table the pulse model still removes the bulk of the walk
+    // (the raw comparator's exceeds 0.3 m here): 1.7 cm measured.
     assert!(
-        worst.1 > 0.3,
-        "without the table the walk shows: worst {} m",
+        worst.1 < 0.05,
+        "without the table: worst mean error {} m",
         worst.1
     );
 }

@@ -202,6 +202,13 @@ impl ErrorTable {
         (index - bias, sigma)
     }
 
+    /// RMS over a uniform phase of the method's sub-sample phase bias on the
+    /// model shape, samples (0 for methods without one). When the model does
+    /// not fit the data its phase correction is wrong by about this much.
+    pub fn phase_rms(&self) -> f64 {
+        self.phase.as_ref().map_or(0.0, PhaseBias::rms)
+    }
+
     /// Bias and one-sigma width, samples, at measured SNR `snr` (amplitude /
     /// noise σ): interpolated linearly in ln SNR (the width in ln width).
     /// Below the lowest bin both are held; above the highest the bias is held

@@ -117,8 +117,10 @@ pub fn learn_shapes(
                 let amplitude = sorted[sorted.len() - 1] - baseline;
                 sl.lock().expect("not poisoned").add(&start_v, baseline, to_index(w.reference.t_ref_s) - start_offset, amplitude);
             }
-            // Noise that fails the normality test (e.g. coarse quantisation) does not spoil a shot.
-            let clean = |r: &Return| r.flags.iter().all(|f| f == "non_gaussian_noise");
+            // Noise that fails the normality test (e.g. coarse quantisation)
+            // does not spoil a shot, and a shape that does not fit the scene's
+            // model is what learning is for.
+            let clean = |r: &Return| r.flags.iter().all(|f| f == "non_gaussian_noise" || f == "shape_mismatch");
             for (i, r) in w.report.returns.iter().enumerate() {
                 if !(clean(r) && r.snr_db >= min_snr) {
                     continue;

@@ -8,7 +8,7 @@ use crate::frame::FrameFlag;
 use crate::detect::kernels::DetectorPlan;
 use crate::math::select::mad_sigma;
 use crate::detect::error_table::ErrorTable;
-use crate::detect::pulse_timing::{time_pulse, TimingInput};
+use crate::detect::pulse_timing::{time_pulse, mismatch_gap, ShapeFit, TimingInput, MISMATCH_Z};
 use crate::dsp::pulse::Shape;
 use crate::scene::{Scene, TimingMethod};
 use std::sync::Arc;
@@ -28,6 +28,8 @@ pub struct Start {
     errors: Option<Arc<ErrorTable>>,
     /// The same for the peak interpolation a failed crossing falls back to.
     fallback_errors: Option<Arc<ErrorTable>>,
+    /// Running mean of the mismatch gap and mean square of its swing, samples.
+    typical_gap: Option<(f64, f64)>,
     volts: Vec<f64>,
     scratch: Vec<f64>,
 }
@@ -45,6 +47,7 @@ impl Start {
             plan: None,
             errors: None,
             fallback_errors: None,
+            typical_gap: None,
             volts: Vec::new(),
             scratch: Vec::new(),
         }
@@ -135,25 +138,37 @@ impl Stage for Start {
         let lo = (peak - a).saturating_sub(w_half);
         let hi = (peak - a + w_half + 1).min(xw.len());
         let y_peak = (lo..hi).max_by(|&i, &j| y[i].total_cmp(&y[j])).unwrap_or(peak - a);
-        let mut timed = time_pulse(
-            self.method,
-            &TimingInput {
-                x: xw,
-                mean_v: baseline,
-                sigma_v: sigma,
-                y,
-                norm,
-                pulse,
-                peak: y_peak,
-                fraction: self.fraction,
-                leading_edge_v: self.leading_edge_v,
-            },
-        );
+        let input = TimingInput {
+            x: xw,
+            mean_v: baseline,
+            sigma_v: sigma,
+            y,
+            norm,
+            pulse,
+            peak: y_peak,
+            fraction: self.fraction,
+            leading_edge_v: self.leading_edge_v,
+        };
+        let mut timed = time_pulse(self.method, &input);
         timed.index += a as f64;
         timed.peak_index += a as f64;
         let table = if timed.fallback { &self.fallback_errors } else { &self.errors };
         if let Some(table) = table {
             (timed.index, timed.sigma_samples) = table.correct(timed.index, timed.amplitude_v / sigma);
+        }
+        // A start shape that does not fit the samples (χ² test): where it
+        // puts the timing point is uncertain by the gap between its fraction
+        // point and the samples' own crossing.
+        let fit = ShapeFit::measure(xw, baseline, sigma, pulse, timed.index - a as f64 - pulse.fraction_offset(self.fraction));
+        if fit.mismatched(MISMATCH_Z, 1.0) {
+            // Its typical value is a constant the calibration absorbs.
+            let gap = mismatch_gap(&input, &fit);
+            // Running mean and mean square of its swing (one per sensor).
+            let (typical, swing2) = self.typical_gap.get_or_insert((gap, 0.0));
+            let d = gap - *typical;
+            *swing2 += super::timing::GAP_SMOOTHING * (d * d - *swing2);
+            *typical += super::timing::GAP_SMOOTHING * d;
+            timed.sigma_samples = timed.sigma_samples.hypot(swing2.sqrt());
         }
         w.reference.t_ref_s = w.frame.sample_time_s(timed.index);
         w.reference.t_ref_sigma_s = timed.sigma_samples * dt;

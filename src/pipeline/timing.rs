@@ -6,7 +6,7 @@ use super::{FrameError, Stage, Work};
 use crate::detect::finite_gate::detection_probability;
 use crate::detect::resolve::MISFIT_LIMIT;
 use crate::detect::error_table::ErrorTable;
-use crate::detect::pulse_timing::{crlb_samples, time_pulse, Timed, TimingInput};
+use crate::detect::pulse_timing::{crlb_samples, time_pulse, mismatch_gap, ShapeFit, Timed, TimingInput, MISMATCH_Z};
 use crate::detect::walk::WalkTable;
 use std::sync::Arc;
 use crate::dsp::pulse::{PulseShape, Shape};
@@ -16,6 +16,9 @@ use crate::scene::{DetectorKind, Scene, TimingMethod};
 /// Returns closer than this many pulse widths are flagged "overlapping":
 /// their tails add, so each one's timing depends on the other's fit.
 const OVERLAP_FWHM: f64 = 2.0;
+
+/// Weight of each new mismatch gap in its running mean.
+pub(crate) const GAP_SMOOTHING: f64 = 0.05;
 
 /// At most this many returns per report (the strongest).
 const MAX_RETURNS: usize = 32;
@@ -45,6 +48,8 @@ pub struct Timing {
     /// Each pulse of the current frame: where the detector found it, how it
     /// was timed, how well the shape fitted (kept between frames).
     timed: Vec<(usize, Timed, f64)>,
+    /// Running mean of the mismatch gap (see `mismatch_gap`) and mean square of its swing, samples.
+    typical_gap: Option<(f64, f64)>,
     /// Scratch for the normalised pulse slope and its autocorrelation.
     slope: Vec<f64>,
     /// See `slope`.
@@ -95,6 +100,7 @@ impl Timing {
             timed: Vec::with_capacity(MAX_RETURNS),
             slope: Vec::new(),
             acf: Vec::new(),
+            typical_gap: None,
         }
     }
 }
@@ -141,27 +147,43 @@ impl Stage for Timing {
             }
         } else {
             for &p in w.buffers.detections.iter().take(MAX_RETURNS) {
-                let mut t = time_pulse(
-                    self.method,
-                    &TimingInput {
-                        x,
-                        mean_v: w.noise.summary.mean_v,
-                        sigma_v: w.noise.sigma_v,
-                        y: &w.buffers.detector_output,
-                        norm,
-                        pulse,
-                        peak: p,
-                        fraction: self.fraction,
-                        leading_edge_v: self.leading_edge_v,
-                    },
-                );
+                let input = TimingInput {
+                    x,
+                    mean_v: w.noise.summary.mean_v,
+                    sigma_v: w.noise.sigma_v,
+                    y: &w.buffers.detector_output,
+                    norm,
+                    pulse,
+                    peak: p,
+                    fraction: self.fraction,
+                    leading_edge_v: self.leading_edge_v,
+                };
+                let mut t = time_pulse(self.method, &input);
                 // The method's measured bias and width at the SNR it measured
                 // (a failed crossing falls back to the parabolic peak's table).
                 let table = if t.fallback { &self.fallback_errors } else { &self.errors };
                 if let Some(table) = table {
                     (t.index, t.sigma_samples) = table.correct(t.index, t.amplitude_v / w.noise.sigma_v);
                 }
-                timed.push((p, t, 0.0));
+                // A shape that does not fit the samples (χ² test) is flagged,
+                // and where it puts the timing point is uncertain by the gap
+                // between its fraction point and the samples' own crossing.
+                let fit = ShapeFit::measure(x, w.noise.summary.mean_v, w.noise.sigma_v, pulse, t.index - pulse.fraction_offset(self.fraction));
+                let gain = 1.0 + 2.0 * w.noise.rho.iter().skip(1).map(|r| r * r).sum::<f64>();
+                let mismatched = fit.mismatched(MISMATCH_Z, gain);
+                if mismatched {
+                    // The gap's typical value is a constant the calibration
+                    // absorbs; its swing about that value is the uncertainty.
+                    let gap = mismatch_gap(&input, &fit);
+                    // Running mean and mean square of its swing (one per sensor).
+                    let (typical, swing2) = self.typical_gap.get_or_insert((gap, 0.0));
+                    let d = gap - *typical;
+                    *swing2 += GAP_SMOOTHING * (d * d - *swing2);
+                    *typical += GAP_SMOOTHING * d;
+                    t.sigma_samples = t.sigma_samples.hypot(swing2.sqrt());
+                }
+                let misfit = if mismatched { f64::INFINITY } else { 0.0 };
+                timed.push((p, t, misfit));
             }
         }
         // The report's list keeps its capacity when the report is recycled.

@@ -559,7 +559,7 @@ impl Stage for Detect {
         }
         if self.resolve && !whitened && !cfar_on && !w.buffers.detections.is_empty() {
             let raw = self.raw.as_mut().expect("built above");
-            w.buffers.components = self.resolver.resolve(
+            self.resolver.resolve(
                 &w.buffers.stop_v,
                 w.noise.summary.mean_v,
                 w.noise.sigma_v,
@@ -568,6 +568,7 @@ impl Stage for Detect {
                 w.noise.gates.range.clone(),
                 thr,
                 MAX_RESOLVED,
+                &mut w.buffers.components,
             );
         }
         // Empirical false alarms: excursions above the same threshold in the

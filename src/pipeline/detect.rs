@@ -177,14 +177,22 @@ struct CfarState {
 }
 
 impl CfarState {
-    /// Rebuilds the plan when `key` changed.
+    /// Rebuilds the plan when `key` changed (in place, keeping its buffers,
+    /// once there is one).
     fn refresh(&mut self, key: CfarKey, p_cell: f64) {
         if self.plan.as_ref().is_none_or(|p| p.0 != key) {
+            let p_cell = p_cell.clamp(f64::MIN_POSITIVE, 0.5);
+            if let Some((k, plan)) = &mut self.plan {
+                match plan.redesign(key.template_len, key.peak_tap, p_cell) {
+                    Ok(()) => *k = key,
+                    Err(_) => self.plan = None,
+                }
+                return;
+            }
             let method = match self.kind {
                 CfarKind::Os => CfarMethod::OrderedStatistic { rank: self.rank },
                 _ => CfarMethod::CellAveraging,
             };
-            let p_cell = p_cell.clamp(f64::MIN_POSITIVE, 0.5);
             self.plan = CfarPlan::new(method, self.guard, self.training, key.template_len, key.peak_tap, p_cell)
                 .ok()
                 .map(|p| (key, p));

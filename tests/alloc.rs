@@ -4,8 +4,7 @@
 //! allocations made on the test's thread while frames go through a warmed-up
 //! pipeline. Frames are prepared before counting (they are the caller's), and
 //! reports are handed back with `Pipeline::recycle` (the documented way to
-//! reuse their storage). Where a stage cannot reach zero yet, the test pins
-//! the exact count it reaches, with the reason next to it, so that any new
+//! reuse their storage). Every configuration expects zero, so any new
 //! allocation on the per-frame path fails here.
 
 use std::alloc::{GlobalAlloc, Layout, System};
@@ -148,9 +147,8 @@ fn burst(overrides: &[(&str, &str)]) -> u64 {
     steady_state_allocations(&scene, &frames)
 }
 
-/// Asserts each case's count equals its expected count (0 unless a comment
-/// there says why not), listing every case when one differs. A count that
-/// drops below a pinned bound fails too: lower the bound then.
+/// Asserts each case's count equals its expected count (0 everywhere
+/// today), listing every case when one differs.
 fn assert_counts(cases: &[(&str, u64, u64)]) {
     let wrong: Vec<_> = cases.iter().filter(|c| c.1 != c.2).collect();
     assert!(wrong.is_empty(), "(case, allocations, expected) differ: {wrong:?}; all: {cases:?}");
@@ -206,14 +204,26 @@ fn burst_scene_with_each_denoise_method_allocates_nothing_per_frame() {
     ]);
 }
 
+/// Averaging reuses its accumulators and kept frames' volts, lends the mean
+/// channels' storage to the output frame, and hands the frames it averaged
+/// away back to the pipeline (`Stage::consumed`), whose units keep their
+/// buffers.
 #[test]
-fn lab_scene_with_averaging_allocates_what_is_pinned() {
+fn lab_scene_with_averaging_allocates_nothing_per_frame() {
     assert_counts(&[
-        // Averaging is not at zero: each report's mean frame is a new Frame
-        // (channels, names, F64 samples), the group's first unit of work is
-        // cloned, and the sliding window keeps a copy of each frame's stop
-        // (and start) channel per kept frame.
-        ("block", lab(&[("averaging.frames", "4")]), 408),
-        ("sliding", lab(&[("averaging.frames", "4"), ("averaging.mode", "\"sliding\"")]), 1450),
+        ("block", lab(&[("averaging.frames", "4")]), 0),
+        ("sliding", lab(&[("averaging.frames", "4"), ("averaging.mode", "\"sliding\"")]), 0),
+        ("trimmed block", lab(&[("averaging.frames", "4"), ("averaging.method", "\"trimmed_mean\"")]), 0),
+        (
+            "median sliding",
+            lab(&[("averaging.frames", "4"), ("averaging.mode", "\"sliding\""), ("averaging.method", "\"median\"")]),
+            0,
+        ),
+        ("block, stationarity guard", lab(&[("averaging.frames", "8"), ("averaging.stationarity_block", "2")]), 0),
+        (
+            "template denoise, block",
+            burst(&[("denoise.method", "\"template\""), ("denoise.learn_frames", "24"), ("averaging.frames", "4")]),
+            0,
+        ),
     ]);
 }

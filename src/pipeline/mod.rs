@@ -226,9 +226,9 @@ impl Work {
     }
 }
 
-/// Puts a unit whose work is done (its report went out) with the spare
-/// units: storage lent to its frame comes back to its buffers and the frame,
-/// the caller's, is dropped now rather than held.
+/// Puts a unit whose work is done (its report went out, or a stage consumed
+/// it) with the spare units: storage lent to its frame comes back to its
+/// buffers and the frame, the caller's, is dropped now rather than held.
 fn retire(spare: &mut Vec<Work>, mut w: Work) {
     w.reclaim_volts();
     w.frame = Frame::empty();
@@ -243,6 +243,12 @@ pub trait Stage: Send {
     fn process(&mut self, work: Work, out: &mut Vec<Work>) -> Result<(), FrameError>;
     /// End of input: pushes whatever is held back.
     fn flush(&mut self, _out: &mut Vec<Work>) {}
+    /// A unit the stage has consumed and no longer needs (a frame averaged
+    /// into another unit), if any: the pipeline reuses its buffers for the
+    /// next frames. Called after every `process` and `flush` until `None`.
+    fn consumed(&mut self) -> Option<Work> {
+        None
+    }
 }
 
 /// Sees every finished unit of work before it becomes a report (tools that
@@ -352,6 +358,9 @@ impl Pipeline {
         for i in 0..self.stages.len() {
             let mut entering = Vec::new();
             self.stages[i].flush(&mut entering);
+            while let Some(w) = self.stages[i].consumed() {
+                retire(&mut self.spare, w);
+            }
             if !entering.is_empty() {
                 // Errors past validation are not expected; a failing flush loses only that group.
                 let _ = self.run_from(i + 1, &mut entering, out);
@@ -369,6 +378,9 @@ impl Pipeline {
                 w.report.stages.push(stage.name());
                 if let Err(e) = stage.process(w, &mut leaving) {
                     result = Err(e);
+                }
+                while let Some(w) = stage.consumed() {
+                    retire(&mut self.spare, w);
                 }
             }
             std::mem::swap(entering, &mut leaving);

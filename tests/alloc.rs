@@ -5,7 +5,8 @@
 //! pipeline. Frames are prepared before counting (they are the caller's), and
 //! reports are handed back with `Pipeline::recycle` (the documented way to
 //! reuse their storage). Every configuration expects zero, so any new
-//! allocation on the per-frame path fails here.
+//! allocation on the per-frame path fails here; a self-test checks that an
+//! allocation made while a frame goes through is counted.
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
@@ -14,7 +15,7 @@ use std::path::PathBuf;
 use tofwave::capture::{read_paths, ReadOptions};
 use tofwave::frame::Frame;
 use tofwave::physics::Simulator;
-use tofwave::pipeline::Pipeline;
+use tofwave::pipeline::{Observer, Pipeline};
 use tofwave::scene::Scene;
 
 struct Counting;
@@ -102,7 +103,16 @@ const COUNTED: usize = 48;
 /// Allocations while `COUNTED` frames go through a pipeline warmed on `WARM`
 /// frames (`frames` repeats when shorter, with fresh sequence numbers).
 fn steady_state_allocations(scene: &Scene, frames: &[Frame]) -> u64 {
+    steady_state_allocations_observed(scene, frames, None)
+}
+
+/// [`steady_state_allocations`] with `observer` seeing every finished unit
+/// of work (inside `push`, so what it allocates is counted).
+fn steady_state_allocations_observed(scene: &Scene, frames: &[Frame], observer: Option<Observer>) -> u64 {
     let mut p = Pipeline::new(scene, "alloc");
+    if let Some(o) = observer {
+        p.set_observer(o);
+    }
     let mut batch: Vec<Frame> = (0..WARM + COUNTED)
         .map(|i| {
             let mut f = frames[i % frames.len()].clone();
@@ -226,4 +236,17 @@ fn lab_scene_with_averaging_allocates_nothing_per_frame() {
             0,
         ),
     ]);
+}
+
+/// The count is falsifiable: one allocation per finished frame, made while
+/// the frame goes through the pipeline (by an observer), is seen, exactly.
+#[test]
+fn an_allocation_on_the_per_frame_path_is_counted() {
+    let frames = lecroy();
+    let scene = Scene::default_scene();
+    let observer: Observer = Box::new(|w| {
+        std::hint::black_box(vec![w.frame.sequence; 1]);
+    });
+    assert_eq!(steady_state_allocations_observed(&scene, &frames, Some(observer)), COUNTED as u64);
+    assert_eq!(steady_state_allocations(&scene, &frames), 0);
 }

@@ -557,7 +557,7 @@ impl Serialize for FrameFlag {
 }
 
 /// Output for one processed frame or averaged group (JSON contract).
-#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+#[derive(Debug, Default, PartialEq, Serialize)]
 pub struct Report {
     /// Sensor id.
     pub sensor: String,
@@ -591,6 +591,48 @@ pub struct Report {
     /// return that adds coherently (aligned, stationary). Absent without averaging.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub snr_gain_db: Option<f64>,
+}
+
+impl Clone for Report {
+    fn clone(&self) -> Report {
+        let mut r = Report::default();
+        r.clone_from(self);
+        r
+    }
+
+    /// Field by field, reusing the storage of `self`'s strings and lists.
+    fn clone_from(&mut self, source: &Report) {
+        let Report {
+            sensor,
+            seq_first,
+            seq_last,
+            frames_averaged,
+            time_s,
+            stages,
+            noise,
+            detector,
+            false_alarm,
+            returns,
+            t_start_s,
+            t_start_sigma_s,
+            flags,
+            snr_gain_db,
+        } = self;
+        sensor.clone_from(&source.sensor);
+        *seq_first = source.seq_first;
+        *seq_last = source.seq_last;
+        *frames_averaged = source.frames_averaged;
+        *time_s = source.time_s;
+        stages.clone_from(&source.stages);
+        *noise = source.noise;
+        detector.clone_from(&source.detector);
+        *false_alarm = source.false_alarm;
+        returns.clone_from(&source.returns);
+        *t_start_s = source.t_start_s;
+        *t_start_sigma_s = source.t_start_sigma_s;
+        flags.clone_from(&source.flags);
+        *snr_gain_db = source.snr_gain_db;
+    }
 }
 
 impl Report {

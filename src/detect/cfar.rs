@@ -81,15 +81,16 @@ pub fn ca_factor(p_cell: f64, n: usize) -> f64 {
 }
 
 /// ln of the order statistic's density terms on the integration grid:
-/// ln[k C(N,k) F^(k−1) (1−F)^(N−k) 2φ(z)] at z_i = i·h, z ∈ [0, z_max].
-fn os_ln_density(n: usize, k: usize, z_max: f64) -> (Vec<f64>, f64) {
+/// ln[k C(N,k) F^(k−1) (1−F)^(N−k) 2φ(z)] at z_i = i·h, z ∈ [0, z_max],
+/// into `dens` (cleared first); returns h.
+fn os_ln_density(n: usize, k: usize, z_max: f64, dens: &mut Vec<f64>) -> f64 {
     const INTERVALS: usize = 2400;
     let h = z_max / INTERVALS as f64;
     // ln(k C(N, k)) = ln N! − ln (k−1)! − ln (N−k)!
     let ln_fact = |m: usize| (1..=m).map(|i| (i as f64).ln()).sum::<f64>();
     let ln_c = ln_fact(n) - ln_fact(k - 1) - ln_fact(n - k);
-    let dens = (0..=INTERVALS)
-        .map(|i| {
+    dens.clear();
+    dens.extend((0..=INTERVALS).map(|i| {
             let z = i as f64 * h;
             let ln_upper = std::f64::consts::LN_2 + ln_q(z); // ln(1 − F) = ln 2Q(z)
             let ln_f = if k > 1 {
@@ -104,9 +105,8 @@ fn os_ln_density(n: usize, k: usize, z_max: f64) -> (Vec<f64>, f64) {
                 0.0
             };
             ln_c + ln_f + ln_g + std::f64::consts::LN_2 + ln_phi(z)
-        })
-        .collect();
-    (dens, h)
+    }));
+    h
 }
 
 /// ln Pfa of OS-CFAR with factor α, given the grid from [`os_ln_density`].
@@ -141,7 +141,8 @@ fn os_ln_pfa_grid(alpha: f64, dens: &[f64], h: f64) -> f64 {
 /// white Gaussian noise. See the module documentation.
 pub fn os_pfa(alpha: f64, n: usize, k: usize) -> f64 {
     let k = k.clamp(1, n.max(1));
-    let (dens, h) = os_ln_density(n, k, os_z_max(alpha, k));
+    let mut dens = Vec::new();
+    let h = os_ln_density(n, k, os_z_max(alpha, k), &mut dens);
     os_ln_pfa_grid(alpha, &dens, h).exp()
 }
 
@@ -158,13 +159,18 @@ fn os_z_max(alpha: f64, k: usize) -> f64 {
 
 /// OS-CFAR factor: the α with `os_pfa(α, n, k)` = `p_cell`.
 pub fn os_factor(p_cell: f64, n: usize, k: usize) -> f64 {
+    os_factor_with(p_cell, n, k, &mut Vec::new())
+}
+
+/// [`os_factor`] with the integration grid in `dens` (scratch, kept by the caller).
+fn os_factor_with(p_cell: f64, n: usize, k: usize, dens: &mut Vec<f64>) -> f64 {
     let k = k.clamp(1, n.max(1));
     // The grid depends on α through z_max: solve on a fixed grid, then refine
     // once on the grid for the root found.
-    let (dens, h) = os_ln_density(n, k, 12.0);
-    let a0 = solve_alpha(p_cell.ln(), |a| os_ln_pfa_grid(a, &dens, h));
-    let (dens, h) = os_ln_density(n, k, os_z_max(a0, k));
-    solve_alpha(p_cell.ln(), |a| os_ln_pfa_grid(a, &dens, h))
+    let h = os_ln_density(n, k, 12.0, dens);
+    let a0 = solve_alpha(p_cell.ln(), |a| os_ln_pfa_grid(a, dens, h));
+    let h = os_ln_density(n, k, os_z_max(a0, k), dens);
+    solve_alpha(p_cell.ln(), |a| os_ln_pfa_grid(a, dens, h))
 }
 
 /// Root of the decreasing `ln_pfa(α) = ln_p` for α ≥ 0 (ln_pfa(0) = ln ½):
@@ -194,7 +200,8 @@ fn solve_alpha(ln_p: f64, ln_pfa: impl Fn(f64) -> f64) -> f64 {
 
 /// Per-cell CFAR thresholds for one detector template; factors are solved
 /// once per training-cell count and kept, the per-frame path does not allocate
-/// after the first frame of a given length.
+/// after the first frame of a given length, and [`CfarPlan::redesign`] (a new
+/// template or per-cell probability) keeps the buffers.
 #[derive(Debug, Clone)]
 pub struct CfarPlan {
     method: CfarMethod,
@@ -209,6 +216,8 @@ pub struct CfarPlan {
     factors: Vec<Option<f64>>,
     prefix: Vec<f64>,
     scratch: Vec<f64>,
+    /// The OS factor's integration grid (scratch).
+    dens: Vec<f64>,
 }
 
 impl CfarPlan {
@@ -247,9 +256,28 @@ impl CfarPlan {
             factors: vec![None; 2 * training + 1],
             prefix: Vec::new(),
             scratch: Vec::with_capacity(2 * training),
+            dens: Vec::new(),
         };
         plan.factor(2 * training);
         Ok(plan)
+    }
+
+    /// The plan [`CfarPlan::new`] gives for a template of `span` taps with its
+    /// peak at `peak_tap`, at per-cell probability `p_cell`, with this plan's
+    /// method, guard and training cells: made in place, keeping the buffers
+    /// (and the factors when `p_cell` is unchanged).
+    pub fn redesign(&mut self, span: usize, peak_tap: usize, p_cell: f64) -> Result<(), CfarError> {
+        if !(p_cell > 0.0 && p_cell <= 0.5) {
+            return Err(CfarError::Probability(p_cell));
+        }
+        self.span = span.max(1);
+        self.peak_tap = peak_tap;
+        if p_cell.to_bits() != self.p_cell.to_bits() {
+            self.p_cell = p_cell;
+            self.factors.iter_mut().for_each(|f| *f = None);
+            self.factor(2 * self.training);
+        }
+        Ok(())
     }
 
     /// The default OS rank for `training` cells per side: ⌈¾ · 2·training⌉.
@@ -288,7 +316,7 @@ impl CfarPlan {
         }
         let a = match self.method {
             CfarMethod::CellAveraging => ca_factor(self.p_cell, n),
-            CfarMethod::OrderedStatistic { .. } => os_factor(self.p_cell, n, self.rank_for(n)),
+            CfarMethod::OrderedStatistic { .. } => os_factor_with(self.p_cell, n, self.rank_for(n), &mut self.dens),
         };
         self.factors[n] = Some(a);
         a
@@ -408,6 +436,24 @@ mod tests {
         assert_eq!(plan.windows(20, 100), (13..16, 25..28));
         assert_eq!(plan.windows(0, 100).0, 0..0);
         assert_eq!(plan.windows(99, 100).1, 100..100);
+    }
+
+    #[test]
+    fn a_redesigned_plan_gives_what_a_new_plan_gives() {
+        let e: Vec<f64> = (0..400).map(|i| ((i * 7919) % 211) as f64 / 211.0 - 0.5).collect();
+        for method in [CfarMethod::CellAveraging, CfarMethod::OrderedStatistic { rank: 6 }] {
+            let mut plan = CfarPlan::new(method, 2, 4, 5, 2, 1e-3).unwrap();
+            let mut out = Vec::new();
+            plan.thresholds(&e, &mut out);
+            for (span, peak_tap, p_cell) in [(5, 2, 1e-3), (9, 3, 1e-3), (9, 3, 2e-4), (1, 0, 0.5)] {
+                plan.redesign(span, peak_tap, p_cell).unwrap();
+                let (mut got, mut want) = (Vec::new(), Vec::new());
+                plan.thresholds(&e, &mut got);
+                CfarPlan::new(method, 2, 4, span, peak_tap, p_cell).unwrap().thresholds(&e, &mut want);
+                assert_eq!(got, want, "{method:?} {span} {peak_tap} {p_cell}");
+            }
+            assert!(plan.redesign(5, 2, 0.0).is_err());
+        }
     }
 
     #[test]

@@ -30,15 +30,39 @@ pub struct Component {
 /// A residual RMS above this many noise sigmas marks a shape mismatch.
 pub const MISFIT_LIMIT: f64 = 1.5;
 
-/// Scratch for [`resolve`], kept between frames.
+/// Scratch for [`Resolver::resolve`], kept between frames: once its buffers
+/// have grown, resolving allocates nothing.
 #[derive(Debug, Default, Clone)]
 pub struct Resolver {
     residual: Vec<f64>,
+    /// The components before a trial split (restored when the split fails).
+    before: Vec<Component>,
+    /// The components less the one being tested for its place.
+    rest: Vec<Component>,
+    /// The joint refit's normal equations and trial step.
+    refit: RefitScratch,
+}
+
+/// Buffers of one Levenberg-Marquardt refit (`m` = 2 × components unknowns).
+#[derive(Debug, Default, Clone)]
+struct RefitScratch {
+    /// JᵀJ, row-major m × m.
+    jtj: Vec<f64>,
+    /// Jᵀr.
+    jtr: Vec<f64>,
+    /// One row of J.
+    row: Vec<f64>,
+    /// JᵀJ with the damped diagonal; destroyed by the solver.
+    aug: Vec<f64>,
+    /// The step (Jᵀr on entry to the solver).
+    step: Vec<f64>,
+    /// The components after the step.
+    trial: Vec<Component>,
 }
 
 impl Resolver {
     /// Finds up to `max` pulses whose detector output exceeds `threshold`
-    /// (output units) at peak positions in `range`.
+    /// (output units) at peak positions in `range`, into `comps` (cleared first).
     #[allow(clippy::too_many_arguments)]
     pub fn resolve(
         &mut self,
@@ -50,12 +74,13 @@ impl Resolver {
         range: Range<usize>,
         threshold: f64,
         max: usize,
-    ) -> Vec<Component> {
+        comps: &mut Vec<Component>,
+    ) {
         let n = x.len();
         let (lo, hi) = shape.support();
         self.residual.clear();
         self.residual.extend(x.iter().map(|v| v - mean_v));
-        let mut comps: Vec<Component> = Vec::new();
+        comps.clear();
         let window = |peak: f64| {
             let a = (peak + lo).floor().max(0.0) as usize;
             let b = ((peak + hi).ceil().max(0.0) as usize + 1).min(n);
@@ -85,17 +110,18 @@ impl Resolver {
             comps.push(c);
         }
         if comps.is_empty() {
-            return comps;
+            return;
         }
         // Refit every pulse jointly with its overlapping neighbours.
-        self.joint_refit(x, mean_v, sigma_v, shape, &mut comps, &window);
+        self.joint_refit(x, mean_v, sigma_v, shape, comps, &window);
         // A pulse the shape cannot explain alone may be two returns closer than
         // a pulse width: try a split and keep it if it explains the data.
         let fwhm = shape.fwhm();
         let mut i = 0;
         while i < comps.len() && comps.len() < max {
             if comps[i].misfit > MISFIT_LIMIT {
-                let before = comps.clone();
+                self.before.clear();
+                self.before.extend_from_slice(comps);
                 let old = comps[i];
                 let (a, b) = (
                     Component { peak_index: old.peak_index - fwhm / 3.0, amplitude_v: 0.6 * old.amplitude_v, ..old },
@@ -103,13 +129,13 @@ impl Resolver {
                 );
                 comps[i] = a;
                 comps.push(b);
-                self.joint_refit(x, mean_v, sigma_v, shape, &mut comps, &window);
+                self.joint_refit(x, mean_v, sigma_v, shape, comps, &window);
                 let j = comps.len() - 1;
                 let worse = comps[i].misfit > 0.8 * old.misfit && comps[j].misfit > 0.8 * old.misfit;
                 let weak = [comps[i], comps[j]].iter().any(|c| !(c.amplitude_v * plan.norm() > threshold));
                 if worse || weak {
-                    comps = before;
-                    self.residual_from(x, mean_v, shape, &comps, &window);
+                    std::mem::swap(comps, &mut self.before);
+                    self.residual_from(x, mean_v, shape, comps, &window);
                 }
             }
             i += 1;
@@ -120,13 +146,16 @@ impl Resolver {
         // Neyman-Pearson test (for one pulse at a known delay ΔRSS = y²).
         // Otherwise it was the others' leftover or fitted noise.
         while comps.len() > 1 {
-            self.residual_from(x, mean_v, shape, &comps, &window);
-            let (a, b) = span(&comps, &window);
+            self.residual_from(x, mean_v, shape, comps, &window);
+            let (a, b) = span(comps, &window);
             let rss_all: f64 = self.residual[a..b].iter().map(|v| v * v).sum();
             let mut weakest: Option<(usize, f64)> = None;
             for j in 0..comps.len() {
-                let mut rest: Vec<Component> = comps.iter().enumerate().filter(|&(i, _)| i != j).map(|(_, c)| *c).collect();
+                let mut rest = std::mem::take(&mut self.rest);
+                rest.clear();
+                rest.extend(comps.iter().enumerate().filter(|&(i, _)| i != j).map(|(_, c)| *c));
                 self.joint_refit(x, mean_v, sigma_v, shape, &mut rest, &window);
+                self.rest = rest;
                 let rss_rest: f64 = self.residual[a..b].iter().map(|v| v * v).sum();
                 let gain = rss_rest - rss_all;
                 if weakest.is_none_or(|w| gain < w.1) {
@@ -136,14 +165,13 @@ impl Resolver {
             match weakest {
                 Some((j, gain)) if !(gain > threshold * threshold) => {
                     comps.remove(j);
-                    self.joint_refit(x, mean_v, sigma_v, shape, &mut comps, &window);
+                    self.joint_refit(x, mean_v, sigma_v, shape, comps, &window);
                 }
                 _ => break,
             }
         }
         comps.retain(|c| c.amplitude_v > 0.0);
-        self.residual_from(x, mean_v, shape, &comps, &window);
-        comps
+        self.residual_from(x, mean_v, shape, comps, &window);
     }
 
     /// residual = x - mean - Σ pulses.
@@ -175,11 +203,16 @@ impl Resolver {
             r[a..b].iter().map(|v| v * v).sum()
         };
         let mut cost = rss(&self.residual, comps);
+        let mut ws = std::mem::take(&mut self.refit);
+        let RefitScratch { jtj, jtr, row, aug, step, trial } = &mut ws;
         for _it in 0..40 {
             let (a, b) = span(comps, window);
-            let mut jtj = vec![0.0; m * m];
-            let mut jtr = vec![0.0; m];
-            let mut row = vec![0.0; m];
+            for v in [&mut *jtj, &mut *jtr, &mut *row] {
+                v.clear();
+            }
+            jtj.resize(m * m, 0.0);
+            jtr.resize(m, 0.0);
+            row.resize(m, 0.0);
             for t in a..b {
                 for (i, c) in comps.iter().enumerate() {
                     let (v, dv) = shape.value_and_slope(t as f64 - c.peak_index);
@@ -196,29 +229,28 @@ impl Resolver {
             }
             let mut improved = false;
             for _try in 0..8 {
-                let mut aug = jtj.clone();
+                aug.clear();
+                aug.extend_from_slice(jtj);
                 for p in 0..m {
                     aug[p * m + p] *= 1.0 + lambda;
                     aug[p * m + p] += 1e-30;
                 }
-                let mut step = jtr.clone();
-                if !(solve_in_place(&mut aug, &mut step, m, 0.0) && step.iter().all(|v| v.is_finite())) {
+                step.clear();
+                step.extend_from_slice(jtr);
+                if !(solve_in_place(aug, step, m, 0.0) && step.iter().all(|v| v.is_finite())) {
                     break;
                 }
-                let trial: Vec<Component> = comps
-                    .iter()
-                    .enumerate()
-                    .map(|(i, c)| Component {
-                        amplitude_v: c.amplitude_v + step[2 * i],
-                        peak_index: c.peak_index + step[2 * i + 1].clamp(-2.0, 2.0),
-                        ..*c
-                    })
-                    .collect();
-                self.residual_from(x, mean_v, shape, &trial, window);
-                let new_cost = rss(&self.residual, &trial);
+                trial.clear();
+                trial.extend(comps.iter().enumerate().map(|(i, c)| Component {
+                    amplitude_v: c.amplitude_v + step[2 * i],
+                    peak_index: c.peak_index + step[2 * i + 1].clamp(-2.0, 2.0),
+                    ..*c
+                }));
+                self.residual_from(x, mean_v, shape, trial, window);
+                let new_cost = rss(&self.residual, trial);
                 if new_cost.is_finite() && new_cost < cost {
                     let small = step.iter().all(|s| s.abs() < 1e-9 * (1.0 + s.abs()));
-                    comps.copy_from_slice(&trial);
+                    comps.copy_from_slice(trial);
                     cost = new_cost;
                     lambda = (lambda * 0.3).max(1e-9);
                     improved = !small;
@@ -230,6 +262,7 @@ impl Resolver {
                 break;
             }
         }
+        self.refit = ws;
         self.residual_from(x, mean_v, shape, comps, window);
         for i in 0..k {
             let w = window(comps[i].peak_index);

@@ -316,19 +316,26 @@ pub fn robust_average(
     out: &mut [f64],
     scratch: &mut Vec<f64>,
 ) {
-    if frames.is_empty() {
+    robust_average_of(frames.iter().copied(), trim_fraction, out, scratch);
+}
+
+/// [`robust_average`] of the frames `frames` yields (the iterator is cloned
+/// once per sample), for frames that are not in one slice: nothing is
+/// collected, so nothing is allocated once `scratch` has grown.
+pub fn robust_average_of<'a>(
+    frames: impl Iterator<Item = &'a [f64]> + Clone,
+    trim_fraction: f64,
+    out: &mut [f64],
+    scratch: &mut Vec<f64>,
+) {
+    let Some(len) = frames.clone().map(|f| f.len()).min() else {
         out.fill(f64::NAN);
         return;
-    }
-    let len = frames
-        .iter()
-        .map(|f| f.len())
-        .min()
-        .unwrap_or(0)
-        .min(out.len());
+    };
+    let len = len.min(out.len());
     for (i, o) in out[..len].iter_mut().enumerate() {
         scratch.clear();
-        scratch.extend(frames.iter().map(|f| f[i]));
+        scratch.extend(frames.clone().map(|f| f[i]));
         *o = trimmed_mean(scratch, trim_fraction).unwrap_or(f64::NAN);
     }
 }

@@ -51,6 +51,25 @@ impl FractionalDelay {
 
     /// Plans a delay with `2·half_len` taps (at least 2) and Kaiser parameter `beta`.
     pub fn with_design(delay: f64, half_len: usize, beta: f64) -> FractionalDelay {
+        let mut d = FractionalDelay {
+            delay: 0.0,
+            whole: 0,
+            taps: Vec::new(),
+            half_len: 1,
+        };
+        d.redesign(delay, half_len, beta);
+        d
+    }
+
+    /// Replans for a delay of `delay` samples with the default 32-tap filter:
+    /// what [`FractionalDelay::new`] gives, reusing this plan's taps' storage
+    /// (allocation-free once the taps have grown).
+    pub fn set_delay(&mut self, delay: f64) {
+        self.redesign(delay, DEFAULT_HALF_LEN, DEFAULT_KAISER_BETA);
+    }
+
+    /// What [`FractionalDelay::with_design`] gives, in place.
+    fn redesign(&mut self, delay: f64, half_len: usize, beta: f64) {
         debug_assert!(delay.is_finite(), "fractional delay must be finite");
         let delay = if delay.is_finite() { delay } else { 0.0 };
         let h = half_len.max(1);
@@ -58,7 +77,9 @@ impl FractionalDelay {
         let delay = delay.clamp(-((1u64 << 52) as f64), (1u64 << 52) as f64);
         let whole = delay.floor();
         let f = delay - whole;
-        let mut taps = vec![0.0; 2 * h];
+        let taps = &mut self.taps;
+        taps.clear();
+        taps.resize(2 * h, 0.0);
         if f == 0.0 {
             taps[h] = 1.0;
         } else {
@@ -72,16 +93,13 @@ impl FractionalDelay {
                 *t = sinc(u) * w;
             }
             let sum: f64 = taps.iter().sum();
-            for t in &mut taps {
+            for t in taps.iter_mut() {
                 *t /= sum;
             }
         }
-        FractionalDelay {
-            delay,
-            whole: whole as i64,
-            taps,
-            half_len: h,
-        }
+        self.delay = delay;
+        self.whole = whole as i64;
+        self.half_len = h;
     }
 
     /// The planned delay, samples.
@@ -171,6 +189,15 @@ mod tests {
         assert!((bessel_i0(0.0) - 1.0).abs() < 1e-16);
         assert!((bessel_i0(1.0) - 1.266_065_877_752_008_4).abs() < 1e-14);
         assert!((bessel_i0(10.0) / 2_815.716_628_466_254 - 1.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn a_replanned_delay_is_the_new_plan() {
+        let mut d = FractionalDelay::new(0.3);
+        for delay in [0.3, -1.75, 4.0, 0.0, 12.5] {
+            d.set_delay(delay);
+            assert_eq!(d, FractionalDelay::new(delay), "{delay}");
+        }
     }
 
     #[test]

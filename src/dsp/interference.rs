@@ -598,6 +598,8 @@ pub struct BurstCanceller {
     spec_y: Vec<Complex<f64>>,
     raw: Vec<f64>,
     seg: Vec<f64>,
+    /// The template's sub-sample shift, replanned per call of `slice`.
+    shift: FractionalDelay,
 }
 
 impl std::fmt::Debug for BurstCanceller {
@@ -654,6 +656,7 @@ impl BurstCanceller {
             spec_y,
             raw: vec![0.0; n + 2 * SHIFT_HALF_LEN],
             seg: vec![0.0; n + 2 * SHIFT_HALF_LEN],
+            shift: FractionalDelay::new(0.0),
             xc,
             template,
         }
@@ -734,7 +737,8 @@ impl BurstCanceller {
         for j in 0..self.raw.len() {
             self.raw[j] = self.t_at(lag - h + j as i64);
         }
-        FractionalDelay::new(-delta).apply(&self.raw, &mut self.seg);
+        self.shift.set_delay(-delta);
+        self.shift.apply(&self.raw, &mut self.seg);
     }
 
     /// Finds and subtracts the burst in `x` (volts, one frame of the planned

@@ -32,18 +32,21 @@ use crate::detect::gates::GatePlacer;
 use super::{FrameError, Stage, Work};
 use crate::frame::FrameFlag;
 use crate::detect::noise_model::Moments;
-use crate::dsp::accumulate::{CodeAccumulator, mean_from_sums, robust_average};
+use crate::dsp::accumulate::{CodeAccumulator, mean_from_sums, robust_average_of};
 use crate::dsp::fracdelay::FractionalDelay;
 use crate::frame::{Channel, ChannelRole, Samples};
 use crate::scene::{AveragingAlign, AveragingConfig, AveragingMethod, AveragingMode, Scene};
 use std::collections::VecDeque;
 use std::ops::Range;
 
-/// Exact running sum of one channel over frames.
+/// Exact running sum of one channel over frames. Reused from group to group
+/// ([`Acc::reset`]), so a new group allocates nothing once one has run.
 #[derive(Debug)]
 struct Acc {
     /// Integer codes of unshifted integer frames, and their scale.
     codes: Option<(CodeAccumulator, f64)>,
+    /// A code accumulator of an earlier group, kept for the next.
+    spare_codes: Option<CodeAccumulator>,
     /// Code sums merged in from other accumulators (stationarity blocks).
     merged: Vec<i64>,
     /// Sum of the offsets of the frames whose codes are in `codes`/`merged`, V.
@@ -52,16 +55,45 @@ struct Acc {
     volts: Vec<f64>,
     /// Frames added.
     count: u32,
+    /// Scratch: code sums.
+    sums: Vec<i64>,
 }
 
 impl Acc {
     fn new(len: usize) -> Acc {
         Acc {
             codes: None,
+            spare_codes: None,
             merged: Vec::new(),
             offset_sum_v: 0.0,
             volts: vec![0.0; len],
             count: 0,
+            sums: Vec::new(),
+        }
+    }
+
+    /// Empties the accumulator for frames of `len` samples: as [`Acc::new`],
+    /// keeping the storage.
+    fn reset(&mut self, len: usize) {
+        if let Some((codes, _)) = self.codes.take() {
+            self.spare_codes = Some(codes);
+        }
+        self.merged.clear();
+        self.offset_sum_v = 0.0;
+        self.volts.clear();
+        self.volts.resize(len, 0.0);
+        self.count = 0;
+    }
+
+    /// An empty code accumulator for this accumulator's length (the spare one when it fits).
+    fn fresh_codes(&mut self) -> CodeAccumulator {
+        let n = self.volts.len();
+        match self.spare_codes.take() {
+            Some(mut c) if c.len() == n => {
+                c.reset();
+                c
+            }
+            _ => CodeAccumulator::new(n),
         }
     }
 
@@ -72,9 +104,10 @@ impl Acc {
             .as_ref()
             .is_none_or(|(_, g)| *g == c.volts_per_code);
         if c.samples.is_integer() && scale_ok && c.samples.len() == n {
-            let (acc, _) = self
-                .codes
-                .get_or_insert_with(|| (CodeAccumulator::new(n), c.volts_per_code));
+            if self.codes.is_none() {
+                self.codes = Some((self.fresh_codes(), c.volts_per_code));
+            }
+            let (acc, _) = self.codes.as_mut().expect("set above");
             match &c.samples {
                 Samples::I8(v) => acc.add_i8(v),
                 Samples::I16(v) => acc.add_i16(v),
@@ -99,10 +132,10 @@ impl Acc {
     fn merge(&mut self, other: &mut Acc) {
         if let Some((oc, g)) = &mut other.codes {
             if self.codes.is_none() {
-                self.codes = Some((CodeAccumulator::new(self.volts.len()), *g));
+                self.codes = Some((self.fresh_codes(), *g));
             }
             if self.merged.is_empty() {
-                self.merged = vec![0; self.volts.len()];
+                self.merged.resize(self.volts.len(), 0);
             }
             let same_scale = self.codes.as_ref().is_some_and(|(_, sg)| sg == g);
             if same_scale {
@@ -115,11 +148,13 @@ impl Acc {
                 self.offset_sum_v += other.offset_sum_v;
             } else {
                 // A different scale cannot share the integer sum: add it as volts.
-                let mut sums: Vec<i64> = oc.sums().to_vec();
+                let sums = &mut self.sums;
+                sums.clear();
+                sums.extend_from_slice(oc.sums());
                 for (s, m) in sums.iter_mut().zip(&other.merged) {
                     *s += m;
                 }
-                for (v, s) in self.volts.iter_mut().zip(&sums) {
+                for (v, s) in self.volts.iter_mut().zip(sums.iter()) {
                     *v += *s as f64 * *g;
                 }
                 let off = other.offset_sum_v;
@@ -130,23 +165,25 @@ impl Acc {
         self.count += other.count;
     }
 
-    /// Mean in volts: exact integer sums divided once, plus the float part.
-    fn mean_v(&mut self) -> Vec<f64> {
+    /// Mean in volts into `out`: exact integer sums divided once, plus the float part.
+    fn mean_v(&mut self, out: &mut Vec<f64>) {
         let n = self.count.max(1);
-        let mut out = vec![0.0; self.volts.len()];
+        out.clear();
+        out.resize(self.volts.len(), 0.0);
         if let Some((acc, g)) = &mut self.codes {
-            let mut sums = acc.sums().to_vec();
+            let sums = &mut self.sums;
+            sums.clear();
+            sums.extend_from_slice(acc.sums());
             for (s, m) in sums.iter_mut().zip(&self.merged) {
                 *s += m;
             }
             // Σ(g·c + o)/N = g·(Σc/N) + Σo/N with Σc/N correctly rounded.
-            mean_from_sums(&sums, n as u64, *g, self.offset_sum_v / n as f64, &mut out);
+            mean_from_sums(sums, n as u64, *g, self.offset_sum_v / n as f64, out);
         }
         let inv = 1.0 / n as f64;
         for (o, v) in out.iter_mut().zip(&self.volts) {
             *o += v * inv;
         }
-        out
     }
 }
 
@@ -182,6 +219,12 @@ struct Kept {
 }
 
 /// Ensemble averaging.
+///
+/// The stage reuses its storage from group to group: accumulators, the
+/// kept frames' volts and the mean frames' channels (lent to the output
+/// frame with [`Work::set_volts`], for spare storage of the output unit),
+/// and it hands the units it averaged away back to the pipeline
+/// ([`Stage::consumed`]), so the steady state allocates nothing.
 #[derive(Debug)]
 pub struct Average {
     cfg: AveragingConfig,
@@ -199,10 +242,71 @@ pub struct Average {
     volts: Vec<f64>,
     shifted: Vec<f64>,
     scratch: Vec<f64>,
+    /// The alignment's fractional delay, replanned per frame.
+    delay: FractionalDelay,
+    /// Spare storage for a channel in volts (mean channels, kept frames, scratch).
+    pool: Vec<Vec<f64>>,
+    /// Spare accumulators.
+    accs: Vec<Acc>,
+    /// Units averaged away, until the pipeline takes them back.
+    consumed: Vec<Work>,
+    /// Kept frames set aside while a group before them is emitted.
+    rest: VecDeque<Kept>,
+    /// Return-pulse template at a sampling period: (dt, taps, peak tap, energy).
+    template: Option<(f64, Vec<f64>, usize, f64)>,
 }
 
 fn has_start_pulse(w: &Work) -> bool {
     w.source.start.is_some() && !w.report.flags.iter().any(|f| *f == FrameFlag::NoStartPulse)
+}
+
+/// Makes `dst`, a unit this stage is done with, a copy of `src` in all but
+/// its channels' samples, keeping `dst`'s storage: what a mean unit needs of
+/// the frame it stands for ([`Average::finish`] then replaces the stop and
+/// start channels' samples and drops the other channels). `src` has not
+/// reached the noise stage, so its per-frame buffers are empty.
+fn copy_but_samples(dst: &mut Work, src: &Work) {
+    let Work {
+        frame,
+        source,
+        buffers: _,
+        reference,
+        noise,
+        threshold,
+        report,
+    } = src;
+    dst.reclaim_volts();
+    let f = &mut dst.frame;
+    f.sensor_id.clone_from(&frame.sensor_id);
+    f.sequence = frame.sequence;
+    f.trigger_time_s = frame.trigger_time_s;
+    f.sample_interval_s = frame.sample_interval_s;
+    f.first_sample_offset_s = frame.first_sample_offset_s;
+    f.laser_off = frame.laser_off;
+    f.channels.truncate(frame.channels.len());
+    for (i, c) in frame.channels.iter().enumerate() {
+        match f.channels.get_mut(i) {
+            Some(d) => {
+                d.name.clone_from(&c.name);
+                d.role = c.role;
+                d.volts_per_code = c.volts_per_code;
+                d.offset_v = c.offset_v;
+            }
+            None => f.channels.push(Channel {
+                name: c.name.clone(),
+                role: c.role,
+                samples: Samples::F64(Vec::new()),
+                volts_per_code: c.volts_per_code,
+                offset_v: c.offset_v,
+            }),
+        }
+    }
+    dst.source = *source;
+    dst.buffers.clear();
+    dst.reference = *reference;
+    dst.noise.clone_from(noise);
+    dst.threshold = *threshold;
+    dst.report.clone_from(report);
 }
 
 impl Average {
@@ -221,11 +325,49 @@ impl Average {
             volts: Vec::new(),
             shifted: Vec::new(),
             scratch: Vec::new(),
+            delay: FractionalDelay::new(0.0),
+            pool: Vec::new(),
+            accs: Vec::new(),
+            consumed: Vec::new(),
+            rest: VecDeque::new(),
+            template: None,
         }
     }
 
     fn stores_frames(&self) -> bool {
         self.cfg.mode == AveragingMode::Sliding || self.cfg.method != AveragingMethod::Mean
+    }
+
+    /// Empty storage for a channel in volts, from the pool.
+    fn take_volts(&mut self) -> Vec<f64> {
+        let mut v = self.pool.pop().unwrap_or_default();
+        v.clear();
+        v
+    }
+
+    /// An empty accumulator for frames of `len` samples, from the spares.
+    fn take_acc(&mut self, len: usize) -> Acc {
+        match self.accs.pop() {
+            Some(mut a) => {
+                a.reset(len);
+                a
+            }
+            None => Acc::new(len),
+        }
+    }
+
+    /// Puts a group's storage with the spares; its first unit is consumed.
+    fn recycle_group(&mut self, g: Group) {
+        self.consumed.push(g.first);
+        self.accs.push(g.stop);
+        self.accs.extend(g.start);
+    }
+
+    /// Puts a kept frame's storage with the spares; its unit is consumed.
+    fn recycle_kept(&mut self, k: Kept) {
+        self.consumed.push(k.work);
+        self.pool.push(k.stop);
+        self.pool.extend(k.start);
     }
 
     /// Same geometry as the frame `g` (so the two can be averaged sample by sample).
@@ -262,41 +404,53 @@ impl Average {
         }
     }
 
-    /// Aligned volts of channel `c` of `w` into `out`.
-    fn aligned(c: &Channel, shift: f64, raw: &mut Vec<f64>, out: &mut Vec<f64>) {
+    /// Aligned volts of channel `c` of `w` into `out` (`delay` is replanned for `shift`).
+    fn aligned(c: &Channel, shift: f64, delay: &mut FractionalDelay, raw: &mut Vec<f64>, out: &mut Vec<f64>) {
         c.volts_into(raw);
         out.clear();
         out.resize(raw.len(), 0.0);
-        FractionalDelay::new(shift).apply(raw, out);
+        delay.set_delay(shift);
+        delay.apply(raw, out);
     }
 
-    fn add_to_group(&mut self, g: &mut Group, w: &Work) {
+    /// Adds `w` to the group (`None`: the group's own first frame).
+    fn add_to_group(&mut self, g: &mut Group, w: Option<&Work>) {
+        let Group {
+            first,
+            stop: stop_acc,
+            start: start_acc,
+            var_sum,
+            t_var_sum,
+            t_sum_s,
+            t_count,
+        } = g;
+        let w = w.unwrap_or(first);
         let shift = self.shift_of(w);
         let stop = &w.frame.channels[w.source.stop];
         let mut volts = std::mem::take(&mut self.volts);
         let mut shifted = std::mem::take(&mut self.shifted);
         match shift {
             Some(d) => {
-                Self::aligned(stop, d, &mut volts, &mut shifted);
-                g.stop.add_volts(&shifted);
+                Self::aligned(stop, d, &mut self.delay, &mut volts, &mut shifted);
+                stop_acc.add_volts(&shifted);
                 std::mem::swap(&mut volts, &mut shifted);
             }
             None => {
-                g.stop.add_channel(stop, &mut self.scratch);
+                stop_acc.add_channel(stop, &mut self.scratch);
                 stop.volts_into(&mut volts);
             }
         }
-        g.var_sum += self.gate_variance(w, &volts);
-        g.t_var_sum += w.reference.t_ref_sigma_s * w.reference.t_ref_sigma_s;
+        *var_sum += self.gate_variance(w, &volts);
+        *t_var_sum += w.reference.t_ref_sigma_s * w.reference.t_ref_sigma_s;
         if has_start_pulse(w) {
-            g.t_sum_s += w.reference.t_ref_s;
-            g.t_count += 1;
+            *t_sum_s += w.reference.t_ref_s;
+            *t_count += 1;
         }
-        if let (Some(acc), Some(s)) = (&mut g.start, w.source.start) {
+        if let (Some(acc), Some(s)) = (start_acc, w.source.start) {
             let ch = &w.frame.channels[s];
             match shift {
                 Some(d) => {
-                    Self::aligned(ch, d, &mut volts, &mut shifted);
+                    Self::aligned(ch, d, &mut self.delay, &mut volts, &mut shifted);
                     acc.add_volts(&shifted);
                 }
                 None => acc.add_channel(ch, &mut self.scratch),
@@ -308,21 +462,25 @@ impl Average {
 
     fn new_group(&mut self, w: Work) -> Group {
         let n = w.frame.len();
+        let stop = self.take_acc(n);
+        let start = w.source.start.is_some().then(|| self.take_acc(n));
         let mut g = Group {
-            stop: Acc::new(n),
-            start: w.source.start.map(|_| Acc::new(n)),
+            stop,
+            start,
             var_sum: 0.0,
             t_var_sum: 0.0,
             t_sum_s: 0.0,
             t_count: 0,
             first: w,
         };
-        let first = g.first.clone();
-        self.add_to_group(&mut g, &first);
+        self.add_to_group(&mut g, None);
         g
     }
 
-    /// Output work from a mean (or robust) stop/start and the group's bookkeeping.
+    /// Output work from a mean (or robust) stop/start and the group's
+    /// bookkeeping. The frame becomes the mean frame: its stop channel, then
+    /// its start channel (names kept), holding `stop` and `start` (storage
+    /// lent to the frame, see [`Work::set_volts`]).
     #[allow(clippy::too_many_arguments)]
     fn finish(
         &mut self,
@@ -335,13 +493,30 @@ impl Average {
         mean_t_s: Option<f64>,
         seq_last: u64,
     ) -> Work {
-        let stop_name = w.frame.channels[w.source.stop].name.clone();
-        let mut channels = vec![Channel::from_volts(stop_name, ChannelRole::Stop, stop)];
-        if let (Some(s), Some(v)) = (w.source.start, start) {
-            let name = w.frame.channels[s].name.clone();
-            channels.push(Channel::from_volts(name, ChannelRole::Start, v));
+        // The unit pays for the storage lent to it with spare storage of its
+        // own (storage an earlier stage lent to its frame first): the unit's
+        // and the pool's counts stay the same, whichever units the groups end
+        // in, so neither side grows without bound nor runs short.
+        w.reclaim_volts();
+        let with_start = w.source.start.is_some() && start.is_some();
+        for _ in 0..1 + with_start as usize {
+            let spare = w.spare_volts();
+            self.pool.push(spare);
         }
-        w.frame.channels = channels;
+        let (s_stop, s_start) = (w.source.stop, w.source.start);
+        let channels = &mut w.frame.channels;
+        channels.swap(0, s_stop);
+        if let (true, Some(s)) = (with_start, s_start) {
+            // Channel 0 went to `s_stop` in the swap above.
+            channels.swap(1, if s == 0 { s_stop } else { s });
+        }
+        channels.truncate(1 + with_start as usize);
+        channels[0].role = ChannelRole::Stop;
+        w.set_volts(0, stop);
+        if let (true, Some(v)) = (with_start, start) {
+            w.frame.channels[1].role = ChannelRole::Start;
+            w.set_volts(1, v);
+        }
         w.source.stop = 0;
         w.source.start = w.source.start.map(|_| 1);
         w.source.frames_averaged = count;
@@ -376,18 +551,36 @@ impl Average {
     }
 
     fn emit_group(&mut self, mut g: Group, out: &mut Vec<Work>, partial: bool) {
-        let stop = g.stop.mean_v();
-        let start = g.start.as_mut().map(|a| a.mean_v());
+        let mut stop = self.take_volts();
+        g.stop.mean_v(&mut stop);
+        let start = match &mut g.start {
+            Some(a) => {
+                let mut v = self.take_volts();
+                a.mean_v(&mut v);
+                Some(v)
+            }
+            None => None,
+        };
         let count = g.count();
         let seq_last = g.first.source.seq_last;
         let mean_t = (g.t_count > 0).then(|| g.t_sum_s / g.t_count as f64);
+        let Group {
+            first,
+            stop: stop_acc,
+            start: start_acc,
+            var_sum,
+            t_var_sum,
+            ..
+        } = g;
+        self.accs.push(stop_acc);
+        self.accs.extend(start_acc);
         let mut w = self.finish(
-            g.first,
+            first,
             stop,
             start,
             count,
-            g.var_sum,
-            g.t_var_sum,
+            var_sum,
+            t_var_sum,
             mean_t,
             seq_last,
         );
@@ -422,7 +615,8 @@ impl Average {
         };
         match slot.take() {
             Some(mut g) => {
-                self.add_to_group(&mut g, &w);
+                self.add_to_group(&mut g, Some(&w));
+                self.consumed.push(w);
                 g.first.source.seq_last = seq;
                 if laser_off
                     && !g
@@ -477,9 +671,13 @@ impl Average {
         match self.group.take() {
             None => self.group = Some(b),
             Some(mut g) => {
-                let gm = g.stop.mean_v();
-                let bm = b.stop.mean_v();
-                if self.changed(&g.first, &gm, &bm, g.count(), b.count()) {
+                let (mut gm, mut bm) = (self.take_volts(), self.take_volts());
+                g.stop.mean_v(&mut gm);
+                b.stop.mean_v(&mut bm);
+                let changed = self.changed(&g.first, &gm, &bm, g.count(), b.count());
+                self.pool.push(gm);
+                self.pool.push(bm);
+                if changed {
                     self.nonstationary = true;
                     let r = self.reference_s;
                     self.emit_group(g, out, true);
@@ -505,6 +703,7 @@ impl Average {
                             .copied(),
                     );
                     self.group = Some(g);
+                    self.recycle_group(b);
                 }
             }
         }
@@ -522,16 +721,20 @@ impl Average {
     ) -> bool {
         let _ = (n_older, n_newer);
         let dt = w.frame.sample_interval_s;
-        let shape = self.return_pulse.shape(dt);
-        let (h, peak_idx) = shape.template();
-        let e: f64 = h.iter().map(|v| v * v).sum();
+        if self.template.as_ref().is_none_or(|t| t.0 != dt) {
+            let (h, peak_idx) = self.return_pulse.shape(dt).template();
+            let e: f64 = h.iter().map(|v| v * v).sum();
+            self.template = Some((dt, h, peak_idx, e));
+        }
+        let (_, h, peak_idx, e) = self.template.as_ref().expect("set above");
+        let (h, peak_idx, e) = (h.as_slice(), *peak_idx, *e);
         if e.is_nan() || e <= 0.0 {
             return false;
         }
         let gates = w.place_gates(&mut self.gates);
         let quiet = w.quiet_ranges(&mut self.gates);
-        let a = PeakFit::new(older, &h, peak_idx, e, &gates.range, &quiet);
-        let b = PeakFit::new(newer, &h, peak_idx, e, &gates.range, &quiet);
+        let a = PeakFit::new(older, h, peak_idx, e, &gates.range, &quiet);
+        let b = PeakFit::new(newer, h, peak_idx, e, &gates.range, &quiet);
         let (Some(a), Some(b)) = (a, b) else {
             return false;
         };
@@ -546,8 +749,8 @@ impl Average {
             b.position
         };
         let (aa, ab) = (
-            a.amplitude_at(older, &h, peak_idx, e, at),
-            b.amplitude_at(newer, &h, peak_idx, e, at),
+            a.amplitude_at(older, h, peak_idx, e, at),
+            b.amplitude_at(newer, h, peak_idx, e, at),
         );
         let noise = 4.0 * (a.sigma * a.sigma + b.sigma * b.sigma).sqrt();
         let amp_changed = (aa - ab).abs()
@@ -568,19 +771,24 @@ impl Average {
             if self.cfg.mode == AveragingMode::Block {
                 self.emit_kept(out, true);
             }
-            self.kept.clear();
+            while let Some(k) = self.kept.pop_front() {
+                self.recycle_kept(k);
+            }
             self.reference_s = None;
             self.since_report = 0;
         }
         let shift = self.shift_of(&w).unwrap_or(0.0);
         let mut raw = std::mem::take(&mut self.scratch);
-        let mut stop = Vec::new();
-        Self::aligned(&w.frame.channels[w.source.stop], shift, &mut raw, &mut stop);
-        let start = w.source.start.map(|s| {
-            let mut v = Vec::new();
-            Self::aligned(&w.frame.channels[s], shift, &mut raw, &mut v);
-            v
-        });
+        let mut stop = self.take_volts();
+        Self::aligned(&w.frame.channels[w.source.stop], shift, &mut self.delay, &mut raw, &mut stop);
+        let start = match w.source.start {
+            Some(s) => {
+                let mut v = self.take_volts();
+                Self::aligned(&w.frame.channels[s], shift, &mut self.delay, &mut raw, &mut v);
+                Some(v)
+            }
+            None => None,
+        };
         self.scratch = raw;
         let var = self.gate_variance(&w, &stop);
         self.kept.push_back(Kept {
@@ -594,20 +802,31 @@ impl Average {
         let guard = self.cfg.stationarity_block as usize;
         if guard > 0 && self.kept.len() > guard && self.kept.len().is_multiple_of(guard) {
             let split = self.kept.len() - guard;
-            let older = mean_of(self.kept.iter().take(split).map(|k| k.stop.as_slice()));
-            let newer = mean_of(self.kept.iter().skip(split).map(|k| k.stop.as_slice()));
-            let first = self.kept[0].work.clone();
-            if self.changed(&first, &older, &newer, split as u32, guard as u32) {
+            let (mut older, mut newer) = (self.take_volts(), self.take_volts());
+            mean_of(self.kept.iter().take(split).map(|k| k.stop.as_slice()), &mut older);
+            mean_of(self.kept.iter().skip(split).map(|k| k.stop.as_slice()), &mut newer);
+            // Out of the window while it is compared (`changed` needs the stage).
+            let front = self.kept.pop_front().expect("more than guard frames");
+            let changed = self.changed(&front.work, &older, &newer, split as u32, guard as u32);
+            self.kept.push_front(front);
+            self.pool.push(older);
+            self.pool.push(newer);
+            if changed {
                 if self.cfg.mode == AveragingMode::Block {
-                    let rest: Vec<Kept> = self.kept.drain(split..).collect();
+                    let mut rest = std::mem::take(&mut self.rest);
+                    rest.extend(self.kept.drain(split..));
                     self.nonstationary = true;
                     let r = self.reference_s;
                     self.emit_kept(out, true);
                     self.reference_s = r;
-                    self.kept.extend(rest);
+                    self.kept.extend(rest.drain(..));
+                    self.rest = rest;
                 } else {
                     // The window restarts at the change; its next report says so.
-                    self.kept.drain(..split);
+                    for _ in 0..split {
+                        let k = self.kept.pop_front().expect("split < len");
+                        self.recycle_kept(k);
+                    }
                     self.nonstationary = true;
                 }
             }
@@ -620,7 +839,8 @@ impl Average {
             }
             AveragingMode::Sliding => {
                 while self.kept.len() > n {
-                    self.kept.pop_front();
+                    let k = self.kept.pop_front().expect("len > n");
+                    self.recycle_kept(k);
                 }
                 if self.kept.len() == n && self.since_report >= self.cfg.hop {
                     self.since_report = 0;
@@ -630,15 +850,15 @@ impl Average {
         }
     }
 
-    /// Reports the kept frames' statistic (the window stays for sliding).
+    /// Reports the kept frames' statistic. In block mode the window is
+    /// emptied: the front frame's own unit carries the report. In sliding
+    /// mode the window stays, and a consumed unit is made a copy of the
+    /// front frame's (a new one only while there is none).
     fn report_window(&mut self, out: &mut Vec<Work>, partial: bool) {
         let Some(front) = self.kept.front() else {
             return;
         };
-        let mut first = front.work.clone();
-        let seq_last = self.kept.back().map_or(first.source.seq_last, |k| k.work.source.seq_last);
-        first.report.seq_first = front.work.report.seq_first;
-        first.report.time_s = front.work.report.time_s;
+        let seq_last = self.kept.back().map_or(front.work.source.seq_last, |k| k.work.source.seq_last);
         let count = self.kept.len() as u32;
         let var_sum: f64 = self.kept.iter().map(|k| k.var).sum();
         let t_var_sum: f64 = self
@@ -651,31 +871,37 @@ impl Average {
             AveragingMethod::TrimmedMean => self.cfg.trim_fraction,
             AveragingMethod::Median => 0.5,
         };
-        let stat = |frames: Vec<&[f64]>| {
-            let mut o = vec![0.0; frames.first().map_or(0, |f| f.len())];
-            let mut scratch = Vec::new();
-            robust_average(&frames, trim, &mut o, &mut scratch);
-            o
-        };
-        let stop = stat(self.kept.iter().map(|k| k.stop.as_slice()).collect());
-        let start = first.source.start.map(|_| {
-            stat(
-                self.kept
-                    .iter()
-                    .filter_map(|k| k.start.as_deref())
-                    .collect(),
-            )
+        let mut stop = self.pool.pop().unwrap_or_default();
+        let mut scratch = std::mem::take(&mut self.scratch);
+        robust_into(self.kept.iter().map(|k| k.stop.as_slice()), trim, &mut stop, &mut scratch);
+        let start = front.work.source.start.map(|_| {
+            let mut v = self.pool.pop().unwrap_or_default();
+            robust_into(self.kept.iter().filter_map(|k| k.start.as_deref()), trim, &mut v, &mut scratch);
+            v
         });
-        if self.kept.iter().any(|k| k.work.frame.laser_off) && !first.frame.laser_off {
+        self.scratch = scratch;
+        let laser_off_in_group = self.kept.iter().any(|k| k.work.frame.laser_off);
+        let starts = self.kept.iter().filter(|k| has_start_pulse(&k.work)).map(|k| k.work.reference.t_ref_s);
+        let n_starts = starts.clone().count();
+        let mean_t = (n_starts > 0).then(|| starts.sum::<f64>() / n_starts as f64);
+        let mut first = if self.cfg.mode == AveragingMode::Block {
+            let k = self.kept.pop_front().expect("not empty");
+            self.pool.push(k.stop);
+            self.pool.extend(k.start);
+            k.work
+        } else {
+            let front = &self.kept.front().expect("not empty").work;
+            match self.consumed.pop() {
+                Some(mut u) => {
+                    copy_but_samples(&mut u, front);
+                    u
+                }
+                None => front.clone(),
+            }
+        };
+        if laser_off_in_group && !first.frame.laser_off {
             first.report.flags.push(FrameFlag::LaserOffInGroup);
         }
-        let starts: Vec<f64> = self
-            .kept
-            .iter()
-            .filter(|k| has_start_pulse(&k.work))
-            .map(|k| k.work.reference.t_ref_s)
-            .collect();
-        let mean_t = (!starts.is_empty()).then(|| starts.iter().sum::<f64>() / starts.len() as f64);
         let mut w = self.finish(
             first, stop, start, count, var_sum, t_var_sum, mean_t, seq_last,
         );
@@ -693,25 +919,34 @@ impl Average {
             return;
         }
         self.report_window(out, partial);
-        self.kept.clear();
+        while let Some(k) = self.kept.pop_front() {
+            self.recycle_kept(k);
+        }
         self.reference_s = None;
     }
 }
 
-/// Per-sample mean of equally long frames.
-fn mean_of<'a>(frames: impl Iterator<Item = &'a [f64]>) -> Vec<f64> {
-    let mut sum: Vec<f64> = Vec::new();
+/// The robust average of equally long frames into `out` (sized by the first
+/// frame; see [`robust_average_of`]).
+fn robust_into<'a>(frames: impl Iterator<Item = &'a [f64]> + Clone, trim: f64, out: &mut Vec<f64>, scratch: &mut Vec<f64>) {
+    out.clear();
+    out.resize(frames.clone().next().map_or(0, |f| f.len()), 0.0);
+    robust_average_of(frames, trim, out, scratch);
+}
+
+/// Per-sample mean of equally long frames into `out`.
+fn mean_of<'a>(frames: impl Iterator<Item = &'a [f64]>, out: &mut Vec<f64>) {
+    out.clear();
     let mut n = 0usize;
     for f in frames {
-        if sum.is_empty() {
-            sum = vec![0.0; f.len()];
+        if out.is_empty() {
+            out.resize(f.len(), 0.0);
         }
-        crate::dsp::accumulate::add_f64(&mut sum, f);
+        crate::dsp::accumulate::add_f64(out, f);
         n += 1;
     }
     let inv = 1.0 / n.max(1) as f64;
-    sum.iter_mut().for_each(|v| *v *= inv);
-    sum
+    out.iter_mut().for_each(|v| *v *= inv);
 }
 
 /// The strongest matched-filter peak in the range gate of a mean frame, and
@@ -835,5 +1070,9 @@ impl Stage for Average {
         if let Some(g) = self.group.take() {
             self.emit_group(g, out, true);
         }
+    }
+
+    fn consumed(&mut self) -> Option<Work> {
+        self.consumed.pop()
     }
 }

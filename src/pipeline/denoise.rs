@@ -17,7 +17,6 @@ use super::{FrameError, Stage, Work};
 use crate::frame::FrameFlag;
 use crate::dsp::interference::{BurstCanceller, BurstLearner, BurstTemplate};
 use crate::dsp::notch::ZeroPhaseFilter;
-use crate::frame::{Channel, Samples};
 use crate::scene::{DenoiseConfig, DenoiseMethod, Scene};
 
 /// What the stage is doing.
@@ -134,7 +133,7 @@ impl Denoise {
                 match c.cancel(&mut self.volts, &ranges, predicted) {
                     Some(found) => {
                         self.last = Some((pos, found.lag));
-                        replace_with_volts(&mut w.frame.channels[w.source.stop], &mut self.volts);
+                        replace_with_volts(&mut w, &mut self.volts);
                         w.report.flags.push(FrameFlag::InterferenceCancelled);
                     }
                     None => self.last = None,
@@ -158,7 +157,7 @@ impl Denoise {
                     .expect("planned above")
                     .1
                     .apply(&mut self.volts);
-                replace_with_volts(&mut w.frame.channels[w.source.stop], &mut self.volts);
+                replace_with_volts(&mut w, &mut self.volts);
             }
             State::Learning { .. } => unreachable!("learning frames are held, not cancelled"),
         }
@@ -166,12 +165,12 @@ impl Denoise {
     }
 }
 
-/// Makes `ch` hold the cleaned `volts` (taken: the channel keeps the buffer;
-/// name and role stay, no copy of either).
-fn replace_with_volts(ch: &mut Channel, volts: &mut Vec<f64>) {
-    ch.samples = Samples::F64(std::mem::take(volts));
-    ch.volts_per_code = 1.0;
-    ch.offset_v = 0.0;
+/// Makes the stop channel of `w` hold the cleaned `volts` (the channel takes
+/// the buffer; name and role stay, no copy of either), leaving spare storage
+/// of the unit in `volts` for the next frame.
+fn replace_with_volts(w: &mut Work, volts: &mut Vec<f64>) {
+    let spare = w.spare_volts();
+    w.set_volts(w.source.stop, std::mem::replace(volts, spare));
 }
 
 impl Stage for Denoise {

@@ -177,14 +177,22 @@ struct CfarState {
 }
 
 impl CfarState {
-    /// Rebuilds the plan when `key` changed.
+    /// Rebuilds the plan when `key` changed (in place, keeping its buffers,
+    /// once there is one).
     fn refresh(&mut self, key: CfarKey, p_cell: f64) {
         if self.plan.as_ref().is_none_or(|p| p.0 != key) {
+            let p_cell = p_cell.clamp(f64::MIN_POSITIVE, 0.5);
+            if let Some((k, plan)) = &mut self.plan {
+                match plan.redesign(key.template_len, key.peak_tap, p_cell) {
+                    Ok(()) => *k = key,
+                    Err(_) => self.plan = None,
+                }
+                return;
+            }
             let method = match self.kind {
                 CfarKind::Os => CfarMethod::OrderedStatistic { rank: self.rank },
                 _ => CfarMethod::CellAveraging,
             };
-            let p_cell = p_cell.clamp(f64::MIN_POSITIVE, 0.5);
             self.plan = CfarPlan::new(method, self.guard, self.training, key.template_len, key.peak_tap, p_cell)
                 .ok()
                 .map(|p| (key, p));
@@ -559,7 +567,7 @@ impl Stage for Detect {
         }
         if self.resolve && !whitened && !cfar_on && !w.buffers.detections.is_empty() {
             let raw = self.raw.as_mut().expect("built above");
-            w.buffers.components = self.resolver.resolve(
+            self.resolver.resolve(
                 &w.buffers.stop_v,
                 w.noise.summary.mean_v,
                 w.noise.sigma_v,
@@ -568,6 +576,7 @@ impl Stage for Detect {
                 w.noise.gates.range.clone(),
                 thr,
                 MAX_RESOLVED,
+                &mut w.buffers.components,
             );
         }
         // Empirical false alarms: excursions above the same threshold in the

@@ -18,7 +18,7 @@ mod timing;
 mod validate;
 
 use crate::detect::gates::{GatePlacer, Gates, QuietRanges};
-use crate::frame::{Frame, NoiseSummary, Report};
+use crate::frame::{Frame, NoiseSummary, Report, Samples};
 use crate::scene::Scene;
 use std::sync::Arc;
 
@@ -102,6 +102,13 @@ pub struct Buffers {
     /// only). Written by detect; read by timing (which then times these
     /// instead of `detections`).
     pub components: Vec<crate::detect::resolve::Component>,
+    /// Storage for channel samples a stage rewrites in volts (denoise: the
+    /// cleaned stop channel; average: the mean channels). Lent to the frame
+    /// by [`Work::set_volts`] and taken back when the unit is done, so the
+    /// next frames reuse it instead of allocating.
+    pub volts: Vec<Vec<f64>>,
+    /// Channels of the frame whose samples are storage lent by `set_volts`.
+    lent: Vec<usize>,
 }
 
 /// The frame's time reference. Written by start (average replaces it with
@@ -161,7 +168,8 @@ impl Default for ThresholdTerms {
 }
 
 impl Buffers {
-    /// Empties every buffer, keeping its capacity.
+    /// Empties every per-frame buffer, keeping its capacity (the spare
+    /// `volts` storage stays).
     pub fn clear(&mut self) {
         self.stop_v.clear();
         self.detector_output.clear();
@@ -180,6 +188,51 @@ impl Work {
     pub(crate) fn quiet_ranges(&self, placer: &mut GatePlacer) -> QuietRanges {
         placer.quiet_ranges(&self.frame, self.frame.channels[self.source.stop].samples.len(), self.reference.t_ref_s)
     }
+
+    /// Empty storage for a channel in volts: spare storage of this unit
+    /// (`buffers.volts`), or a new vector when it has none.
+    pub(crate) fn spare_volts(&mut self) -> Vec<f64> {
+        let mut v = self.buffers.volts.pop().unwrap_or_default();
+        v.clear();
+        v
+    }
+
+    /// Makes channel `c` of the frame hold `volts` (scale 1, offset 0; name
+    /// and role stay). The storage is lent: [`Work::reclaim_volts`] takes it
+    /// back into `buffers.volts` (storage lent to `c` before comes back now).
+    pub(crate) fn set_volts(&mut self, c: usize, volts: Vec<f64>) {
+        let ch = &mut self.frame.channels[c];
+        let old = std::mem::replace(&mut ch.samples, Samples::F64(volts));
+        ch.volts_per_code = 1.0;
+        ch.offset_v = 0.0;
+        if !self.buffers.lent.contains(&c) {
+            self.buffers.lent.push(c);
+        } else if let Samples::F64(v) = old {
+            self.buffers.volts.push(v);
+        }
+    }
+
+    /// Takes the storage lent to the frame's channels back into
+    /// `buffers.volts` (those channels are left empty).
+    pub(crate) fn reclaim_volts(&mut self) {
+        let Buffers { volts, lent, .. } = &mut self.buffers;
+        for c in lent.drain(..) {
+            if let Some(ch) = self.frame.channels.get_mut(c)
+                && let Samples::F64(v) = std::mem::replace(&mut ch.samples, Samples::F64(Vec::new()))
+            {
+                volts.push(v);
+            }
+        }
+    }
+}
+
+/// Puts a unit whose work is done (its report went out, or a stage consumed
+/// it) with the spare units: storage lent to its frame comes back to its
+/// buffers and the frame, the caller's, is dropped now rather than held.
+fn retire(spare: &mut Vec<Work>, mut w: Work) {
+    w.reclaim_volts();
+    w.frame = Frame::empty();
+    spare.push(w);
 }
 
 /// A pipeline step.
@@ -190,6 +243,12 @@ pub trait Stage: Send {
     fn process(&mut self, work: Work, out: &mut Vec<Work>) -> Result<(), FrameError>;
     /// End of input: pushes whatever is held back.
     fn flush(&mut self, _out: &mut Vec<Work>) {}
+    /// A unit the stage has consumed and no longer needs (a frame averaged
+    /// into another unit), if any: the pipeline reuses its buffers for the
+    /// next frames. Called after every `process` and `flush` until `None`.
+    fn consumed(&mut self) -> Option<Work> {
+        None
+    }
 }
 
 /// Sees every finished unit of work before it becomes a report (tools that
@@ -299,6 +358,9 @@ impl Pipeline {
         for i in 0..self.stages.len() {
             let mut entering = Vec::new();
             self.stages[i].flush(&mut entering);
+            while let Some(w) = self.stages[i].consumed() {
+                retire(&mut self.spare, w);
+            }
             if !entering.is_empty() {
                 // Errors past validation are not expected; a failing flush loses only that group.
                 let _ = self.run_from(i + 1, &mut entering, out);
@@ -317,6 +379,9 @@ impl Pipeline {
                 if let Err(e) = stage.process(w, &mut leaving) {
                     result = Err(e);
                 }
+                while let Some(w) = stage.consumed() {
+                    retire(&mut self.spare, w);
+                }
             }
             std::mem::swap(entering, &mut leaving);
         }
@@ -327,9 +392,7 @@ impl Pipeline {
             self.last_noise = Some(w.report.noise);
             let report = std::mem::replace(&mut w.report, self.spare_reports.pop().unwrap_or_default());
             out.push(report);
-            // The frame is the caller's: dropped now, not held with the spare unit.
-            w.frame = Frame::empty();
-            self.spare.push(w);
+            retire(&mut self.spare, w);
         }
         self.leaving = leaving;
         result

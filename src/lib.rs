@@ -2,7 +2,7 @@
 //! time-of-flight lidar.
 //!
 //! Module map, one line each, lowest layer first: a module uses only modules
-//! on layers below its own (`tests/layering.rs` checks every `crate::` path).
+//! on layers below its own (`tests/suite/layering.rs` checks every `crate::` path).
 //! `ARCHITECTURE.md` has the layer diagram, the data path and where each kind
 //! of change goes.
 #![warn(missing_docs)]

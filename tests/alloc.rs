@@ -250,3 +250,37 @@ fn an_allocation_on_the_per_frame_path_is_counted() {
     assert_eq!(steady_state_allocations_observed(&scene, &frames, Some(observer)), COUNTED as u64);
     assert_eq!(steady_state_allocations(&scene, &frames), 0);
 }
+
+/// Per-sensor metric handles, once registered, record without allocating
+/// (the service records on every frame).
+#[test]
+fn sensor_metrics_record_without_allocating_after_first_use() {
+    use tofwave::telemetry::SensorMetrics;
+    let _ = tofwave::telemetry::prometheus_handle();
+    let m = SensorMetrics::new("alloc-free");
+    // The processing histogram is left out: the exporter stores its samples
+    // in blocks it allocates as they fill, however the handle is kept.
+    let record = |m: &SensorMetrics| {
+        m.frame_received();
+        m.frames_rejected("pipeline", 1);
+        m.report_published(3);
+        m.sequence_gap(1);
+        m.queue_depth(2);
+        m.frame_recorded();
+    };
+    record(&m); // registers the handles
+    COUNT.with(|c| c.set(0));
+    ON.with(|on| on.set(true));
+    for _ in 0..100 {
+        record(&m);
+    }
+    ON.with(|on| on.set(false));
+    let allocations = COUNT.with(|c| c.get());
+    assert_eq!(allocations, 0, "allocations while recording 100 frames");
+    let text = tofwave::telemetry::prometheus_handle().render();
+    let received = text.lines().find_map(|l| {
+        let rest = l.strip_prefix("tofwave_frames_received_total{")?;
+        rest.contains("sensor=\"alloc-free\"").then(|| l.rsplit_once(' ').unwrap().1.parse::<f64>().unwrap())
+    });
+    assert_eq!(received, Some(101.0));
+}

@@ -21,7 +21,7 @@ pub const BENCH_SCENE_TOML: &str = include_str!("bench_scene.toml");
 /// over ±2.5 V (see the file's comments).
 pub fn bench_scene() -> Scene {
     Scene::from_toml_str(BENCH_SCENE_TOML, "bench_scene.toml")
-        .expect("the embedded bench scene is valid (checked by tests/bench.rs)")
+        .expect("the embedded bench scene is valid (checked by tests/suite/bench.rs)")
 }
 
 /// A named edit of the scene: one entry per measured method.

@@ -27,7 +27,7 @@
 //! It counts clumps by their first up-crossing, so it is accurate when an
 //! excursion above u rarely dips below and re-crosses within one clump —
 //! true at the thresholds of interest for smooth (low-pass) correlation; the
-//! Monte-Carlo tests in `tests/numerics.rs` check it for white noise and for
+//! Monte-Carlo tests in `tests/suite/numerics.rs` check it for white noise and for
 //! a 26-tap Gaussian-kernel moving average (ρ₁ = 0.985).
 //!
 //! T is evaluated as `T(h, a) = φ(h)/√(2π) · ∫₀^{atan a} exp(−h² tan²θ / 2) dθ`

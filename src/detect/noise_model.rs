@@ -275,7 +275,7 @@ pub const SIGMA_MAD_DIFF_SD: f64 = 0.927_609_456_782_300_7;
 /// 0.8604/n is low at small n (the sample median's and the MAD's variance
 /// converge slowly); Var ≈ 0.8604 (1 + 10/n)/n brings the Gaussian flag
 /// rate to the nominal α at n = 30…1000 (calibrated by Monte Carlo;
-/// `tests/numerics.rs` checks it at n = 30, 100 and 1000).
+/// `tests/suite/numerics.rs` checks it at n = 30, 100 and 1000).
 pub const SMALL_SAMPLE_INFLATION: f64 = 10.0;
 
 /// Fewest samples for the normality and contamination verdicts: below it

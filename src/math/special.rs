@@ -250,7 +250,7 @@ fn q_pos(x: f64) -> f64 {
 /// Upper tail of the standard normal distribution, Q(x) = P(N(0,1) > x).
 ///
 /// Relative error ≤ ~1e-15 wherever the result is a normal double (measured
-/// ≤ 4e-16 against Boost/mpmath tables, see `tests/numerics.rs`); NaN gives
+/// ≤ 4e-16 against Boost/mpmath tables, see `tests/suite/numerics.rs`); NaN gives
 /// NaN. Allocation-free, a few tens of ns.
 pub fn q(x: f64) -> f64 {
     if x.is_nan() {

@@ -489,7 +489,7 @@ pub fn jarque_bera(n: u64, skewness: f64, excess_kurtosis: f64) -> (f64, f64) {
 /// probability equals that of the standard normal at `z` (Cornish-Fisher
 /// expansion, Abramowitz & Stegun 26.7.5, to 1/ν⁴). Infinite ν gives `z`.
 /// Accurate to better than 1e-4 relative for ν ≥ 30 with z ≤ 5.5 and for
-/// ν ≥ 100 with z ≤ 7 (against statrs's Student t, `tests/math_oracle.rs`);
+/// ν ≥ 100 with z ≤ 7 (against statrs's Student t, `tests/suite/math_oracle.rs`);
 /// at ν = 30 the error grows to 8e-4 at z = 7. Small gates are flagged by
 /// the pipeline.
 pub fn t_quantile_from_z(z: f64, nu: f64) -> f64 {

@@ -20,6 +20,9 @@ const OVERLAP_FWHM: f64 = 2.0;
 /// Weight of each new mismatch gap in its running mean.
 pub(crate) const GAP_SMOOTHING: f64 = 0.05;
 
+/// Timing points closer than this (samples) belong to one pulse.
+const SAME_PULSE_SAMPLES: f64 = 0.25;
+
 /// At most this many returns per report (the strongest).
 const MAX_RETURNS: usize = 32;
 
@@ -183,6 +186,12 @@ impl Stage for Timing {
                     t.sigma_samples = t.sigma_samples.hypot(swing2.sqrt());
                 }
                 let misfit = if mismatched { f64::INFINITY } else { 0.0 };
+                // Two detector maxima on one pulse (a noisy double top) time
+                // the same timing point: it is one return, the stronger
+                // detection's (detections come strongest first).
+                if timed.iter().any(|o| (o.1.index - t.index).abs() < SAME_PULSE_SAMPLES) {
+                    continue;
+                }
                 timed.push((p, t, misfit));
             }
         }

@@ -1,7 +1,7 @@
 //! The `tofwave` command as a new user runs it: real captures, calibration on
 //! simulated captures, noise-only captures, malformed files.
 
-mod common;
+use crate::common;
 use common::{replay_path, rng, tofwave, Synth};
 use std::path::Path;
 use std::process::Command;

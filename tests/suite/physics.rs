@@ -28,7 +28,7 @@ const SCENES: [&str; 8] = [
     "far-150m-1mhz",
 ];
 
-mod common;
+use crate::common;
 use common::load_scene as scene;
 
 fn sim_of(text: &str) -> Simulator {

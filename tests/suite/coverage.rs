@@ -10,7 +10,7 @@
 //! the independent generator's (a pulse family the scene does not model)
 //! only the lower bounds are, see there.
 
-mod common;
+use crate::common;
 
 use common::{rng, Synth};
 use tofwave::frame::Report;

@@ -2,7 +2,7 @@
 //! the source's weak 32 m return ranged after 256 shots, start alignment,
 //! robust methods and the stationarity guard.
 
-mod common;
+use crate::common;
 
 use common::{Synth, load_scene as scene_file, rng};
 use rand::Rng;

@@ -96,7 +96,7 @@ fn check_qinv(p_str: &str, want: f64, table_name: &str) -> f64 {
 fn q_inv_matches_boost_derived_table() {
     let mut m = MaxErr::default();
     for r in table(include_str!(
-        "data/numerics/boost-math/derived_qinv_double_range.csv"
+        "../data/numerics/boost-math/derived_qinv_double_range.csv"
     )) {
         let e = check_qinv(r[0], num(r[1]), "derived_qinv_double_range");
         m.add(e, num(r[0]));
@@ -114,11 +114,11 @@ fn q_inv_matches_boost_erfc_inv_tables() {
     for (name, text) in [
         (
             "erfc_inv_data",
-            include_str!("data/numerics/boost-math/erfc_inv_data.csv"),
+            include_str!("../data/numerics/boost-math/erfc_inv_data.csv"),
         ),
         (
             "erfc_inv_big_data",
-            include_str!("data/numerics/boost-math/erfc_inv_big_data.csv"),
+            include_str!("../data/numerics/boost-math/erfc_inv_big_data.csv"),
         ),
     ] {
         let mut m = MaxErr::default();
@@ -151,7 +151,7 @@ fn q_inv_matches_boost_erfc_inv_tables() {
 fn q_inv_matches_mpmath_table_down_to_smallest_subnormal() {
     let mut m = MaxErr::default();
     let mut sub = 0;
-    for r in table(include_str!("data/numerics/mpmath/qinv_table_mpmath.csv")) {
+    for r in table(include_str!("../data/numerics/mpmath/qinv_table_mpmath.csv")) {
         let e = check_qinv(r[0], num(r[1]), "qinv_table_mpmath");
         if num(r[0]) >= f64::MIN_POSITIVE {
             m.add(e, num(r[0]));
@@ -173,7 +173,7 @@ fn statrs_comparison_in_the_tail() {
     // For the record: statrs's erfc_inv-based quantile in the tail (it is not used).
     let mut ours = MaxErr::default();
     let mut theirs = MaxErr::default();
-    for r in table(include_str!("data/numerics/mpmath/qinv_table_mpmath.csv")) {
+    for r in table(include_str!("../data/numerics/mpmath/qinv_table_mpmath.csv")) {
         let p = num(r[0]);
         let want = num(r[1]);
         if !(f64::MIN_POSITIVE..=0.1).contains(&p) {
@@ -233,7 +233,7 @@ fn q_inv_special_values_and_symmetry() {
 fn q_and_ln_q_match_mpmath_tail_table() {
     let mut mq = MaxErr::default();
     let mut ml = MaxErr::default();
-    for r in table(include_str!("data/numerics/mpmath/q_tail_mpmath.csv")) {
+    for r in table(include_str!("../data/numerics/mpmath/q_tail_mpmath.csv")) {
         let x = num(r[0]); // exact: multiples of 0.5
         let want_q = num(r[1]);
         let want_l = num(r[2]);
@@ -263,15 +263,15 @@ fn erfc_matches_boost_tables() {
     for (name, text) in [
         (
             "erf_data",
-            include_str!("data/numerics/boost-math/erf_data.csv"),
+            include_str!("../data/numerics/boost-math/erf_data.csv"),
         ),
         (
             "erf_large_data",
-            include_str!("data/numerics/boost-math/erf_large_data.csv"),
+            include_str!("../data/numerics/boost-math/erf_large_data.csv"),
         ),
         (
             "erf_small_data",
-            include_str!("data/numerics/boost-math/erf_small_data.csv"),
+            include_str!("../data/numerics/boost-math/erf_small_data.csv"),
         ),
     ] {
         let mut m = MaxErr::default();
@@ -302,7 +302,7 @@ fn q_matches_boost_derived_q_tail() {
     // x = √2·z is irrational: its rounding to f64 moves Q by x·φ(x)/Q(x)·EPS·x ≈ (x² + 1)·EPS.
     let mut m = MaxErr::default();
     for r in table(include_str!(
-        "data/numerics/boost-math/derived_q_tail_double_range.csv"
+        "../data/numerics/boost-math/derived_q_tail_double_range.csv"
     )) {
         let x = num(r[1]);
         let want = num(r[2]);
@@ -323,7 +323,7 @@ fn ln_q_matches_scipy_log_ndtr() {
     // log Φ(x) = ln Q(−x). Tolerance: SciPy's own per-row rtol (column 3);
     // for x ≥ 8.3, −log_ndtr(x) is Q(x) to double precision: check q too.
     let mut m = MaxErr::default();
-    for r in table(include_str!("data/numerics/scipy/log_ndtr_reference.csv")) {
+    for r in table(include_str!("../data/numerics/scipy/log_ndtr_reference.csv")) {
         let x = num(r[0]);
         let want = num(r[1]);
         let rtol = num(r[2]);

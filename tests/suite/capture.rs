@@ -12,7 +12,7 @@ use tofwave::capture::{
 };
 use tofwave::frame::{Channel, ChannelRole, Frame, Samples};
 
-mod common;
+use crate::common;
 use common::replay_path as replay;
 
 fn data(name: &str) -> PathBuf {

@@ -8,16 +8,16 @@
 //!   Boost, e.g. `0.3440242112F` = 0.34402421116829) as the f64 literal
 //!   0.3440242112, 3e-11 away from the value the fit was made for, so its
 //!   erfc is off by up to ~1e-10 relative there (Python's `math.erf`, the C
-//!   library, and ours agree to 1 ulp; `tests/numerics.rs` checks ours against
+//!   library, and ours agree to 1 ulp; `tests/suite/numerics.rs` checks ours against
 //!   tables). Only |x| < 0.5 is a tight comparison;
 //! * `erfc_inv` in the far tail: statrs's Q⁻¹ through `√2 erfc_inv(2p)` drifts
-//!   from ~1e-15 to ~1e-9 relative below p ≈ 1e-200 (`tests/numerics.rs`
+//!   from ~1e-15 to ~1e-9 relative below p ≈ 1e-200 (`tests/suite/numerics.rs`
 //!   measures ours against high-precision tables there instead);
 //! * `0.5 erfc(x/√2)` as Q(x): the rounding of x/√2 costs ~x²·1.1e-16
 //!   relative, so the comparison tolerance grows with x²;
 //! * incomplete beta/gamma at shape parameters ≳ 1e5 and the extreme tails,
 //!   where statrs's continued fractions lose digits (the Clopper-Pearson
-//!   comparison in `tests/numerics.rs` covers n = 1e6 and 1e9).
+//!   comparison in `tests/suite/numerics.rs` covers n = 1e6 and 1e9).
 //!
 //! Inputs are fixed grids and a seeded generator.
 

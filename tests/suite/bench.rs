@@ -65,7 +65,7 @@ fn tiny_run_writes_columns_and_ml_is_near_the_crlb() {
         bandwidth: false,
         learn_template: false,
         repo_root: env!("CARGO_MANIFEST_DIR").into(),
-        command: "tests/bench.rs tiny".into(),
+        command: "tests/suite/bench.rs tiny".into(),
     };
     let res = bench::run(
         &bench::bench_scene(),

@@ -5,9 +5,9 @@
 //! count, which must contain the design probability.
 //!
 //! Print the numbers with
-//! `cargo test --release --test cfar -- --nocapture`.
+//! `cargo test --release --test suite cfar:: -- --nocapture`.
 
-mod common;
+use crate::common;
 use common::noise_frame;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;

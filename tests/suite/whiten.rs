@@ -5,7 +5,7 @@
 //! template's energy. Fixed seeds; 99 % intervals from the trial counts.
 //!
 //! Print the numbers with
-//! `cargo test --release --test whiten -- --nocapture`.
+//! `cargo test --release --test suite whiten:: -- --nocapture`.
 
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;

@@ -4,9 +4,9 @@
 //! between 0.05 V and 2 V; with it the bias is below 0.1 ns at every amplitude.
 //! Fixed seeds.
 //!
-//! Print the numbers with `cargo test --release --test walk -- --nocapture`.
+//! Print the numbers with `cargo test --release --test suite walk:: -- --nocapture`.
 
-mod common;
+use crate::common;
 use common::{tofwave, Synth};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;

@@ -3,7 +3,6 @@
 //! no amplitude walk. Fixed seeds; every tolerance is derived from the number
 //! of trials at the confidence level stated next to it. Run in release (CI does).
 
-mod common;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};

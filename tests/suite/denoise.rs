@@ -10,7 +10,7 @@ use tofwave::physics::{Simulator, Truth};
 use tofwave::pipeline::Pipeline;
 use tofwave::scene::{DenoiseConfig, DenoiseMethod, Scene};
 
-mod common;
+use crate::common;
 use common::load_scene as scene;
 
 /// What the observer keeps of one unit of work: sequence, stop volts, range gate, noise gates.

@@ -2,7 +2,7 @@
 //! reported for the simulated lab set-up (six targets of the source's Table
 //! 10.20 along one beam) against the truth file the simulator wrote.
 
-mod common;
+use crate::common;
 use common::{replay_path, tofwave_ok as run};
 use std::path::Path;
 

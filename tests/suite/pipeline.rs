@@ -1,6 +1,6 @@
 //! The pipeline on synthetic frames with known truth.
 
-mod common;
+use crate::common;
 use common::{rng, Synth};
 use tofwave::pipeline::Pipeline;
 use tofwave::scene::{Scene, TimingMethod};

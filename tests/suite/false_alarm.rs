@@ -3,7 +3,7 @@
 //! mode holds the design rate on it. Fixed seeds; binomial 99 % intervals
 //! from the trial count.
 
-mod common;
+use crate::common;
 use common::noise_frame;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;

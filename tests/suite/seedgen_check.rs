@@ -5,7 +5,7 @@
 //! Monte-Carlo tolerances are z = 4.5 standard errors (two-sided false-failure
 //! probability 6.8e-6 per check) unless a test says otherwise; seeds are fixed.
 
-mod common;
+use crate::common;
 
 use common::seedgen::{
     EventConfig, GenConfig, PulseFamily, auto_full_scale_v, frame_with_seed, generate,

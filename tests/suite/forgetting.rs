@@ -3,7 +3,7 @@
 //! with forgetting off every report's noise model is exactly the fit on that
 //! frame's own gates. Fixed seeds.
 //!
-//! Print the numbers with `cargo test --release --test forgetting -- --nocapture`.
+//! Print the numbers with `cargo test --release --test suite forgetting:: -- --nocapture`.
 
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;

@@ -1,7 +1,7 @@
 //! Numerical stability: every degenerate input gives a defined answer and a
 //! flag, never NaN, a panic or a silent zero.
 
-mod common;
+use crate::common;
 use common::{rng, Synth};
 use tofwave::frame::{Channel, ChannelRole, Frame, Report, Samples};
 use tofwave::pipeline::{report_json, Pipeline};

@@ -7,7 +7,7 @@
 //! on an explicit flag and the diff is reviewed:
 //!
 //! ```sh
-//! TOFWAVE_BLESS=1 cargo test --release --test golden
+//! TOFWAVE_BLESS=1 cargo test --release --test suite golden::
 //! git diff --stat tests/data/golden/
 //! ```
 //!

@@ -1,0 +1,33 @@
+//! The integration tests, as one test binary (one link instead of one per
+//! file: the cold CI build is minutes shorter). Each file is a module; run
+//! one with `cargo test --release --test suite <module>::`.
+//! `tests/alloc.rs` stays its own binary: it installs a counting global
+//! allocator.
+
+#[path = "../common/mod.rs"]
+mod common;
+
+mod averaging;
+mod bench;
+mod capture;
+mod cfar;
+mod cli;
+mod coverage;
+mod denoise;
+mod detection;
+mod dsp;
+mod duplicates;
+mod false_alarm;
+mod forgetting;
+mod golden;
+mod layering;
+mod math_oracle;
+mod numerics;
+mod physics;
+mod pipeline;
+mod roundtrip;
+mod seedgen_check;
+mod service;
+mod stability;
+mod walk;
+mod whiten;

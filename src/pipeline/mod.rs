@@ -123,16 +123,20 @@ pub struct TimeReference {
 }
 
 /// Gates and noise model of the stop channel. Written by noise (detect
-/// replaces `sigma_v` by σ_eff when it whitens, and sets `rho`); read by
-/// detect and timing.
+/// replaces `sigma_v` by σ_eff when it whitens, and sets `rho`;
+/// `raw_sigma_v` stays the samples'); read by detect and timing.
 #[derive(Debug, Clone, Default)]
 pub struct NoiseModel {
     /// Range and noise gates on this frame.
     pub gates: Gates,
     /// Noise model of the stop channel (as reported).
     pub summary: NoiseSummary,
-    /// Noise sigma used for thresholds (floored where the gate had none).
+    /// Noise sigma used for thresholds (floored where the gate had none;
+    /// σ_eff of the whitened domain when detect whitens).
     pub sigma_v: f64,
+    /// Noise sigma of the raw stop samples (floored as `sigma_v`): what the
+    /// timing methods read, whitened or not.
+    pub raw_sigma_v: f64,
     /// Normalised noise autocorrelation ρ(0..) pooled over the noise gates
     /// (empty: white). Shared with detect's colour estimate, not copied.
     pub rho: Arc<[f64]>,

@@ -101,8 +101,10 @@ impl Stage for Noise {
             noise.mean_v = if sorted.is_empty() { 0.0 } else { *sorted.select_nth_unstable_by(mid, f64::total_cmp).1 };
         }
         w.noise.sigma_v = noise.sigma_v;
+        w.noise.raw_sigma_v = noise.sigma_v;
         if !(noise.sigma_v > floor) {
             w.noise.sigma_v = floor;
+            w.noise.raw_sigma_v = floor;
             w.report.flags.push(if noise.samples < 2 { FrameFlag::NoNoiseEstimate } else { FrameFlag::ZeroNoise });
         }
         if !noise.gaussian && noise.samples >= 8 {

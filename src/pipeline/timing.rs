@@ -137,7 +137,7 @@ impl Stage for Timing {
         timed.clear();
         if !w.buffers.components.is_empty() {
             for c in w.buffers.components.iter().take(MAX_RETURNS) {
-                let crlb = crlb_samples(pulse, n, c.peak_index, c.amplitude_v, w.noise.sigma_v);
+                let crlb = crlb_samples(pulse, n, c.peak_index, c.amplitude_v, w.noise.raw_sigma_v);
                 let t = Timed {
                     index: c.peak_index + pulse.fraction_offset(self.fraction),
                     peak_index: c.peak_index,
@@ -153,7 +153,7 @@ impl Stage for Timing {
                 let input = TimingInput {
                     x,
                     mean_v: w.noise.summary.mean_v,
-                    sigma_v: w.noise.sigma_v,
+                    sigma_v: w.noise.raw_sigma_v,
                     y: &w.buffers.detector_output,
                     norm,
                     pulse,
@@ -166,12 +166,12 @@ impl Stage for Timing {
                 // (a failed crossing falls back to the parabolic peak's table).
                 let table = if t.fallback { &self.fallback_errors } else { &self.errors };
                 if let Some(table) = table {
-                    (t.index, t.sigma_samples) = table.correct(t.index, t.amplitude_v / w.noise.sigma_v);
+                    (t.index, t.sigma_samples) = table.correct(t.index, t.amplitude_v / w.noise.raw_sigma_v);
                 }
                 // A shape that does not fit the samples (χ² test) is flagged,
                 // and where it puts the timing point is uncertain by the gap
                 // between its fraction point and the samples' own crossing.
-                let fit = ShapeFit::measure(x, w.noise.summary.mean_v, w.noise.sigma_v, pulse, t.index - pulse.fraction_offset(self.fraction));
+                let fit = ShapeFit::measure(x, w.noise.summary.mean_v, w.noise.raw_sigma_v, pulse, t.index - pulse.fraction_offset(self.fraction));
                 let gain = 1.0 + 2.0 * w.noise.rho.iter().skip(1).map(|r| r * r).sum::<f64>();
                 let mismatched = fit.mismatched(MISMATCH_Z, gain);
                 if mismatched {
@@ -259,7 +259,7 @@ impl Stage for Timing {
                 range_sigma_m: 0.5 * self.c_m_per_s * sigma_t,
                 tof_s,
                 amplitude_v,
-                snr_db: 20.0 * (amplitude_v.abs().max(f64::MIN_POSITIVE) / w.noise.sigma_v).log10(),
+                snr_db: 20.0 * (amplitude_v.abs().max(f64::MIN_POSITIVE) / w.noise.raw_sigma_v).log10(),
                 score: w.buffers.detector_output[p] / (w.threshold.u * w.noise.sigma_v * w.threshold.out_gain),
                 pd,
                 t_stop_s,

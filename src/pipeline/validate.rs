@@ -137,6 +137,7 @@ impl Validate {
                 w.noise.gates = Gates::default();
                 w.noise.summary = NoiseSummary::default();
                 w.noise.sigma_v = 0.0;
+                w.noise.raw_sigma_v = 0.0;
                 w.noise.rho = Arc::clone(&self.white);
                 w.threshold = ThresholdTerms::default();
                 w.report.reset();

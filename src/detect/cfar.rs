@@ -28,13 +28,21 @@
 //!   statistic's density is below e⁻⁶⁰ beyond) and solved for α by bisection.
 //!   For N = k = 1 it reduces to the Cauchy tail ½ − atan(α)/π (tested).
 //!
+//! On coloured input (a band-limited receiver) neighbouring training cells
+//! are correlated: the local variance estimate has fewer degrees of freedom
+//! than cells, and cells next to the cell under test share its excursions.
+//! [`CfarPlan::set_colour`] solves the factors for the estimate's
+//! distribution; the guard must still span the noise's correlation (about
+//! 2τ samples), or the training cells mask the cell they are meant to judge.
+//!
 //! Near the frame ends fewer training cells exist; each N has its own factor
 //! (and for OS the rank scales as k·N/(2·training)), so the design holds there
 //! too. Where a cell's training window straddles a step in the noise level the
 //! estimate mixes both levels: cells on the quiet side are desensitised and
 //! cells on the loud side see more false alarms, as with every CA/OS-CFAR.
 
-use crate::math::special::{ln_phi, ln_q};
+use crate::detect::finite_gate::GateVariance;
+use crate::math::special::{ln_phi, ln_q, q_inv};
 use crate::math::stats::beta_inc_reg;
 
 /// Which local scale estimate a [`CfarPlan`] uses.
@@ -70,14 +78,24 @@ pub enum CfarError {
 
 /// ln P(t_N > α) for Student's t with `n` degrees of freedom, α ≥ 0.
 pub fn ca_ln_pfa(alpha: f64, n: usize) -> f64 {
-    let nu = n as f64;
+    ca_ln_pfa_nu(alpha, n as f64)
+}
+
+/// ln P(t_ν > α) for a real number of degrees of freedom ν > 0 (correlated
+/// training cells carry fewer degrees of freedom than cells).
+pub fn ca_ln_pfa_nu(alpha: f64, nu: f64) -> f64 {
     let x = nu / (nu + alpha * alpha);
     (0.5 * beta_inc_reg(0.5 * nu, 0.5, x)).ln()
 }
 
 /// CA-CFAR factor: the α with P(t_N > α) = `p_cell` (`n` training cells).
 pub fn ca_factor(p_cell: f64, n: usize) -> f64 {
-    solve_alpha(p_cell.ln(), |a| ca_ln_pfa(a, n))
+    ca_factor_nu(p_cell, n as f64)
+}
+
+/// CA-CFAR factor for ν degrees of freedom (real, > 0).
+pub fn ca_factor_nu(p_cell: f64, nu: f64) -> f64 {
+    solve_alpha(p_cell.ln(), |a| ca_ln_pfa_nu(a, nu))
 }
 
 /// ln of the order statistic's density terms on the integration grid:
@@ -212,6 +230,12 @@ pub struct CfarPlan {
     /// Tap index of the template peak: output p covers input p − peak_tap ….
     peak_tap: usize,
     p_cell: f64,
+    /// Degrees of freedom per training cell (1 for white input; fewer when
+    /// neighbouring input samples are correlated), in 1/64 steps.
+    dof_per_cell: f64,
+    /// The full window's variance-estimate distribution on coloured input
+    /// (None: white).
+    colour: Option<GateVariance>,
     /// Factor by training-cell count N (index N), solved on first use.
     factors: Vec<Option<f64>>,
     prefix: Vec<f64>,
@@ -253,6 +277,8 @@ impl CfarPlan {
             span: span.max(1),
             peak_tap,
             p_cell,
+            dof_per_cell: 1.0,
+            colour: None,
             factors: vec![None; 2 * training + 1],
             prefix: Vec::new(),
             scratch: Vec::with_capacity(2 * training),
@@ -278,6 +304,38 @@ impl CfarPlan {
             self.factor(2 * self.training);
         }
         Ok(())
+    }
+
+    /// Sets the input's colour: its normalised autocorrelation ρ(0..)
+    /// (empty or `[1]`: white). Correlated training cells estimate the local
+    /// variance with fewer degrees of freedom than cells and a lighter lower
+    /// tail than χ²: CA solves the full window's factor on the
+    /// three-cumulant (Pearson) distribution of the two training blocks'
+    /// mean square ([`GateVariance::blocks`]) and scales its degrees of
+    /// freedom for partial windows; OS uses the rounded effective cell count
+    /// and its rank (an approximation: order statistics of correlated cells
+    /// have no closed form). Re-solved only when the window's degrees of
+    /// freedom move by more than 1 %.
+    pub fn set_colour(&mut self, rho: &[f64]) {
+        let white = rho.len() <= 1;
+        let g = (!white).then(|| GateVariance::blocks(2, self.training, rho));
+        let dof = g.map_or(1.0, |g| (g.dof() / (2 * self.training) as f64).min(1.0));
+        let changed = match (self.colour, g) {
+            (None, None) => false,
+            (Some(a), Some(b)) => (a.dof() / b.dof() - 1.0).abs() > 0.01,
+            _ => true,
+        };
+        if changed {
+            self.dof_per_cell = dof;
+            self.colour = g;
+            self.factors.iter_mut().for_each(|f| *f = None);
+            self.factor(2 * self.training);
+        }
+    }
+
+    /// Degrees of freedom of the variance estimate from `n` training cells.
+    pub fn dof(&self, n: usize) -> f64 {
+        n as f64 * self.dof_per_cell
     }
 
     /// The default OS rank for `training` cells per side: ⌈¾ · 2·training⌉.
@@ -315,8 +373,17 @@ impl CfarPlan {
             return a;
         }
         let a = match self.method {
-            CfarMethod::CellAveraging => ca_factor(self.p_cell, n),
-            CfarMethod::OrderedStatistic { .. } => os_factor_with(self.p_cell, n, self.rank_for(n), &mut self.dens),
+            CfarMethod::CellAveraging => match self.colour {
+                None => ca_factor(self.p_cell, n),
+                // The full window's distribution; a partial window (frame
+                // ends) the Student-t on its share of the degrees of freedom.
+                Some(g) if n == 2 * self.training => g.t_for(q_inv(self.p_cell)),
+                Some(_) => ca_factor_nu(self.p_cell, self.dof(n)),
+            },
+            CfarMethod::OrderedStatistic { .. } => {
+                let m = (self.dof(n).round() as usize).max(1);
+                os_factor_with(self.p_cell, m, self.rank_for(m), &mut self.dens)
+            }
         };
         self.factors[n] = Some(a);
         a

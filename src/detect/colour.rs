@@ -71,8 +71,17 @@ impl NoiseColour {
     }
 
     /// Adds one frame's noise segments (each contiguous; no products are taken
-    /// across segments), centred on `mean`.
+    /// across segments), centred on `mean`, the frame's own gate mean.
     pub fn add_frame(&mut self, segments: &[&[f64]], mean: f64) {
+        let total = segments.iter().map(|s| s.len()).sum::<usize>() as f64;
+        self.add_frame_about(segments, mean, total);
+    }
+
+    /// As [`add_frame`](NoiseColour::add_frame) for a `mean` estimated from
+    /// `mean_samples` samples (a mean pooled over frames rests on more samples
+    /// than this frame's gates: centring on it removes less of each product,
+    /// σ²τ/mean_samples).
+    pub fn add_frame_about(&mut self, segments: &[&[f64]], mean: f64, mean_samples: f64) {
         self.frames += 1;
         if self.counts[0] > POOL_CONVERGED && !self.frames.is_multiple_of(8) {
             return;
@@ -86,7 +95,7 @@ impl NoiseColour {
         self.added += 1.0;
         self.version += 1;
         let lags = self.sums.len();
-        let total = segments.iter().map(|s| s.len()).sum::<usize>() as f64;
+        let total = mean_samples.max(1.0);
         for seg in segments {
             let n = seg.len();
             for k in 0..lags.min(n) {
@@ -150,6 +159,21 @@ impl NoiseColour {
         }
         out.extend(g.iter().map(|gk| (gk / c0).clamp(-1.0, 1.0)));
         true
+    }
+
+    /// Σ_{k=1}^{lags} 1/(products pooled at lag k): the sampling variance of
+    /// ρ̂(k) is about Σρ²/(products), so a sum of squared estimates is biased
+    /// up by 2 Σρ² times this (large on the first frames).
+    pub fn inverse_count_sum(&self, lags: usize) -> (f64, f64) {
+        let mut s1 = 0.0;
+        let mut s2 = 0.0;
+        for c in self.counts.iter().take(lags + 1).skip(1) {
+            if *c > 0.0 {
+                s1 += 1.0 / c;
+                s2 += 1.0 / (c * c);
+            }
+        }
+        (s1, s2)
     }
 
     /// Integrated correlation time in samples, τ = 1 + 2 Σ_{k≥1} ρ(k): the
@@ -300,6 +324,37 @@ mod tests {
         let tail: f64 = r[1..].iter().sum();
         assert!(tail.abs() < 0.04, "sum of rho(1..40) = {tail}");
         assert!((est.correlation_time() - 1.0).abs() < 0.08, "{}", est.correlation_time());
+    }
+
+    #[test]
+    fn a_pooled_mean_is_not_corrected_as_if_it_were_the_frames_own() {
+        // AR(1), φ = 0.9 (τ = 19), 400-sample gates centred on a mean pooled
+        // over many frames (here the true mean, 0): the correction for
+        // centring on the frame's own mean must not apply. 2 000 frames
+        // (800 000 samples; the estimate's sd is about 0.5 of τ = 19 here,
+        // so ±15 % is over 5 sd), while the per-frame correction would give
+        // τ ≈ 1.5 × 19.
+        let phi: f64 = 0.9;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let mut pooled = NoiseColour::new(100);
+        let mut own = NoiseColour::new(100);
+        let innovation = (1.0 - phi * phi).sqrt();
+        let mut x: f64 = StandardNormal.sample(&mut rng);
+        for _ in 0..2000 {
+            let seg: Vec<f64> = (0..400)
+                .map(|_| {
+                    let e: f64 = StandardNormal.sample(&mut rng);
+                    x = phi * x + innovation * e;
+                    x
+                })
+                .collect();
+            pooled.add_frame_about(&[seg.as_slice()], 0.0, 1e9);
+            own.add_frame(&[seg.as_slice()], 0.0);
+        }
+        let truth = (1.0 + phi) / (1.0 - phi);
+        let tau = pooled.correlation_time();
+        assert!((tau / truth - 1.0).abs() < 0.15, "pooled mean: tau {tau} vs {truth}");
+        assert!(own.correlation_time() > 1.3 * truth, "the frame-mean correction on a pooled mean inflates tau");
     }
 
     #[test]

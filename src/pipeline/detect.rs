@@ -32,9 +32,8 @@ use crate::detect::cfar::{CfarMethod, CfarPlan};
 use crate::detect::colour::{output_gain_with, NoiseColour, OutputColour};
 use crate::detect::kernels::{local_maxima, local_maxima_above, upcrossings, upcrossings_above, DetectorPlan};
 use crate::detect::empirical::EmpiricalTail;
-use crate::detect::extreme::{threshold_for_report, ReportThreshold};
-use crate::detect::finite_gate::mean_error_inflation;
-use crate::math::stats::t_quantile_from_z;
+use crate::detect::extreme::{ln_upcrossing_prob, threshold_for_report, ReportThreshold};
+use crate::detect::finite_gate::{crossing_moments, mean_error_inflation, rho_cubed_sum, rho_squared_sum, variance_bias_factor, GateVariance};
 use crate::math::special;
 use crate::detect::resolve::Resolver;
 use crate::math::stats::clopper_pearson;
@@ -102,6 +101,14 @@ struct ColourTerms {
     output: OutputColour,
     /// Correlation time of the noise, samples.
     tau: f64,
+    /// 1 + 2 Σ_{k≥1} ρ(k)²: how many correlated samples make one degree of
+    /// freedom of the gate's variance.
+    rho_sq: f64,
+    /// Σρρρ (∫S³): the skewness of the gate's variance estimate. Recomputed
+    /// (O(lags²)) only when `rho_sq` moved by more than 0.2 %.
+    rho_cube: f64,
+    /// `rho_sq` at the last `rho_cube`.
+    rho_cube_at: f64,
     /// Normalised autocorrelation ρ(0..) (empty: white); shared with every
     /// frame's [`super::NoiseModel::rho`]; rewritten in place when no frame holds it.
     rho: Arc<[f64]>,
@@ -119,6 +126,9 @@ impl ColourTerms {
             version: None,
             output: OutputColour { variance_gain: 1.0, rho1: 0.0 },
             tau: 1.0,
+            rho_sq: 1.0,
+            rho_cube: 1.0,
+            rho_cube_at: 1.0,
             rho: Arc::from(Vec::new()),
             g: Vec::new(),
             rho_v: Vec::new(),
@@ -137,10 +147,30 @@ impl ColourTerms {
         let coloured = colour.rho_into(&mut self.g, &mut self.rho_v);
         if coloured {
             self.tau = (1.0 + 2.0 * self.rho_v[1..].iter().sum::<f64>()).max(0.05);
+            // Σρ̂² is biased up by the estimate's own noise (2 Σρ² Σ1/N_k):
+            // removed, and white kept white unless the excess is 4 sd clear
+            // of that noise (so a few frames of white noise do not shrink ν).
+            let raw = rho_squared_sum(&self.rho_v);
+            let (v1, v2) = colour.inverse_count_sum(self.rho_v.len() - 1);
+            let noise_sd = 2.0 * (2.0 * v2).sqrt();
+            if raw - 1.0 - 2.0 * v1 > 4.0 * noise_sd {
+                self.rho_sq = (raw / (1.0 + 2.0 * v1)).max(1.0);
+                if (self.rho_sq / self.rho_cube_at - 1.0).abs() > 2e-3 {
+                    self.rho_cube = (rho_cubed_sum(&self.rho_v) - 6.0 * v1 * self.rho_sq).max(1.0);
+                    self.rho_cube_at = self.rho_sq;
+                }
+            } else {
+                self.rho_sq = 1.0;
+                self.rho_cube = 1.0;
+                self.rho_cube_at = 1.0;
+            }
             self.output = output_gain_with(taps, &self.rho_v, &mut self.acf);
         } else {
             self.rho_v.clear();
             self.tau = 1.0;
+            self.rho_sq = 1.0;
+            self.rho_cube = 1.0;
+            self.rho_cube_at = 1.0;
             self.output = output_gain_with(taps, &[1.0], &mut self.acf);
         }
         match Arc::get_mut(&mut self.rho) {
@@ -174,6 +204,9 @@ struct CfarState {
     e: Vec<f64>,
     /// Per-cell thresholds on the detector output, volts-equivalent.
     thresholds: Vec<f64>,
+    /// The colour estimate the plan's factors were solved for (None: never;
+    /// Some(None): whitened input).
+    colour_version: Option<Option<u64>>,
 }
 
 impl CfarState {
@@ -271,11 +304,19 @@ impl ThresholdCache {
         }
         let t = match self.scope {
             PfaScope::Report => threshold_for_report(self.pfa, cells.max(1), key.rho1()),
-            PfaScope::Sample => ReportThreshold {
-                u: special::q_inv(self.pfa),
-                p_cell: self.pfa,
-                cells_effective: cells as f64,
-            },
+            PfaScope::Sample => {
+                // Per sample: every cell at the design probability. Crossings
+                // are counted as up-crossings (one per excursion), which a
+                // correlated output makes rarer than exceedances: the cells
+                // count as p_up/p effective cells each.
+                let u = special::q_inv(self.pfa);
+                let p_up = ln_upcrossing_prob(u, key.rho1()).exp();
+                ReportThreshold {
+                    u,
+                    p_cell: self.pfa,
+                    cells_effective: cells as f64 * (p_up / self.pfa).min(1.0),
+                }
+            }
         };
         if self.solved.len() >= Self::CAPACITY {
             self.solved.remove(0);
@@ -314,31 +355,133 @@ impl Level<'_> {
 
 /// Threshold crossings in the noise gates, where no return can be, counted
 /// against the design per-cell probability cumulatively per sensor.
+///
+/// The gates' samples gave this frame's mean and sigma, so counting them
+/// against this frame's threshold would read low (a sample far out inflates
+/// the very σ̂ it is compared with). Each frame's gates are therefore counted
+/// against the *previous* frame's threshold and mean ([`HeldOut`]): samples
+/// independent of the estimate, as the range gate's are. The crossings of a
+/// frame share that estimate, so the count is over-dispersed relative to a
+/// binomial one (see [`crossing_moments`]); the interval and the excess test
+/// use the quasi-binomial count (observed and cells divided by the
+/// dispersion). `excess` means the design lies below the 99.9 % interval.
 #[derive(Debug, Default)]
 struct FalseAlarmCounter {
     /// Noise-gate crossings since the pipeline started.
     observed: u64,
     /// Effective noise-gate cells since the pipeline started.
     cells: f64,
+    /// Σ expected crossings and Σ their variance (dispersion-weighted).
+    expected: f64,
+    variance: f64,
+    /// The last (t, κ, ν, shift) and its crossing moments (solved per change).
+    moments: Option<([u64; 4], (f64, f64))>,
+}
+
+/// Thresholds in units of σ̂ for a gate variance distribution and a
+/// Gaussian level, kept for the last [`TCache::CAPACITY`] pairs (solving a
+/// correlated gate's costs ~0.1 ms; the Student-t form is immediate).
+#[derive(Debug, Default)]
+struct TCache {
+    solved: Vec<([u64; 3], f64)>,
+}
+
+impl TCache {
+    const CAPACITY: usize = 16;
+
+    fn get(&mut self, gate: GateVariance, u: f64) -> f64 {
+        if gate.shift == 0.0 {
+            return gate.t_for(u);
+        }
+        let key = [gate.nu.to_bits(), gate.shift.to_bits(), u.to_bits()];
+        if let Some(t) = self.solved.iter().find(|t| t.0 == key) {
+            return t.1;
+        }
+        let t = gate.t_for(u);
+        if self.solved.len() >= Self::CAPACITY {
+            self.solved.remove(0);
+        }
+        self.solved.push((key, t));
+        t
+    }
+}
+
+/// A correlated gate's distribution rounded (ν to 0.5 %, the shift to 1e-3)
+/// so that a pooled colour estimate that barely moves reuses a solved threshold.
+fn quantised(g: GateVariance) -> GateVariance {
+    if g.shift == 0.0 || !g.nu.is_finite() {
+        return g;
+    }
+    GateVariance {
+        nu: ((g.nu.ln() * 200.0).round() / 200.0).exp(),
+        shift: (g.shift * 1000.0).round() / 1000.0,
+    }
+}
+
+/// Confidence of the interval whose lower end above the design flags `excess`.
+const EXCESS_CONFIDENCE: f64 = 0.998;
+
+/// What the previous frame's threshold was, to count this frame's gates against.
+#[derive(Debug, Clone, Copy)]
+struct HeldOut {
+    /// Fixed threshold on the detector output, volts-equivalent.
+    level: f64,
+    /// Noise mean the output was taken about, V.
+    mean_v: f64,
+    /// Output change per volt of input mean (volts-equivalent per V).
+    dc_out: f64,
+    /// Design per-cell probability and effective cells per gate position.
+    p_cell: f64,
+    per_position: f64,
+    /// Student-t threshold, mean-error inflation and degrees of freedom.
+    t: f64,
+    kappa: f64,
+    gate: GateVariance,
+    /// Whether the output was whitened, and the sampling period: a change of
+    /// either makes the previous threshold meaningless for this frame.
+    whitened: bool,
+    dt_s: f64,
 }
 
 impl FalseAlarmCounter {
     /// Adds one frame: `observed` crossings over `gate_cells` effective cells
-    /// at design per-cell probability `p_cell`; returns the running statistics
-    /// with the 95 % Clopper-Pearson interval of the per-cell rate.
-    fn record(&mut self, observed: u64, gate_cells: f64, p_cell: f64) -> FalseAlarmStats {
+    /// at design per-cell probability `p_cell`, with `dispersion` the
+    /// variance of the frame's count over its binomial variance; returns the
+    /// running statistics.
+    fn record(&mut self, observed: u64, gate_cells: f64, p_cell: f64, dispersion: f64) -> FalseAlarmStats {
         self.observed += observed;
         self.cells += gate_cells;
-        let trials = self.cells.round() as u64;
-        let (lo, hi) = clopper_pearson(self.observed.min(trials), trials, 0.95);
+        self.expected += gate_cells * p_cell;
+        self.variance += gate_cells * p_cell * dispersion.max(1.0);
+        let d = if self.expected > 0.0 { (self.variance / self.expected).max(1.0) } else { 1.0 };
+        let trials = (self.cells / d).round() as u64;
+        let successes = ((self.observed as f64 / d).round() as u64).min(trials);
+        let (lo, hi) = clopper_pearson(successes, trials, 0.95);
+        let (lo_strict, _) = clopper_pearson(successes, trials, EXCESS_CONFIDENCE);
         FalseAlarmStats {
             expected_per_frame: gate_cells * p_cell,
             observed: self.observed,
             cells: self.cells,
             rate: if self.cells > 0.0 { self.observed as f64 / self.cells } else { 0.0 },
             ci95: [lo, hi],
-            excess: trials > 0 && lo > p_cell,
+            excess: trials > 0 && lo_strict > p_cell,
         }
+    }
+
+    /// Variance over binomial variance of the crossings of `cells` cells
+    /// sharing one gate estimate (threshold `t` in units of σ̂κ, inflation
+    /// `kappa`, the estimate distributed as `gate` says).
+    fn dispersion(&mut self, cells: f64, t: f64, kappa: f64, gate: GateVariance) -> f64 {
+        let key = [t.to_bits(), kappa.to_bits(), gate.nu.to_bits(), gate.shift.to_bits()];
+        let (m1, m2) = match self.moments {
+            Some((k, m)) if k == key => m,
+            _ => {
+                let m = crossing_moments(t, kappa, gate);
+                self.moments = Some((key, m));
+                m
+            }
+        };
+        if m1 > 0.0 { 1.0 + cells * (m2 - m1 * m1).max(0.0) / m1 } else { 1.0 }
     }
 }
 
@@ -361,6 +504,9 @@ pub struct Detect {
     /// Normalised gate outputs, for the empirical threshold mode.
     tail: Option<EmpiricalTail>,
     false_alarms: FalseAlarmCounter,
+    /// The previous frame's threshold, for counting this frame's gates.
+    held_out: Option<HeldOut>,
+    t_cache: TCache,
 }
 
 impl Detect {
@@ -399,10 +545,13 @@ impl Detect {
                     plan: None,
                     e: Vec::new(),
                     thresholds: Vec::new(),
+                    colour_version: None,
                 }
             }),
             tail: (scene.detector.threshold_mode == ThresholdMode::Empirical).then(EmpiricalTail::default),
             false_alarms: FalseAlarmCounter::default(),
+            held_out: None,
+            t_cache: TCache::default(),
         }
     }
 
@@ -452,17 +601,27 @@ impl Stage for Detect {
         if w.noise.summary.samples >= 2 {
             let stop_v = &w.buffers.stop_v;
             let (pre, beyond) = (&stop_v[w.noise.gates.pre.clone()], &stop_v[w.noise.gates.beyond.clone()]);
-            colour.add_frame(&[pre, beyond], w.noise.summary.mean_v);
+            // A forgetting noise model's mean rests on more samples than this frame's gates.
+            colour.add_frame_about(&[pre, beyond], w.noise.summary.mean_v, w.noise.summary.samples as f64);
         }
-        let (out_gain, rho1, tau) = match (&self.whiten, whitened) {
-            (Some(ws), true) => (1.0, ws.plan.as_ref().expect("whitened").plan.rho1(), 1.0),
+        let (out_gain, rho1, tau, rho_sq, rho_cube) = match (&self.whiten, whitened) {
+            (Some(ws), true) => (1.0, ws.plan.as_ref().expect("whitened").plan.rho1(), 1.0, 1.0, 1.0),
             _ => {
                 let c = &mut self.colour_terms;
                 c.refresh(colour, self.raw.as_ref().expect("built above").plan.taps());
                 w.noise.rho = Arc::clone(&c.rho);
-                (c.output.variance_gain.sqrt(), c.output.rho1, c.tau)
+                (c.output.variance_gain.sqrt(), c.output.rho1, c.tau, c.rho_sq, c.rho_cube)
             }
         };
+        // Centring correlated samples on their own mean removes σ²τ/n of
+        // their variance: the gate's sigma reads low by that much (2 % in
+        // sigma for AR(1) φ = 0.9 on a 400-sample gate), which at a 1e-3
+        // design would double the false alarms. Unbiased here; the whitened
+        // path has its own sigma.
+        if !whitened && let Some(f) = variance_bias_factor(w.noise.summary.samples, tau) {
+            w.noise.sigma_v *= f.sqrt();
+            w.noise.raw_sigma_v *= f.sqrt();
+        }
         w.threshold.out_gain = out_gain;
         let cells = w.noise.gates.range.len();
         let t = self.thresholds.get(cells, rho1);
@@ -501,17 +660,22 @@ impl Stage for Detect {
         }
         // The gate's mean and sigma are estimates: Student-t on the inflated
         // sigma keeps the design pfa for any gate size (see detect::finite_gate).
+        // Correlated gate samples carry fewer degrees of freedom than samples:
+        // ν = (n − 1)/Σρ(k)² (see detect::finite_gate::effective_dof).
+        // Its lower tail (what false alarms come from) needs the third
+        // cumulant too: detect::finite_gate::GateVariance.
         let samples = w.noise.summary.samples;
-        w.threshold.nu = if samples > 1 { (samples - 1) as f64 } else { f64::INFINITY };
-        if let Some(m) = white_dof {
+        let gate = match white_dof {
             // σ comes from the AR fit over every gate sample accumulated.
-            w.threshold.nu = if m > 1.0 { m } else { f64::INFINITY };
-        }
+            Some(m) => GateVariance::student(if m > 1.0 { m } else { f64::INFINITY }),
+            None => quantised(GateVariance::correlated(samples, rho_sq, rho_cube)),
+        };
+        w.threshold.nu = gate.dof();
         // The gate mean's error is σ²τ/n (τ: correlation time in samples); in
         // units of the output variance σ²g that is n·g/τ effective samples.
         let mean_samples = (samples as f64 * out_gain * out_gain / tau).round().max(1.0) as u64;
         w.threshold.kappa = mean_error_inflation(dc_gain, if samples == 0 { 0 } else { mean_samples });
-        w.threshold.t = t_quantile_from_z(t.u, w.threshold.nu);
+        w.threshold.t = self.t_cache.get(gate, t.u);
         w.threshold.u = w.threshold.t * w.threshold.kappa;
         if let Some(tail) = &self.tail {
             match tail.quantile(t.p_cell) {
@@ -533,6 +697,12 @@ impl Stage for Detect {
                 cs.refresh(key, t.p_cell);
                 match &mut cs.plan {
                     Some((_, cp)) => {
+                        // Correlated training cells carry fewer degrees of freedom.
+                        let version = (!whitened).then_some(self.colour_terms.version).flatten();
+                        if cs.colour_version != Some(version) {
+                            cs.colour_version = Some(version);
+                            cp.set_colour(if whitened { &[] } else { &self.colour_terms.rho });
+                        }
                         // Training cells: the detector's own input, mean removed
                         // (the whitened input is already zero-mean). The
                         // training cells give the input's sigma; the output's
@@ -544,7 +714,7 @@ impl Stage for Detect {
                         w.threshold.t = alpha;
                         w.threshold.u = alpha;
                         w.threshold.kappa = 1.0;
-                        w.threshold.nu = cp.full_window() as f64;
+                        w.threshold.nu = cp.dof(cp.full_window());
                         w.report.stages.push(cs.kind.name());
                         true
                     }
@@ -588,14 +758,48 @@ impl Stage for Detect {
                 tail.add(y[p] / (w.noise.sigma_v * out_gain));
             }
         }
-        let level = match (&self.cfar, cfar_on) {
-            (Some(cs), true) => Level::PerCell(&cs.thresholds),
-            _ => Level::Fixed(thr),
-        };
-        let observed = level.upcrossings(y, pre_pos.clone()) + level.upcrossings(y, beyond_pos.clone());
         let per_position = if cells > 0 { t.cells_effective / cells as f64 } else { 1.0 };
-        let gate_cells = (pre_pos.len() + beyond_pos.len()) as f64 * per_position;
-        w.report.false_alarm = self.false_alarms.record(observed, gate_cells, t.p_cell);
+        let gate_positions = (pre_pos.len() + beyond_pos.len()) as f64;
+        let mean_v = w.noise.summary.mean_v;
+        let wh_dc = match (&self.whiten, whitened) {
+            (Some(ws), true) => ws.whitener.as_ref().expect("whitened").taps().iter().sum::<f64>(),
+            _ => 1.0,
+        };
+        let dc_out = dc_gain * wh_dc * scale;
+        let (observed, gate_cells, p_cell, dispersion) = match (&self.cfar, cfar_on) {
+            // Each cell's CFAR threshold comes from training cells that exclude
+            // it (and its guard cells): already independent of the cell.
+            (Some(cs), true) => {
+                let level = Level::PerCell(&cs.thresholds);
+                let observed = level.upcrossings(y, pre_pos.clone()) + level.upcrossings(y, beyond_pos.clone());
+                (observed, gate_positions * per_position, t.p_cell, 1.0)
+            }
+            _ => match self.held_out {
+                Some(h) if h.whitened == whitened && h.dt_s == dt && samples >= 2 => {
+                    // The previous frame's threshold and mean: the output about
+                    // that mean is y + dc_out (μ − μ_prev).
+                    let level = Level::Fixed(h.level - h.dc_out * (mean_v - h.mean_v));
+                    let observed = level.upcrossings(y, pre_pos.clone()) + level.upcrossings(y, beyond_pos.clone());
+                    let gate_cells = gate_positions * h.per_position;
+                    let d = self.false_alarms.dispersion(gate_cells, h.t, h.kappa, h.gate);
+                    (observed, gate_cells, h.p_cell, d)
+                }
+                _ => (0, 0.0, t.p_cell, 1.0),
+            },
+        };
+        w.report.false_alarm = self.false_alarms.record(observed, gate_cells, p_cell, dispersion);
+        self.held_out = (samples >= 2 && !cfar_on && thr.is_finite()).then_some(HeldOut {
+            level: thr,
+            mean_v,
+            dc_out,
+            p_cell: t.p_cell,
+            per_position,
+            t: w.threshold.t,
+            kappa: w.threshold.kappa,
+            gate,
+            whitened,
+            dt_s: dt,
+        });
         w.report.detector = DetectorSummary {
             kind: self.kind.name(),
             pfa_design: self.pfa,
@@ -652,7 +856,13 @@ mod tests {
         let t = c.get(500, 0.3);
         assert_eq!(t.u, special::q_inv(1e-3));
         assert_eq!(t.p_cell, 1e-3);
-        assert_eq!(t.cells_effective, 500.0);
+        // Up-crossings of a correlated output: fewer than exceedances.
+        let rho1 = ThresholdKey::new(500, 0.3).rho1();
+        assert_eq!(t.cells_effective, 500.0 * ln_upcrossing_prob(t.u, rho1).exp() / 1e-3);
+        assert!(t.cells_effective < 500.0 * 0.99, "{}", t.cells_effective);
+        // White: P(X_k ≤ u < X_k+1) = p (1 − p).
+        let t = c.get(500, 0.0);
+        assert!((t.cells_effective / (500.0 * (1.0 - 1e-3)) - 1.0).abs() < 1e-9, "{}", t.cells_effective);
     }
 
     #[test]
@@ -741,11 +951,11 @@ mod tests {
     #[test]
     fn false_alarm_counter_accumulates_and_bounds_the_rate() {
         let mut c = FalseAlarmCounter::default();
-        let s = c.record(0, 0.0, 5e-3);
+        let s = c.record(0, 0.0, 5e-3, 1.0);
         assert_eq!((s.observed, s.cells, s.rate, s.excess), (0, 0.0, 0.0, false));
-        let s = c.record(3, 1000.4, 5e-3);
+        let s = c.record(3, 1000.4, 5e-3, 1.0);
         assert_eq!(s.expected_per_frame, 1000.4 * 5e-3);
-        let s = c.record(5, 999.8, 5e-3);
+        let s = c.record(5, 999.8, 5e-3, 1.0);
         assert_eq!(s.observed, 8);
         assert_eq!(s.cells, 1000.4 + 999.8);
         assert_eq!(s.rate, 8.0 / (1000.4 + 999.8));
@@ -756,8 +966,18 @@ mod tests {
         });
         // 8 in 2000 (0.4 %) is not above a 0.5 % design: its interval holds it.
         assert!(!s.excess && s.ci95[0] < 5e-3 && s.ci95[1] > 5e-3);
-        // 40 in 3000 (1.3 %) is: the lower end of its 95 % interval is above 0.5 %.
-        let s = c.record(32, 1000.0, 5e-3);
+        // 40 in 3000 (1.3 %) is: the lower end of its 99.8 % interval is above 0.5 %.
+        let mut d = FalseAlarmCounter::default();
+        let s = c.record(32, 1000.0, 5e-3, 1.0);
         assert!(s.excess, "{s:?}");
+        // The same counts from frames whose crossings share a noisy
+        // threshold (variance 9x binomial) are 4 in 333: not an excess.
+        d.record(8, 2000.2, 5e-3, 9.0);
+        let s = d.record(32, 1000.0, 5e-3, 9.0);
+        assert!(!s.excess, "{s:?}");
+        assert_eq!(s.ci95, {
+            let (lo, hi) = clopper_pearson(4, 333, 0.95);
+            [lo, hi]
+        });
     }
 }

@@ -18,6 +18,7 @@ mod detection;
 mod dsp;
 mod duplicates;
 mod false_alarm;
+mod false_alarm_coloured;
 mod forgetting;
 mod golden;
 mod layering;

@@ -6,7 +6,7 @@ use super::{FrameError, Stage, Work};
 use crate::detect::finite_gate::detection_probability;
 use crate::detect::resolve::MISFIT_LIMIT;
 use crate::detect::error_table::ErrorTable;
-use crate::detect::pulse_timing::{crlb_samples, time_pulse, mismatch_gap, ShapeFit, Timed, TimingInput, MISMATCH_Z};
+use crate::detect::pulse_timing::{crlb_samples, joint_crlb_samples, time_pulse, JointScratch, mismatch_gap, ShapeFit, Timed, TimingInput, MISMATCH_Z};
 use crate::detect::walk::WalkTable;
 use std::sync::Arc;
 use crate::dsp::pulse::{PulseShape, Shape};
@@ -53,6 +53,11 @@ pub struct Timing {
     timed: Vec<(usize, Timed, f64)>,
     /// Running mean of the mismatch gap (see `mismatch_gap`) and mean square of its swing, samples.
     typical_gap: Option<(f64, f64)>,
+    /// Scratch for the joint Cramér–Rao bounds of resolved pulses.
+    joint: JointScratch,
+    /// (peak index, amplitude) of the resolved pulses, and their joint bounds.
+    resolved: Vec<(f64, f64)>,
+    joint_crlb: Vec<f64>,
     /// Scratch for the normalised pulse slope and its autocorrelation.
     slope: Vec<f64>,
     /// See `slope`.
@@ -101,6 +106,9 @@ impl Timing {
                 None
             },
             timed: Vec::with_capacity(MAX_RETURNS),
+            joint: JointScratch::default(),
+            resolved: Vec::new(),
+            joint_crlb: Vec::new(),
             slope: Vec::new(),
             acf: Vec::new(),
             typical_gap: None,
@@ -136,8 +144,13 @@ impl Stage for Timing {
         let timed = &mut self.timed;
         timed.clear();
         if !w.buffers.components.is_empty() {
-            for c in w.buffers.components.iter().take(MAX_RETURNS) {
-                let crlb = crlb_samples(pulse, n, c.peak_index, c.amplitude_v, w.noise.raw_sigma_v);
+            // Resolved pulses were fitted jointly: each delay's bound comes
+            // from the joint Fisher matrix of the pulses it overlaps.
+            self.resolved.clear();
+            self.resolved.extend(w.buffers.components.iter().take(MAX_RETURNS).map(|c| (c.peak_index, c.amplitude_v)));
+            joint_crlb_samples(pulse, n, &self.resolved, w.noise.raw_sigma_v, &mut self.joint, &mut self.joint_crlb);
+            for (c, &joint) in w.buffers.components.iter().take(MAX_RETURNS).zip(&self.joint_crlb) {
+                let crlb = joint.max(crlb_samples(pulse, n, c.peak_index, c.amplitude_v, w.noise.raw_sigma_v));
                 let t = Timed {
                     index: c.peak_index + pulse.fraction_offset(self.fraction),
                     peak_index: c.peak_index,

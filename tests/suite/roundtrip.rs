@@ -179,3 +179,75 @@ fn learned_shapes_make_the_ml_uncertainty_honest() {
     }
     assert!(per_target[5].is_empty(), "the 20.8 mV return is below a single shot's threshold");
 }
+
+#[test]
+fn overlapping_returns_get_the_joint_bound() {
+    use tofwave::physics::Simulator;
+    use tofwave::pipeline::Pipeline;
+    use tofwave::scene::{Scene, TimingMethod};
+    // Two targets 1.2 m apart (8 ns; the return's FWHM is 9.4 ns), timed by
+    // the joint maximum-likelihood fit: each delay's sigma is the joint
+    // Fisher bound (detect::pulse_timing's unit test checks it grows as the
+    // pulses overlap). Measured (400 frames; the weaker pulse's stop sigma
+    // is printed beside and without its neighbour):
+    // the stronger return's errors lie within 2 sigma in 99.5 %; the weaker
+    // one's in 80 % — the scene's bigaussian does not match the simulated
+    // pulse (flagged shape_mismatch), and on overlapping pulses that
+    // mismatch moves the fit by more than the noise does. Learned shapes
+    // (`tofwave template`) are the remedy; the shape's misfit is not yet in
+    // the sigma of resolved pulses.
+    let mut scene = Scene::load(Path::new(&scene("two-overlapping.toml"))).unwrap();
+    scene.timing.method = TimingMethod::Ml;
+    let sim = Simulator::new(&scene).unwrap();
+    let mut p = Pipeline::new(&scene, "two");
+    let mut alone = scene.clone();
+    alone.simulation.as_mut().unwrap().targets.remove(0);
+    let sim_alone = Simulator::new(&alone).unwrap();
+    let mut p_alone = Pipeline::new(&alone, "one");
+    let c = scene.c_medium_m_per_s();
+    let frames = 400;
+    let mut per_target: Vec<Vec<(f64, f64)>> = vec![Vec::new(); 2];
+    let mut sigma_alone = Vec::new();
+    let mut stop_sigma = Vec::new();
+    // The stop pulse's share of range_sigma_m (no calibration error here).
+    let stop_only = |range_sigma: f64, start_sigma_s: f64| (range_sigma.powi(2) - (0.5 * c * start_sigma_s).powi(2)).max(0.0).sqrt();
+    let mut out = Vec::new();
+    for i in 0..frames {
+        let (f, truth) = sim.frame(31, i);
+        out.clear();
+        p.push(f, &mut out).unwrap();
+        let r = &out[0];
+        let start_err = r.t_start_s - truth.t_start_s;
+        for x in &r.returns {
+            let t = truth
+                .returns
+                .iter()
+                .min_by(|a, b| (a.tof_s - x.tof_s).abs().total_cmp(&(b.tof_s - x.tof_s).abs()))
+                .unwrap();
+            let stop_err_m = 0.5 * c * (x.tof_s - t.tof_s + start_err);
+            per_target[t.target].push((stop_err_m, x.range_sigma_m));
+            if t.target == 1 {
+                stop_sigma.push(stop_only(x.range_sigma_m, r.t_start_sigma_s));
+            }
+        }
+        out.clear();
+        p_alone.push(sim_alone.frame(31, i).0, &mut out).unwrap();
+        let r = &out[0];
+        sigma_alone.extend(r.returns.iter().map(|x| stop_only(x.range_sigma_m, r.t_start_sigma_s)));
+    }
+    let alone_sigma = sigma_alone.iter().sum::<f64>() / sigma_alone.len() as f64;
+    let mut within = [0.0; 2];
+    for (k, v) in per_target.iter().enumerate() {
+        let n = v.len() as f64;
+        let m = v.iter().map(|a| a.0).sum::<f64>() / n;
+        let sig = v.iter().map(|a| a.1).sum::<f64>() / n;
+        within[k] = v.iter().filter(|a| (a.0 - m).abs() <= 2.0 * a.1).count() as f64 / n;
+        eprintln!("target {k}: {} returns, mean sigma {:.2} cm, within 2 sigma {:.3}", v.len(), sig * 100.0, within[k]);
+        if k == 1 {
+            let joint = stop_sigma.iter().sum::<f64>() / stop_sigma.len() as f64;
+            eprintln!("target 1: stop's sigma {:.2} cm beside target 0, {:.2} cm alone", joint * 100.0, alone_sigma * 100.0);
+        }
+    }
+    // 400 trials: 0.95 is > 3 binomial sd below the 0.995 measured.
+    assert!(within[0] >= 0.95, "{within:?}");
+}

@@ -174,10 +174,14 @@ struct TemplateArgs {
     /// Scene file to write: the input scene with the learned return_pulse (model = "table").
     #[arg(long, value_name = "FILE")]
     out: PathBuf,
-    /// Grid points per sample period of the learned shape.
+    /// Grid points per sample period of the learned shape. Bins no shot reached
+    /// (a few dozen shots at random phases leave some) are interpolated from their
+    /// neighbours, across at most half a sample; a single shot needs --oversample 1 or 2.
     #[arg(long, default_value_t = 8, value_name = "N")]
     oversample: usize,
-    /// Only returns with at least this peak SNR (dB) and no flags are used.
+    /// Only returns with at least this peak SNR (dB: the larger of the fitted amplitude's
+    /// and the raw samples' peak over the noise sigma) and no flags other than
+    /// shape_mismatch and non_gaussian_noise are used.
     #[arg(long, default_value_t = 20.0, value_name = "DB")]
     min_snr_db: f64,
     /// Learning passes; each times the shots with the shape the previous pass learned.
@@ -492,18 +496,27 @@ fn template(a: TemplateArgs) -> Result<i32> {
         |p| {
             if p.start_shots > 0 {
                 eprintln!(
-                    "tofwave template: pass {}: start pulse from {} shots, FWHM {:.3} ns",
+                    "tofwave template: pass {}: start pulse from {} shots, FWHM {:.3} ns, {} grid bins interpolated",
                     p.pass,
                     p.start_shots,
-                    p.start_fwhm_s * 1e9
+                    p.start_fwhm_s * 1e9,
+                    p.start_interpolated_bins
                 );
             }
             eprintln!(
-                "tofwave template: pass {}: {} shots, FWHM {:.3} ns, half-rise {:.3} ns before the peak",
+                "tofwave template: pass {}: {} shots, FWHM {:.3} ns, half-rise {:.3} ns before the peak, \
+                 {} of {} grid bins interpolated (no shot, or too few, reached them){}",
                 p.pass,
                 p.shots,
                 p.fwhm_s * 1e9,
-                p.half_rise_s * 1e9
+                p.half_rise_s * 1e9,
+                p.interpolated_bins,
+                p.bins,
+                if p.widenings > 0 {
+                    format!("; the grid was widened {} time(s) to hold the whole pulse", p.widenings)
+                } else {
+                    String::new()
+                }
             );
         },
         |e| eprintln!("refused: {e}"),

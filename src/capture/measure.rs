@@ -148,6 +148,11 @@ pub struct PulseChannel {
     pub half_rise_times_s: Vec<(usize, f64)>,
     /// Per measured frame: (frame index, peak time relative to the trigger, s).
     pub peak_times_s: Vec<(usize, f64)>,
+    /// Per frame holding pulses: (frame index, where the earliest pulse
+    /// leaves the noise, where the latest is back in it), relative to the
+    /// trigger, s. Every pulse counts, not only the strongest: the range
+    /// gate must hold them all and the noise gates none.
+    pub activity_s: Vec<(usize, f64, f64)>,
 }
 
 /// Noise gates of the measured scene, checked on the frames.
@@ -189,6 +194,9 @@ pub struct CaptureMeasurement {
     /// Times of flight of the strongest return (stop 50 % point minus the
     /// start's, or minus the trigger), smallest and largest, s.
     pub tof_range_s: (f64, f64),
+    /// Where any pulse on the stop channel was seen, from the same
+    /// reference: the earliest onset and the latest end of a tail, s.
+    pub activity_range_s: (f64, f64),
     /// The range gate written, m.
     pub range_gate_m: (f64, f64),
     /// Noise-gate guard written, s.
@@ -259,6 +267,12 @@ pub fn measure(frames: &[Frame], origin: &str) -> Result<CaptureMeasurement, Mea
     };
     let tofs: Vec<f64> = stop.half_rise_times_s.iter().filter_map(|&(i, t)| t_ref(i).map(|r| t - r)).collect();
     let (tof_min, tof_max) = min_max(&tofs).unwrap_or((0.0, 0.0));
+    let (starts, ends): (Vec<f64>, Vec<f64>) =
+        stop.activity_s.iter().filter_map(|&(i, a, e)| t_ref(i).map(|r| (a - r, e - r))).unzip();
+    let activity = (
+        min_max(&starts).map_or(tof_min, |m| m.0.min(tof_min)),
+        min_max(&ends).map_or(tof_max, |m| m.1.max(tof_max)),
+    );
 
     let mut m = CaptureMeasurement {
         origin: origin.to_string(),
@@ -273,6 +287,7 @@ pub fn measure(frames: &[Frame], origin: &str) -> Result<CaptureMeasurement, Mea
         start,
         channel_notes,
         tof_range_s: (tof_min, tof_max),
+        activity_range_s: activity,
         range_gate_m: (0.0, 0.0),
         guard_s: 0.0,
         gates_used: (true, true),
@@ -406,6 +421,7 @@ fn measure_channel(frames: &[Frame], name: &str) -> Result<PulseChannel, Channel
     let mut fitter = NoiseFitter::default();
     let mut noise: Vec<f64> = Vec::new();
     let mut shots: Vec<Shot> = Vec::new();
+    let mut activity: Vec<(usize, f64, f64)> = Vec::new();
     let (mut best_sigma, mut negative_sigma) = (0.0f64, 0.0f64);
     let mut x = Vec::new();
     let mut scratch = Vec::new();
@@ -437,6 +453,9 @@ fn measure_channel(frames: &[Frame], name: &str) -> Result<PulseChannel, Channel
         } else {
             (base, sigma)
         };
+        if let Some((a, e)) = pulse_span(&x, &mask, b, s) {
+            activity.push((fi, frame.sample_time_s(a as f64), frame.sample_time_s(e as f64)));
+        }
         let (k, top) = x.iter().enumerate().fold((0, f64::NEG_INFINITY), |a, (i, &v)| if v > a.1 { (i, v) } else { a });
         let bottom = x.iter().copied().fold(f64::INFINITY, f64::min);
         best_sigma = best_sigma.max((top - b) / s);
@@ -479,6 +498,7 @@ fn measure_channel(frames: &[Frame], name: &str) -> Result<PulseChannel, Channel
         onset_before_peak_s: pick(|s| s.onset_s).into_iter().fold(0.0, f64::max),
         half_rise_times_s: shots.iter().map(|s| (s.frame, s.half_rise_t_s)).collect(),
         peak_times_s: shots.iter().map(|s| (s.frame, s.peak_t_s)).collect(),
+        activity_s: activity,
     })
 }
 
@@ -512,6 +532,28 @@ fn pulse_mask(x: &[f64], base: f64, sigma: f64) -> Vec<bool> {
         }
     }
     mask
+}
+
+/// First and last sample of the pulse regions of `mask` that hold a
+/// positive excursion of [`PULSE_SIGMA`] (a return, not only its undershoot).
+fn pulse_span(x: &[f64], mask: &[bool], base: f64, sigma: f64) -> Option<(usize, usize)> {
+    let mut span: Option<(usize, usize)> = None;
+    let mut i = 0;
+    while i < mask.len() {
+        if !mask[i] {
+            i += 1;
+            continue;
+        }
+        let a = i;
+        while i < mask.len() && mask[i] {
+            i += 1;
+        }
+        let e = i - 1;
+        if x[a..=e].iter().any(|&v| v - base > PULSE_SIGMA * sigma) {
+            span = Some(span.map_or((a, e), |(s0, e0)| (s0.min(a), e0.max(e))));
+        }
+    }
+    span
 }
 
 /// First and last sample of the pulse around `k`: walking out from it, the
@@ -662,23 +704,18 @@ fn pulse_config(c: &PulseChannel) -> PulseConfig {
 /// Chooses the range gate and the noise-gate guard, widening the guard
 /// until no frame's noise gates touch a pulse (or the gates would vanish),
 /// and records the check.
+///
+/// The range gate holds every pulse seen on the stop channel, from the
+/// earliest onset to the latest end of a tail (a timing point lies between
+/// them), one FWHM beyond each; the gates then keep the pulse support and a
+/// FWHM more clear of it, so the guard starts at a few samples.
 fn place_gates(m: &mut CaptureMeasurement, frames: &[Frame]) -> Result<(), MeasureError> {
     let c = crate::scene::C_VACUUM_M_PER_S / crate::scene::MediumConfig::default().refractive_index;
     let dt = m.sample_interval_s;
     let fwhm = m.stop.fwhm_s.max(dt);
-    // Returns were seen between the smallest and largest time of flight;
-    // the gate reaches two FWHM beyond each.
-    let margin = 2.0 * fwhm;
-    m.range_gate_m = (0.5 * c * (m.tof_range_s.0 - margin), 0.5 * c * (m.tof_range_s.1 + margin));
-    let shape = pulse_config(&m.stop).shape(dt);
-    let (lo, hi) = shape.support();
-    // The gates already keep |lo| (hi) samples and one FWHM beyond the
-    // earliest (latest) possible peak, which sits `margin` beyond the
-    // peaks seen; the guard covers what the pulses' onset and tail reach past that.
-    let reach = margin + fwhm;
-    let need_after = m.stop.tail_after_peak_s - hi * dt - reach;
-    let need_before = m.stop.onset_before_peak_s + lo * dt - reach;
-    let mut guard = round_up(need_after.max(need_before).max(0.0) + (PULSE_PAD as f64 + 1.0) * dt, dt);
+    let (a, e) = m.activity_range_s;
+    m.range_gate_m = (0.5 * c * (a - fwhm), 0.5 * c * (e + fwhm));
+    let mut guard = round_up((PULSE_PAD as f64 + 1.0) * dt, dt);
     // The pulse masks, to check the gates against.
     let masks: Vec<Option<Vec<bool>>> = frames.iter().map(|f| frame_mask(f, &m.stop)).collect();
     let mut tries = 0;
@@ -688,8 +725,8 @@ fn place_gates(m: &mut CaptureMeasurement, frames: &[Frame]) -> Result<(), Measu
         if m.gates.frames_touching_pulses == 0 || tries >= 8 {
             break;
         }
-        // Some frame's pulse reaches further than its peak times say (a
-        // second return, or ringing): widen the guard by a FWHM at a time.
+        // Some frame's pulse reaches further than the others' (a late
+        // return, ringing): widen the guard by a FWHM at a time.
         guard = round_up(guard + fwhm, dt);
         tries += 1;
     }
@@ -980,18 +1017,18 @@ impl CaptureMeasurement {
             write_pulse(&mut text, "start_pulse", s, "start");
         }
         let (t0, t1) = self.tof_range_s;
+        let (a0, a1) = self.activity_range_s;
+        let reference = if self.start.is_some() { "the start pulse's 50 % point" } else { "the trigger" };
         set_key(
             &mut text,
             "range_gate",
             "min_m",
             &toml_float(self.range_gate_m.0),
-            &[format!(
-                "measured: the strongest returns' times of flight span {} to {} ({}); the gate reaches two",
-                ns(t0),
-                ns(t1),
-                if self.start.is_some() { "from the start pulse's 50 % point" } else { "from the trigger" }
-            ),
-            "FWHM beyond them. Widen it if returns can come from elsewhere; the noise gates shrink with it.".to_string()],
+            &[
+                format!("measured: pulses on {} were seen from {} to {} after {reference} (onset to the end", self.stop.name, ns(a0), ns(a1)),
+                format!("of the tail; the strongest returns' 50 % points at {} to {}); the gate reaches one FWHM", ns(t0), ns(t1)),
+                "beyond them. Widen it if returns can come from elsewhere; the noise gates shrink with it.".to_string(),
+            ],
         );
         set_key(&mut text, "range_gate", "max_m", &toml_float(self.range_gate_m.1), &["measured (see min_m).".to_string()]);
         set_key(
@@ -1001,11 +1038,13 @@ impl CaptureMeasurement {
             &toml_float(self.guard_s),
             &[
                 format!(
-                    "measured: keeps the pulses' onset (up to {} before the peak) and tail (up to {} after it,",
-                    ns(self.stop.onset_before_peak_s),
+                    "measured: with the range gate above, keeps every pulse's onset (up to {} before the peak) and",
+                    ns(self.stop.onset_before_peak_s)
+                ),
+                format!(
+                    "tail (up to {} after it, undershoot and ringing included) out of the noise gates.",
                     ns(self.stop.tail_after_peak_s)
                 ),
-                "undershoot and ringing included) out of the noise gates.".to_string(),
             ],
         );
         if !self.gates_used.0 {

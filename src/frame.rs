@@ -244,7 +244,8 @@ pub struct NoiseSummary {
     pub gaussian: bool,
     /// Jarque-Bera p-value.
     pub normality_p_value: f64,
-    /// MAD * 1.4826, volts.
+    /// Robust sigma, volts: MAD * 1.4826, or for coarsely quantised samples
+    /// the probit fit of their distribution (`math::quantised`).
     pub robust_sigma_v: f64,
     /// Samples in the gate.
     pub samples: u64,

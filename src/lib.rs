@@ -12,7 +12,7 @@
 
 /// Domain types: frames in, reports out. No wire types.
 pub mod frame;
-/// Numerics with no domain knowledge: special functions, statistics, dense solver, autocovariance, selection. Depends on std only.
+/// Numerics with no domain knowledge: special functions, statistics, dense solver, autocovariance, selection, robust sigma of quantised samples. Depends on std only.
 pub mod math;
 /// Metric names and recording functions; tracing set-up.
 pub mod telemetry;
@@ -30,7 +30,7 @@ pub mod physics;
 pub mod pipeline;
 /// System-delay (and walk-table) calibration from reports of a target at a known range.
 pub mod calibrate;
-/// Readers and writers of capture formats; replay source.
+/// Readers and writers of capture formats; replay source; a starting scene measured from a capture.
 pub mod capture;
 /// gRPC services (the only module that knows tonic), fan-out, sessions, shutdown.
 pub mod service;

@@ -37,7 +37,8 @@ enum Command {
     Process(ProcessArgs),
     /// Measure the fixed start-to-stop system delay from captures of a target at a known range.
     Calibrate(CalibrateArgs),
-    /// Print the embedded default scene (commented TOML), or check a scene file.
+    /// Print the embedded default scene (commented TOML), check a scene file, or measure a
+    /// starting scene from a capture (--from-capture).
     Scene(SceneArgs),
     /// Learn the return pulse shape (and the start pulse shape, when the captures have a start channel) from captures (equivalent-time alignment of many shots)
     /// and write a scene that uses it.
@@ -174,10 +175,14 @@ struct TemplateArgs {
     /// Scene file to write: the input scene with the learned return_pulse (model = "table").
     #[arg(long, value_name = "FILE")]
     out: PathBuf,
-    /// Grid points per sample period of the learned shape.
+    /// Grid points per sample period of the learned shape. Bins no shot reached
+    /// (a few dozen shots at random phases leave some) are interpolated from their
+    /// neighbours, across at most half a sample; a single shot needs --oversample 1 or 2.
     #[arg(long, default_value_t = 8, value_name = "N")]
     oversample: usize,
-    /// Only returns with at least this peak SNR (dB) and no flags are used.
+    /// Only returns with at least this peak SNR (dB: the larger of the fitted amplitude's
+    /// and the raw samples' peak over the noise sigma) and no flags other than
+    /// shape_mismatch and non_gaussian_noise are used.
     #[arg(long, default_value_t = 20.0, value_name = "DB")]
     min_snr_db: f64,
     /// Learning passes; each times the shots with the shape the previous pass learned.
@@ -191,8 +196,24 @@ struct SceneArgs {
     #[arg(long)]
     default: bool,
     /// Validate this scene file and print it as resolved (every default filled in).
-    #[arg(long, value_name = "FILE", conflicts_with = "default")]
+    #[arg(long, value_name = "FILE", conflicts_with_all = ["default", "from_capture"])]
     check: Option<PathBuf>,
+    /// Measure a starting scene from a capture file (or a directory of them) and print it (or
+    /// write it to --out) as commented TOML: the sampling period (s) and record length; which
+    /// channel is the start and which the stop (one channel: the stop channel, timed from the
+    /// trigger); the noise mean and robust sigma (V, from samples away from every pulse); the
+    /// start and return pulses' 10-90 % rise time and FWHM (s, median over frames of each
+    /// frame's strongest pulse); a range gate (m) around the returns seen and a noise-gate
+    /// guard (s) that keeps every pulse's tail out of the noise gates. Each value carries a
+    /// comment saying what it was measured from. At most the first 1000 frames are measured.
+    #[arg(long, value_name = "FILE", conflicts_with = "default")]
+    from_capture: Option<PathBuf>,
+    /// With --from-capture: write the scene to this file instead of standard output.
+    #[arg(long, value_name = "SCENE.toml", requires = "from_capture")]
+    out: Option<PathBuf>,
+    /// With --from-capture: the capture format (auto detects it from the content).
+    #[arg(long, default_value = "auto", value_name = "FORMAT", value_parser = parse_format, requires = "from_capture")]
+    format: Format,
 }
 
 fn parse_format(s: &str) -> Result<Format, String> {
@@ -200,15 +221,9 @@ fn parse_format(s: &str) -> Result<Format, String> {
 }
 
 fn parse_timing(s: &str) -> Result<TimingMethod, String> {
-    [
-        TimingMethod::ConstantFraction,
-        TimingMethod::LeadingEdge,
-        TimingMethod::PeakParabolic,
-        TimingMethod::PeakGaussian,
-        TimingMethod::Ml,
-    ]
-    .into_iter()
-    .find(|m| m.name() == s)
+    TimingMethod::ALL
+        .into_iter()
+        .find(|m| m.name() == s)
     .ok_or_else(|| {
         format!("unknown timing method {s:?}: one of constant_fraction, leading_edge, peak_parabolic, peak_gaussian, ml")
     })
@@ -492,18 +507,27 @@ fn template(a: TemplateArgs) -> Result<i32> {
         |p| {
             if p.start_shots > 0 {
                 eprintln!(
-                    "tofwave template: pass {}: start pulse from {} shots, FWHM {:.3} ns",
+                    "tofwave template: pass {}: start pulse from {} shots, FWHM {:.3} ns, {} grid bins interpolated",
                     p.pass,
                     p.start_shots,
-                    p.start_fwhm_s * 1e9
+                    p.start_fwhm_s * 1e9,
+                    p.start_interpolated_bins
                 );
             }
             eprintln!(
-                "tofwave template: pass {}: {} shots, FWHM {:.3} ns, half-rise {:.3} ns before the peak",
+                "tofwave template: pass {}: {} shots, FWHM {:.3} ns, half-rise {:.3} ns before the peak, \
+                 {} of {} grid bins interpolated (no shot, or too few, reached them){}",
                 p.pass,
                 p.shots,
                 p.fwhm_s * 1e9,
-                p.half_rise_s * 1e9
+                p.half_rise_s * 1e9,
+                p.interpolated_bins,
+                p.bins,
+                if p.widenings > 0 {
+                    format!("; the grid was widened {} time(s) to hold the whole pulse", p.widenings)
+                } else {
+                    String::new()
+                }
             );
         },
         |e| eprintln!("refused: {e}"),
@@ -520,6 +544,9 @@ fn template(a: TemplateArgs) -> Result<i32> {
 }
 
 fn scene(a: SceneArgs) -> Result<i32> {
+    if let Some(p) = &a.from_capture {
+        return scene_from_capture(p, a.out.as_deref(), a.format);
+    }
     match a.check {
         Some(p) => {
             let s = Scene::load(&p)?;
@@ -527,6 +554,67 @@ fn scene(a: SceneArgs) -> Result<i32> {
             eprintln!("{}: valid", p.display());
         }
         None => print!("{DEFAULT_SCENE_TOML}"),
+    }
+    Ok(0)
+}
+
+fn scene_from_capture(input: &std::path::Path, out: Option<&std::path::Path>, format: Format) -> Result<i32> {
+    let opts = ReadOptions { format, sensor_id: "capture".to_string() };
+    let m = capture::measure::measure_paths(&[input.to_path_buf()], &opts)?;
+    // Checked here too: what is written must load.
+    m.scene()?;
+    let text = m.scene_toml();
+    match out {
+        Some(path) => {
+            std::fs::write(path, &text).with_context(|| format!("cannot write {}", path.display()))?;
+        }
+        None => print!("{text}"),
+    }
+    let s = &m.stop;
+    eprintln!(
+        "tofwave scene: {} frames of {}, {:.3} ns sampling; {}",
+        m.frames_measured,
+        m.origin,
+        m.sample_interval_s * 1e9,
+        m.channel_notes.join("; ")
+    );
+    eprintln!(
+        "tofwave scene: return pulse on {}: {:.3} V, rise {:.2} ns, FWHM {:.2} ns (median of {}); noise mean {:.2} mV, sigma {:.2} mV (robust)",
+        s.name,
+        s.amplitude_v,
+        s.rise_time_s * 1e9,
+        s.fwhm_s * 1e9,
+        s.pulses,
+        s.noise_mean_v * 1e3,
+        s.noise_sigma_v * 1e3
+    );
+    if let Some(st) = &m.start {
+        eprintln!(
+            "tofwave scene: start pulse on {}: {:.3} V, rise {:.2} ns, FWHM {:.2} ns",
+            st.name,
+            st.amplitude_v,
+            st.rise_time_s * 1e9,
+            st.fwhm_s * 1e9
+        );
+    }
+    eprintln!(
+        "tofwave scene: range gate {:.3} to {:.3} m, noise-gate guard {:.2} ns, {}-{} noise samples per frame{}",
+        m.range_gate_m.0,
+        m.range_gate_m.1,
+        m.guard_s * 1e9,
+        m.gates.min_samples,
+        m.gates.max_samples,
+        match out {
+            Some(p) => format!(" -> {}", p.display()),
+            None => String::new(),
+        }
+    );
+    if s.undershoot_fraction < -0.05 {
+        eprintln!(
+            "tofwave scene: the return pulse undershoots to {:.0} % of its peak: learn its shape with `tofwave template --scene SCENE --input {}`",
+            -100.0 * s.undershoot_fraction,
+            input.display()
+        );
     }
     Ok(0)
 }

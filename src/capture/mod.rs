@@ -19,6 +19,7 @@ mod csv;
 mod cursor;
 mod isf;
 mod keysight_bin;
+pub mod measure;
 mod recording;
 mod trc;
 

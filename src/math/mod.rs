@@ -13,3 +13,5 @@ pub mod linalg;
 pub mod autocov;
 /// Selection: median, high median, trimmed mean, MAD sigma.
 pub mod select;
+/// Robust sigma of samples on a quantisation grid (where the MAD is itself quantised).
+pub mod quantised;

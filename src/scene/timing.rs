@@ -20,6 +20,16 @@ pub enum TimingMethod {
 }
 
 impl TimingMethod {
+    /// Every method, in the order of the variants (for the CLI's parser and
+    /// for tests that run them all).
+    pub const ALL: [TimingMethod; 5] = [
+        TimingMethod::ConstantFraction,
+        TimingMethod::LeadingEdge,
+        TimingMethod::PeakParabolic,
+        TimingMethod::PeakGaussian,
+        TimingMethod::Ml,
+    ];
+
     /// The name used in reports and stage lists.
     pub fn name(self) -> &'static str {
         match self {

@@ -10,6 +10,7 @@ mod common;
 mod averaging;
 mod bench;
 mod capture;
+mod captures_scene;
 mod cfar;
 mod cli;
 mod coverage;

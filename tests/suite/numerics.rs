@@ -880,6 +880,69 @@ fn noise_fit_contamination_false_alarm_rate_matches_alpha() {
     }
 }
 
+/// Scope codes: Gaussian noise of unit sigma on a grid of `step`, at a
+/// random phase of the grid, scaled as a reader scales codes to volts.
+fn quantised_noise(rng: &mut ChaCha8Rng, buf: &mut [f64], step: f64) {
+    let phase: f64 = rand::Rng::random(rng);
+    for v in buf.iter_mut() {
+        let z: f64 = StandardNormal.sample(rng);
+        *v = ((z / step + phase).round() * step) * 0.013 - 5e-4;
+    }
+}
+
+#[test]
+fn noise_fit_contamination_on_quantised_noise_is_at_most_alpha() {
+    // An 8-bit scope at a sensitive range puts the code step near one noise
+    // sigma; there the MAD is quantised and flagged every clean gate. The
+    // quantised robust sigma keeps the verdict at or below α (conservative:
+    // see `NoiseFitter::fit`); the count must not exceed the upper end of
+    // the 99 % binomial band at α.
+    let alpha = 0.05;
+    for step in [0.5, 1.28, 2.0] {
+        for (n, fits) in [(1400usize, trials(1000)), (300, trials(2000)), (60, trials(2000))] {
+            let mut rng = ChaCha8Rng::seed_from_u64(41 + n as u64 + (step * 100.0) as u64);
+            let mut fitter = NoiseFitter::default();
+            let mut buf = vec![0.0; n];
+            let mut flagged = 0u64;
+            let mut ratio = 0.0;
+            for _ in 0..fits {
+                quantised_noise(&mut rng, &mut buf, step);
+                let s = fitter.fit(&[&buf], alpha);
+                flagged += s.contaminated as u64;
+                ratio += s.robust_sigma_v / s.sigma_v;
+            }
+            let (_, hi) = binomial_acceptance_counts(fits, alpha, 0.99);
+            println!(
+                "quantised noise, step {step} sigma, n={n}: flagged {flagged}/{fits} (at most {hi}); mean robust/plain {:.4}",
+                ratio / fits as f64
+            );
+            assert!(flagged <= hi, "step {step}, n={n}: {flagged} > {hi}");
+            // Both estimate the quantised samples' sd: on average within 1 %
+            // plus a small-sample bias of order 1/n (s is low by ~1/(4n),
+            // the fit on a few boundaries high by ~1.5/n).
+            let tol = 0.01 + 2.0 / n as f64;
+            assert!((ratio / fits as f64 - 1.0).abs() < tol, "step {step}, n={n}: robust/plain {}", ratio / fits as f64);
+        }
+    }
+}
+
+#[test]
+fn noise_fit_detects_a_pulse_in_quantised_noise() {
+    // 4 % of a 1000-sample gate of 8-bit-like noise (step 1.28 sigma) is a
+    // leaked pulse at +8 sigma: still flagged (s grows by ~1.9, the robust
+    // sigma by ~4 %).
+    let mut rng = ChaCha8Rng::seed_from_u64(43);
+    let mut buf = vec![0.0; 1000];
+    quantised_noise(&mut rng, &mut buf, 1.28);
+    let clean = NoiseFitter::default().fit(&[&buf], 0.001);
+    assert!(!clean.contaminated, "{clean:?}");
+    for v in buf.iter_mut().step_by(25) {
+        *v += 8.0 * 0.013;
+    }
+    let s = NoiseFitter::default().fit(&[&buf], 0.001);
+    assert!(s.contaminated, "{s:?}");
+}
+
 #[test]
 fn noise_fit_detects_outliers_and_skew() {
     let mut z = normals(2000, 21);

@@ -322,6 +322,9 @@ pub struct CellStats {
     pub frames_per_s: f64,
     /// Pipeline time per report (N frames), ns.
     pub ns_per_report: f64,
+    /// Fraction of detected returns whose error against the truth is within
+    /// 1, 2 and 3 of their own `range_sigma_m` (NaN with none detected).
+    pub within_sigma: [f64; 3],
 }
 
 /// Frames and truth for one (SNR, N) cell, shared by every variant.
@@ -374,6 +377,8 @@ fn process(
 struct Scored {
     /// Range errors of detected returns, m.
     errors_m: Vec<f64>,
+    /// Each error over its return's own range_sigma_m.
+    z: Vec<f64>,
     detected: usize,
     false_reports: usize,
     sigma_sum_m: f64,
@@ -387,6 +392,7 @@ fn score(scene: &Scene, reports: &[Report], truth: &[Truth]) -> Scored {
     let window_m = 1.5 * pulse_fwhm_s(scene) * half_c;
     let mut s = Scored {
         errors_m: Vec::new(),
+        z: Vec::new(),
         detected: 0,
         false_reports: 0,
         sigma_sum_m: 0.0,
@@ -421,6 +427,7 @@ fn score(scene: &Scene, reports: &[Report], truth: &[Truth]) -> Scored {
         if let Some((i, e)) = best {
             s.detected += 1;
             s.errors_m.push(*e);
+            s.z.push(*e / r.returns[i].range_sigma_m);
             s.sigma_sum_m += r.returns[i].range_sigma_m;
         }
         if errs.iter().any(|e| e.abs() > window_m) {
@@ -495,6 +502,13 @@ fn cell_stats(run: &Run, setting: &SnrSetting, truth: &[Truth]) -> CellStats {
         ns_per_frame,
         frames_per_s: 1e9 / ns_per_frame,
         ns_per_report: ns_per_frame * n as f64,
+        within_sigma: [1.0, 2.0, 3.0].map(|k| {
+            if s.z.is_empty() {
+                f64::NAN
+            } else {
+                s.z.iter().filter(|z| z.abs() <= k).count() as f64 / s.z.len() as f64
+            }
+        }),
     }
 }
 

@@ -8,7 +8,7 @@ use super::peer::PeerOutcome;
 use super::{BenchError, BenchResults, RunOptions};
 
 /// Columns of `work_precision.csv`, in order.
-pub const CSV_COLUMNS: [&str; 21] = [
+pub const CSV_COLUMNS: [&str; 24] = [
     "variant",
     "averaging",
     "snr_db",
@@ -30,6 +30,9 @@ pub const CSV_COLUMNS: [&str; 21] = [
     "frames_per_s",
     "ns_per_report",
     "sd_over_crlb",
+    "within_1_sigma",
+    "within_2_sigma",
+    "within_3_sigma",
 ];
 
 /// Columns of `roc.csv`, in order.
@@ -77,6 +80,9 @@ pub fn write_csv(rows: &[CellStats], path: &Path) -> Result<(), BenchError> {
             num(r.frames_per_s),
             num(r.ns_per_report),
             num(r.sd_m / r.crlb_m),
+            num(r.within_sigma[0]),
+            num(r.within_sigma[1]),
+            num(r.within_sigma[2]),
         ];
         s.push_str(&fields.join(","));
         s.push('\n');
@@ -317,6 +323,34 @@ pub fn markdown(res: &BenchResults, opts: &RunOptions) -> String {
             }
         }
         md.push('\n');
+    }
+
+    let _ = writeln!(md, "\n## Coverage of the reported sigma\n");
+    let _ = writeln!(
+        md,
+        "Fraction of detected returns whose range error against the truth lies within 1, 2 and 3 of their own \
+         `range_sigma_m` (a Gaussian error would give 0.68 / 0.95 / 0.997; the acceptance band at 2σ is 0.90–0.98), \
+         next to RMSE/CRLB and the time per frame.\n"
+    );
+    let _ = writeln!(
+        md,
+        "| method | N | SNR dB | detected | within 1σ | within 2σ | within 3σ | RMSE/CRLB | ns/frame |\n|---|---|---|---|---|---|---|---|---|"
+    );
+    for c in &res.cells {
+        let f = |v: f64| if v.is_finite() { format!("{v:.3}") } else { "–".into() };
+        let _ = writeln!(
+            md,
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {:.0} |",
+            c.variant,
+            c.averaging,
+            c.snr_db,
+            c.detected,
+            f(c.within_sigma[0]),
+            f(c.within_sigma[1]),
+            f(c.within_sigma[2]),
+            f(c.rmse_over_crlb),
+            c.ns_per_frame
+        );
     }
 
     let _ = writeln!(md, "\n## All cells\n");

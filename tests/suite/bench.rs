@@ -99,6 +99,8 @@ fn tiny_run_writes_columns_and_ml_is_near_the_crlb() {
         "RMSE / CRLB per method",
         "| ml |",
         "ROC",
+        "Coverage of the reported sigma",
+        "| method | N | SNR dB | detected | within 1σ |",
     ] {
         assert!(md.contains(needle), "report.md lacks {needle:?}");
     }
@@ -111,6 +113,9 @@ fn tiny_run_writes_columns_and_ml_is_near_the_crlb() {
     }
 
     for c in &res.cells {
+        // Coverage fractions are fractions, and nested.
+        let [w1, w2, w3] = c.within_sigma;
+        assert!((0.0..=1.0).contains(&w1) && w1 <= w2 && w2 <= w3 && w3 <= 1.0, "{c:?}");
         assert!(c.pd > 0.95, "{c:?}");
         assert!(c.ns_per_frame > 0.0 && c.frames_per_s > 0.0, "{c:?}");
     }

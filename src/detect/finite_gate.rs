@@ -106,8 +106,16 @@ impl GateVariance {
         if rho_sq <= 1.0 + 1e-9 && rho_cube <= 1.0 + 1e-9 {
             return GateVariance::student(m);
         }
-        let k2 = 2.0 * rho_sq / m;
-        let k3 = 8.0 * rho_cube / (m * m);
+        GateVariance::from_cumulants(2.0 * rho_sq / m, 8.0 * rho_cube / (m * m))
+    }
+
+    /// The shifted χ² with mean 1 and second and third cumulants `k2`, `k3`
+    /// (Pearson): ν = 8κ₂³/κ₃², 1 − shift = √(κ₂ν/2). A non-positive κ₃ gives
+    /// the χ² with the variance alone.
+    fn from_cumulants(k2: f64, k3: f64) -> GateVariance {
+        if k3 <= 0.0 {
+            return GateVariance::student(2.0 / k2);
+        }
         let nu = (8.0 * k2 * k2 * k2 / (k3 * k3)).max(1.0);
         let scale = (k2 * nu / 2.0).sqrt().min(1.0);
         GateVariance { nu, shift: 1.0 - scale }
@@ -143,14 +151,7 @@ impl GateVariance {
                 }
             }
         }
-        let k2 = 2.0 * blocks as f64 * s2 / (n * n);
-        let k3 = 8.0 * blocks as f64 * s3 / (n * n * n);
-        if k3 <= 0.0 {
-            return GateVariance::student(2.0 / k2);
-        }
-        let nu = (8.0 * k2 * k2 * k2 / (k3 * k3)).max(1.0);
-        let scale = (k2 * nu / 2.0).sqrt().min(1.0);
-        GateVariance { nu, shift: 1.0 - scale }
+        GateVariance::from_cumulants(2.0 * blocks as f64 * s2 / (n * n), 8.0 * blocks as f64 * s3 / (n * n * n))
     }
 
     /// Satterthwaite degrees of freedom: 2/Var(σ̂²/σ²).
@@ -159,19 +160,17 @@ impl GateVariance {
         if self.nu.is_finite() && scale > 0.0 { self.nu / (scale * scale) } else { f64::INFINITY }
     }
 
-    /// (σ̂/σ, weight) at the quadrature nodes; weights sum to 1.
+    /// (σ̂/σ, weight) at the quadrature nodes (the χ² variate by
+    /// Wilson–Hilferty from the normal nodes); weights sum to 1.
     fn nodes(&self) -> impl Iterator<Item = (f64, f64)> + '_ {
-        let h = 2.0 * SPAN / (NODES - 1) as f64;
         let (a, b) = if self.nu.is_finite() && self.nu > 0.0 {
             (1.0 - 2.0 / (9.0 * self.nu), (2.0 / (9.0 * self.nu)).sqrt())
         } else {
             (1.0, 0.0)
         };
-        let total: f64 = (0..NODES).map(|i| simpson_normal_weight(i, h)).sum();
-        (0..NODES).map(move |i| {
-            let z = -SPAN + i as f64 * h;
+        normal_nodes().map(move |(z, w)| {
             let chi = (a + b * z).max(0.0).powi(3);
-            ((self.shift + (1.0 - self.shift) * chi).sqrt(), simpson_normal_weight(i, h) / total)
+            ((self.shift + (1.0 - self.shift) * chi).sqrt(), w)
         })
     }
 
@@ -243,7 +242,7 @@ pub fn crossing_moments(t: f64, kappa: f64, gate: GateVariance) -> (f64, f64) {
             m2 += ws * p * p;
             continue;
         }
-        for (zc, wc) in GateVariance::student(f64::INFINITY).normal_nodes() {
+        for (zc, wc) in normal_nodes() {
             let p = q(t * kappa * s - shift_sd * zc);
             m1 += ws * wc * p;
             m2 += ws * wc * p * p;
@@ -252,13 +251,11 @@ pub fn crossing_moments(t: f64, kappa: f64, gate: GateVariance) -> (f64, f64) {
     (m1, m2)
 }
 
-impl GateVariance {
-    /// (z, weight) of the standard normal quadrature; weights sum to 1.
-    fn normal_nodes(&self) -> impl Iterator<Item = (f64, f64)> {
-        let h = 2.0 * SPAN / (NODES - 1) as f64;
-        let total: f64 = (0..NODES).map(|i| simpson_normal_weight(i, h)).sum();
-        (0..NODES).map(move |i| (-SPAN + i as f64 * h, simpson_normal_weight(i, h) / total))
-    }
+/// (z, weight) of the standard normal quadrature on ±[`SPAN`]; weights sum to 1.
+fn normal_nodes() -> impl Iterator<Item = (f64, f64)> {
+    let h = 2.0 * SPAN / (NODES - 1) as f64;
+    let total: f64 = (0..NODES).map(|i| simpson_normal_weight(i, h)).sum();
+    (0..NODES).map(move |i| (-SPAN + i as f64 * h, simpson_normal_weight(i, h) / total))
 }
 
 /// The factor by which the gate's mean error inflates the output sigma: √(1 + dc_gain²/n).

@@ -3,7 +3,7 @@
 //! uncertainty, amplitude, SNR, probability of detection and flags.
 
 use super::{FrameError, Stage, Work};
-use crate::detect::finite_gate::detection_probability;
+use crate::detect::finite_gate::{detection_probability, rho_squared_sum};
 use crate::detect::resolve::MISFIT_LIMIT;
 use crate::detect::error_table::ErrorTable;
 use crate::detect::pulse_timing::{crlb_samples, joint_crlb_samples, time_pulse, JointScratch, mismatch_gap, ShapeFit, Timed, TimingInput, MISMATCH_Z};
@@ -185,7 +185,7 @@ impl Stage for Timing {
                 // and where it puts the timing point is uncertain by the gap
                 // between its fraction point and the samples' own crossing.
                 let fit = ShapeFit::measure(x, w.noise.summary.mean_v, w.noise.raw_sigma_v, pulse, t.index - pulse.fraction_offset(self.fraction));
-                let gain = 1.0 + 2.0 * w.noise.rho.iter().skip(1).map(|r| r * r).sum::<f64>();
+                let gain = rho_squared_sum(&w.noise.rho);
                 let mismatched = fit.mismatched(MISMATCH_Z, gain);
                 if mismatched {
                     // The gap's typical value is a constant the calibration

@@ -328,11 +328,14 @@ pub enum ReturnFlag {
     TimingFallback,
     /// The fitted pulse shape left a residual above the misfit limit.
     ShapeMismatch,
+    /// An interference event lies on or beside the return (it stood out of
+    /// the event subspace by the detector's threshold).
+    Interference,
 }
 
 impl ReturnFlag {
     /// Every flag, in report order.
-    pub const ALL: [ReturnFlag; 7] = [
+    pub const ALL: [ReturnFlag; 8] = [
         ReturnFlag::FrameEdge,
         ReturnFlag::Saturated,
         ReturnFlag::Weak,
@@ -340,6 +343,7 @@ impl ReturnFlag {
         ReturnFlag::Overlapping,
         ReturnFlag::TimingFallback,
         ReturnFlag::ShapeMismatch,
+        ReturnFlag::Interference,
     ];
 
     /// Name in reports (JSON and protobuf).
@@ -352,6 +356,7 @@ impl ReturnFlag {
             ReturnFlag::Overlapping => "overlapping",
             ReturnFlag::TimingFallback => "timing_fallback",
             ReturnFlag::ShapeMismatch => "shape_mismatch",
+            ReturnFlag::Interference => "interference",
         }
     }
 }
@@ -492,6 +497,8 @@ pub enum FrameFlag {
     EmpiricalThresholdWarmingUp,
     /// Noise-gate false alarms above the design's interval.
     FalseAlarmExcess,
+    /// Detections judged interference events and dropped (how many).
+    InterferenceEvents(usize),
 }
 
 impl FrameFlag {
@@ -518,6 +525,7 @@ impl FrameFlag {
             FrameFlag::EmpiricalThreshold => "empirical_threshold",
             FrameFlag::EmpiricalThresholdWarmingUp => "empirical_threshold_warming_up",
             FrameFlag::FalseAlarmExcess => "false_alarm_excess",
+            FrameFlag::InterferenceEvents(_) => "interference_events",
         }
     }
 }
@@ -526,7 +534,7 @@ impl std::fmt::Display for FrameFlag {
     /// The flag as reports spell it (`non_finite_samples:3`).
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
-            FrameFlag::NonFiniteSamples(n) => write!(f, "{}:{n}", self.name()),
+            FrameFlag::NonFiniteSamples(n) | FrameFlag::InterferenceEvents(n) => write!(f, "{}:{n}", self.name()),
             _ => f.write_str(self.name()),
         }
     }
@@ -536,7 +544,7 @@ impl PartialEq<str> for FrameFlag {
     /// Compares with the flag as reports spell it.
     fn eq(&self, other: &str) -> bool {
         match self {
-            FrameFlag::NonFiniteSamples(_) => self.to_string() == other,
+            FrameFlag::NonFiniteSamples(_) | FrameFlag::InterferenceEvents(_) => self.to_string() == other,
             _ => self.name() == other,
         }
     }
@@ -551,7 +559,7 @@ impl PartialEq<&str> for FrameFlag {
 impl Serialize for FrameFlag {
     fn serialize<S: serde::Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
         match self {
-            FrameFlag::NonFiniteSamples(_) => serializer.collect_str(self),
+            FrameFlag::NonFiniteSamples(_) | FrameFlag::InterferenceEvents(_) => serializer.collect_str(self),
             _ => serializer.serialize_str(self.name()),
         }
     }

@@ -204,6 +204,160 @@ impl GatePlacer {
     }
 }
 
+/// Probability that a clean gate loses any sample to the per-sample clip.
+const CLIP_ANY: f64 = 0.01;
+
+/// Probability that a clean block of a gate is taken for a structured excursion.
+const BLOCK_ALPHA: f64 = 1e-3;
+
+/// Lags of the gate's own autocorrelation that set a block's degrees of freedom.
+const BLOCK_LAGS: usize = 16;
+
+/// Most cleaning passes (each pass refits the centre and sigma on what it kept).
+const CLEAN_PASSES: usize = 8;
+
+/// Cleans noise gates that hold pulses or interference events (a contaminated
+/// gate): the samples kept are those that look like the noise around them.
+///
+/// Each pass, with centre c and sigma s (first the gate's median and robust
+/// sigma, then the kept samples' mean and standard deviation):
+/// * a sample beyond c ± k·s, k = Q⁻¹([`CLIP_ANY`]/2n) for n gate samples
+///   (a clean gate loses a sample in 1 % of frames), is dropped with the
+///   pulse support around it (`dilate` samples before and after);
+/// * a block of `block` samples whose mean square about c exceeds its
+///   upper [`BLOCK_ALPHA`] quantile (scaled χ² with the gate's own
+///   correlation, g = 1 + 2Σρ̂²) is dropped with its neighbours: an event's
+///   lobes several sigma high but under the clip level go this way.
+///
+/// The kept samples' standard deviation is divided by the truncated normal's
+/// √(1 − 2kφ(k)/(2Φ(k) − 1)) (under 1e-3 at the k used). Their variance is
+/// then that of a sample variance of the kept count, so the finite-gate
+/// false-alarm design applies to it unchanged with `samples` = the kept count.
+#[derive(Debug, Default, Clone)]
+pub struct GateCleaner {
+    /// Per frame sample: dropped.
+    dropped: Vec<bool>,
+    /// The kept runs, in frame order.
+    kept: Vec<Range<usize>>,
+    /// Lagged differences (scratch for the robust colour).
+    diffs: Vec<f64>,
+}
+
+impl GateCleaner {
+    /// Runs of `gates` kept after cleaning `x` (see the type's doc); `centre`
+    /// and `sigma` start the passes: a robust centre of the gates, and a
+    /// sigma that an event covering most of the gate has not inflated (the
+    /// caller's last clean fit, else the gates' robust sigma).
+    pub fn clean(&mut self, x: &[f64], gates: &[Range<usize>], centre: f64, sigma: f64, dilate: (usize, usize), block: usize) -> &[Range<usize>] {
+        let n: usize = gates.iter().map(|g| g.len()).sum();
+        self.kept.clear();
+        self.kept.extend(gates.iter().filter(|g| !g.is_empty()).cloned());
+        if n < 2 || !(sigma > 0.0) || !centre.is_finite() {
+            return &self.kept;
+        }
+        let k = crate::math::special::q_inv(0.5 * CLIP_ANY / n as f64);
+        let block = block.max(4);
+        let (mut c, mut s) = (centre, sigma);
+        let g = self.own_colour(x, gates, sigma);
+        let mut last_kept = usize::MAX;
+        for pass in 0..CLEAN_PASSES {
+            self.dropped.clear();
+            self.dropped.resize(x.len(), false);
+            for r in gates {
+                for i in r.clone() {
+                    if (x[i] - c).abs() > k * s {
+                        let a = i.saturating_sub(dilate.0).max(r.start);
+                        let b = (i + dilate.1 + 1).min(r.end);
+                        self.dropped[a..b].fill(true);
+                    }
+                }
+                // Blocks: mean square about c against its scaled χ² quantile
+                // (from the second pass, once s rests on clipped samples).
+                if pass == 0 {
+                    continue;
+                }
+                let dof = block as f64 / g;
+                let limit = g * crate::detect::events::chi2_upper(dof, BLOCK_ALPHA) / block as f64;
+                let mut start = r.start;
+                while start + block <= r.end {
+                    let ms = x[start..start + block].iter().map(|v| (v - c) * (v - c)).sum::<f64>() / (block as f64 * s * s);
+                    if ms > limit {
+                        let a = start.saturating_sub(block).max(r.start);
+                        let b = (start + 2 * block).min(r.end);
+                        self.dropped[a..b].fill(true);
+                    }
+                    start += block;
+                }
+            }
+            // Refit on the kept samples.
+            let (mut m, mut count) = (0.0, 0usize);
+            for r in gates {
+                for i in r.clone().filter(|&i| !self.dropped[i]) {
+                    m += x[i];
+                    count += 1;
+                }
+            }
+            if count < 2 {
+                break;
+            }
+            m /= count as f64;
+            let mut ss = 0.0;
+            for r in gates {
+                ss += r.clone().filter(|&i| !self.dropped[i]).map(|i| (x[i] - m) * (x[i] - m)).sum::<f64>();
+            }
+            let truncation = 1.0 - 2.0 * k * crate::math::special::phi(k) / (1.0 - 2.0 * crate::math::special::q(k));
+            (c, s) = (m, (ss / (count - 1) as f64 / truncation).sqrt());
+            self.collect_kept(gates);
+            if count == last_kept || !(s > 0.0) {
+                break;
+            }
+            last_kept = count;
+        }
+        &self.kept
+    }
+
+    /// 1 + 2 Σ ρ̂(k)² over lags 1..[`BLOCK_LAGS`], each ρ̂(k) robust:
+    /// Var(x_i − x_{i+k}) = 2σ²(1 − ρ(k)), with both variances from the MAD
+    /// (an event's slow lobes hardly change a difference of nearby samples,
+    /// a pulse's few samples do not move a median).
+    fn own_colour(&mut self, x: &[f64], gates: &[Range<usize>], sigma: f64) -> f64 {
+        let mut g = 1.0;
+        for lag in 1..=BLOCK_LAGS {
+            self.diffs.clear();
+            for r in gates {
+                self.diffs.extend((r.start..r.end.saturating_sub(lag)).map(|i| x[i + lag] - x[i]));
+            }
+            if self.diffs.len() < 8 {
+                break;
+            }
+            let sd = crate::math::select::mad_sigma(&mut self.diffs);
+            let rho = (1.0 - sd * sd / (2.0 * sigma * sigma)).clamp(-1.0, 1.0);
+            g += 2.0 * rho * rho;
+        }
+        g
+    }
+
+    fn collect_kept(&mut self, gates: &[Range<usize>]) {
+        self.kept.clear();
+        for r in gates {
+            let mut run: Option<usize> = None;
+            for i in r.clone() {
+                match (self.dropped[i], run) {
+                    (false, None) => run = Some(i),
+                    (true, Some(a)) => {
+                        self.kept.push(a..i);
+                        run = None;
+                    }
+                    _ => {}
+                }
+            }
+            if let Some(a) = run {
+                self.kept.push(a..r.end);
+            }
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

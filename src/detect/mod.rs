@@ -31,3 +31,5 @@ pub mod whiten;
 pub mod cfar;
 /// Leading-edge amplitude walk table: fit and interpolation.
 pub mod walk;
+/// Returns against interference events: flank fit and matched subspace test.
+pub mod events;

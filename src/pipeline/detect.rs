@@ -485,6 +485,10 @@ impl FalseAlarmCounter {
     }
 }
 
+/// Most gate runs the noise colour is pooled over in one frame (a cleaned
+/// gate's runs beyond it are left out of the colour, not of the noise fit).
+const MAX_RUNS: usize = 64;
+
 /// Runs the detector on the stop channel.
 #[derive(Debug)]
 pub struct Detect {
@@ -507,6 +511,8 @@ pub struct Detect {
     /// The previous frame's threshold, for counting this frame's gates.
     held_out: Option<HeldOut>,
     t_cache: TCache,
+    /// Detector output positions over the kept gate runs (scratch).
+    gate_pos: Vec<std::ops::Range<usize>>,
 }
 
 impl Detect {
@@ -552,6 +558,7 @@ impl Detect {
             false_alarms: FalseAlarmCounter::default(),
             held_out: None,
             t_cache: TCache::default(),
+            gate_pos: Vec::new(),
         }
     }
 
@@ -600,9 +607,15 @@ impl Stage for Detect {
         let colour = self.colour.as_mut().expect("built with the plan");
         if w.noise.summary.samples >= 2 {
             let stop_v = &w.buffers.stop_v;
-            let (pre, beyond) = (&stop_v[w.noise.gates.pre.clone()], &stop_v[w.noise.gates.beyond.clone()]);
+            // The gates' kept runs (all of both gates unless a contaminated
+            // gate was cleaned); at most MAX_RUNS of them, on the stack.
+            let mut parts: [&[f64]; MAX_RUNS] = [&[]; MAX_RUNS];
+            let runs = w.buffers.quiet.len().min(MAX_RUNS);
+            for (p, r) in parts.iter_mut().zip(&w.buffers.quiet) {
+                *p = &stop_v[r.clone()];
+            }
             // A forgetting noise model's mean rests on more samples than this frame's gates.
-            colour.add_frame_about(&[pre, beyond], w.noise.summary.mean_v, w.noise.summary.samples as f64);
+            colour.add_frame_about(&parts[..runs], w.noise.summary.mean_v, w.noise.summary.samples as f64);
         }
         let (out_gain, rho1, tau, rho_sq, rho_cube) = match (&self.whiten, whitened) {
             (Some(ws), true) => (1.0, ws.plan.as_ref().expect("whitened").plan.rho1(), 1.0, 1.0, 1.0),
@@ -629,6 +642,7 @@ impl Stage for Detect {
             (Some(ws), true) => Some(ws.acc.samples() - 1.0 - ws.order as f64),
             _ => None,
         };
+        let mut gate_pos = std::mem::take(&mut self.gate_pos);
         let raw = self.raw.as_mut().expect("built above");
         let raw_norm = raw.plan.norm();
         // The plan whose output is thresholded, its input (for CFAR training
@@ -648,8 +662,8 @@ impl Stage for Detect {
             }
         };
         let dc_gain = plan.dc_gain();
-        let pre_pos = plan.positions_inside(&w.noise.gates.pre);
-        let beyond_pos = plan.positions_inside(&w.noise.gates.beyond);
+        gate_pos.clear();
+        gate_pos.extend(w.buffers.quiet.iter().map(|r| plan.positions_inside(r)).filter(|p| !p.is_empty()));
         w.buffers.detector_output.clear();
         w.buffers.detector_output.extend(plan.output().iter().map(|v| v * scale));
         if whitened {
@@ -754,12 +768,12 @@ impl Stage for Detect {
         // cells_effective / cells effective cells, as in the range gate.
         let y = &w.buffers.detector_output;
         if let Some(tail) = &mut self.tail {
-            for p in pre_pos.clone().chain(beyond_pos.clone()) {
+            for p in gate_pos.iter().flat_map(|r| r.clone()) {
                 tail.add(y[p] / (w.noise.sigma_v * out_gain));
             }
         }
         let per_position = if cells > 0 { t.cells_effective / cells as f64 } else { 1.0 };
-        let gate_positions = (pre_pos.len() + beyond_pos.len()) as f64;
+        let gate_positions = gate_pos.iter().map(|r| r.len()).sum::<usize>() as f64;
         let mean_v = w.noise.summary.mean_v;
         let wh_dc = match (&self.whiten, whitened) {
             (Some(ws), true) => ws.whitener.as_ref().expect("whitened").taps().iter().sum::<f64>(),
@@ -771,7 +785,7 @@ impl Stage for Detect {
             // it (and its guard cells): already independent of the cell.
             (Some(cs), true) => {
                 let level = Level::PerCell(&cs.thresholds);
-                let observed = level.upcrossings(y, pre_pos.clone()) + level.upcrossings(y, beyond_pos.clone());
+                let observed = gate_pos.iter().map(|r| level.upcrossings(y, r.clone())).sum();
                 (observed, gate_positions * per_position, t.p_cell, 1.0)
             }
             _ => match self.held_out {
@@ -779,7 +793,7 @@ impl Stage for Detect {
                     // The previous frame's threshold and mean: the output about
                     // that mean is y + dc_out (μ − μ_prev).
                     let level = Level::Fixed(h.level - h.dc_out * (mean_v - h.mean_v));
-                    let observed = level.upcrossings(y, pre_pos.clone()) + level.upcrossings(y, beyond_pos.clone());
+                    let observed = gate_pos.iter().map(|r| level.upcrossings(y, r.clone())).sum();
                     let gate_cells = gate_positions * h.per_position;
                     let d = self.false_alarms.dispersion(gate_cells, h.t, h.kappa, h.gate);
                     (observed, gate_cells, h.p_cell, d)
@@ -810,6 +824,7 @@ impl Stage for Detect {
         if w.report.false_alarm.excess {
             w.report.flags.push(FrameFlag::FalseAlarmExcess);
         }
+        self.gate_pos = gate_pos;
         out.push(w);
         Ok(())
     }
@@ -821,8 +836,9 @@ fn update_whitener(ws: &mut WhitenState, w: &Work, shape: &Shape, n: usize) -> b
     let stop_v = &w.buffers.stop_v;
     if w.noise.summary.samples >= 2 {
         ws.acc.forget(ws.lambda);
-        ws.acc.add_segment(&stop_v[w.noise.gates.pre.clone()], w.noise.summary.mean_v);
-        ws.acc.add_segment(&stop_v[w.noise.gates.beyond.clone()], w.noise.summary.mean_v);
+        for r in &w.buffers.quiet {
+            ws.acc.add_segment(&stop_v[r.clone()], w.noise.summary.mean_v);
+        }
         ws.frames += 1;
     }
     let enough = ws.acc.samples() >= WHITEN_SAMPLES_PER_COEFFICIENT * (ws.order + 1) as f64;

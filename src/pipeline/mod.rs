@@ -10,6 +10,7 @@ mod average;
 mod baseline;
 mod denoise;
 mod detect;
+mod events;
 /// Learning the return and start pulse shapes from frames (`tofwave template`).
 pub mod learn;
 mod noise;
@@ -102,6 +103,14 @@ pub struct Buffers {
     /// only). Written by detect; read by timing (which then times these
     /// instead of `detections`).
     pub components: Vec<crate::detect::resolve::Component>,
+    /// Detections (their `detections` entry or component's `detected_at`)
+    /// that an interference event overlaps. Written by events; read by timing.
+    pub interfered: Vec<usize>,
+    /// The noise gates' samples the noise model was fitted on: the gates,
+    /// less what the cleaning of a contaminated gate dropped (sample ranges,
+    /// in frame order). Written by noise; read by detect (noise colour,
+    /// whitener, false-alarm self-check).
+    pub quiet: Vec<std::ops::Range<usize>>,
     /// Storage for channel samples a stage rewrites in volts (denoise: the
     /// cleaned stop channel; average: the mean channels). Lent to the frame
     /// by [`Work::set_volts`] and taken back when the unit is done, so the
@@ -179,6 +188,7 @@ impl Buffers {
         self.detector_output.clear();
         self.detections.clear();
         self.components.clear();
+        self.interfered.clear();
     }
 }
 
@@ -289,7 +299,7 @@ impl std::fmt::Debug for Pipeline {
 impl Pipeline {
     /// Builds the stages `scene` needs (the scene is already validated).
     pub fn new(scene: &Scene, sensor: &str) -> Pipeline {
-        // validate → start → baseline → denoise → average → noise → detect → timing.
+        // validate → start → baseline → denoise → average → noise → detect → events → timing.
         // The start stage runs first: the noise gates the baseline and denoise
         // stages work on, and the alignment of averaged frames, need each
         // frame's own time reference.
@@ -305,6 +315,9 @@ impl Pipeline {
         }
         stages.push(Box::new(noise::Noise::new(scene)));
         stages.push(Box::new(detect::Detect::new(scene)));
+        if scene.events.enabled {
+            stages.push(Box::new(events::Events::new(scene)));
+        }
         stages.push(Box::new(timing::Timing::new(scene)));
         Pipeline {
             scene: scene.clone(),

@@ -11,9 +11,14 @@
 
 use super::{FrameError, Stage, Work};
 use crate::frame::FrameFlag;
-use crate::detect::gates::GatePlacer;
+use crate::detect::gates::{GateCleaner, GatePlacer};
 use crate::detect::noise_model::{NoiseFitter, NoiseTracker};
+use crate::frame::NoiseSummary;
 use crate::scene::Scene;
+
+/// A gate whose sigma exceeds the last frame's by this factor is cleaned as
+/// if contaminated.
+const SIGMA_JUMP: f64 = 1.3;
 
 /// Fits the stop channel's noise model.
 #[derive(Debug)]
@@ -26,6 +31,15 @@ pub struct Noise {
     tracker: Option<NoiseTracker>,
     /// Scratch for the frame's median when there is no noise gate.
     sorted: Vec<f64>,
+    /// Cleans contaminated gates.
+    cleaner: GateCleaner,
+    /// Return-pulse support and FWHM (samples) for the current sampling
+    /// period: how far around an excursion the cleaner drops samples.
+    pulse_extent: Option<(f64, (usize, usize), usize)>,
+    /// The last frame's fitted sigma: where a gate is contaminated, the
+    /// cleaning starts from it (an event filling most of a gate inflates
+    /// even the robust sigma).
+    last_sigma: Option<f64>,
 }
 
 impl Noise {
@@ -38,6 +52,9 @@ impl Noise {
             gates: GatePlacer::new(scene),
             tracker: (n > 0).then(|| NoiseTracker::with_time_constant(n as f64)),
             sorted: Vec::new(),
+            cleaner: GateCleaner::default(),
+            pulse_extent: None,
+            last_sigma: None,
         }
     }
 }
@@ -70,6 +87,42 @@ impl Stage for Noise {
         let noise = self
             .fitter
             .fit(&[&stop_v[g.pre.clone()], &stop_v[g.beyond.clone()]], s.detector.normality_alpha);
+        let quiet = &mut w.buffers.quiet;
+        quiet.clear();
+        quiet.extend([g.pre.clone(), g.beyond.clone()].into_iter().filter(|r| !r.is_empty()));
+        // A gate holding pulses or events: fit on what looks like noise. An
+        // event filling most of the gate inflates the robust sigma too, so a
+        // jump of sigma over the last frame's also calls for cleaning (a real
+        // rise of the noise survives it: the cleaning then keeps the gates).
+        let jumped = self.last_sigma.is_some_and(|last| noise.sigma_v > SIGMA_JUMP * last);
+        let noise = if noise.contaminated || jumped {
+            let dt = w.frame.sample_interval_s;
+            if self.pulse_extent.is_none_or(|p| p.0 != dt) {
+                let shape = s.return_pulse.shape(dt);
+                let (lo, hi) = shape.support();
+                let fwhm = shape.fwhm().ceil();
+                self.pulse_extent = Some((dt, ((-lo).ceil() as usize + fwhm as usize, hi.ceil() as usize + fwhm as usize), (2.0 * fwhm) as usize));
+            }
+            let (_, dilate, block) = self.pulse_extent.expect("set above");
+            let sorted = &mut self.sorted;
+            sorted.clear();
+            sorted.extend(quiet.iter().flat_map(|r| stop_v[r.clone()].iter().copied()).filter(|v| v.is_finite()));
+            let mid = sorted.len() / 2;
+            let median = if sorted.is_empty() { noise.mean_v } else { *sorted.select_nth_unstable_by(mid, f64::total_cmp).1 };
+            let start = match self.last_sigma {
+                Some(last) if last > 0.0 => last.min(noise.robust_sigma_v),
+                _ => noise.robust_sigma_v,
+            };
+            let kept = self.cleaner.clean(&stop_v, quiet, median, start, dilate, block);
+            quiet.clear();
+            quiet.extend_from_slice(kept);
+            let parts: Vec<&[f64]> = quiet.iter().map(|r| &stop_v[r.clone()]).collect();
+            let clean = self.fitter.fit(&parts, s.detector.normality_alpha);
+            // The verdict stays the raw gate's; the model is the cleaned one's.
+            NoiseSummary { contaminated: noise.contaminated || quiet.len() > 2 || clean.samples < noise.samples, robust_sigma_v: noise.robust_sigma_v, ..clean }
+        } else {
+            noise
+        };
         if (noise.samples as usize) < s.noise_gate.min_samples {
             w.report.flags.push(FrameFlag::NoiseGateSmall);
         }
@@ -99,6 +152,9 @@ impl Stage for Noise {
             sorted.extend_from_slice(&stop_v);
             let mid = sorted.len() / 2;
             noise.mean_v = if sorted.is_empty() { 0.0 } else { *sorted.select_nth_unstable_by(mid, f64::total_cmp).1 };
+        }
+        if noise.samples >= 2 && noise.sigma_v > 0.0 {
+            self.last_sigma = Some(noise.sigma_v);
         }
         w.noise.sigma_v = noise.sigma_v;
         w.noise.raw_sigma_v = noise.sigma_v;

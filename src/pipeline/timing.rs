@@ -267,6 +267,9 @@ impl Stage for Timing {
             if misfit > MISFIT_LIMIT {
                 flags.insert(ReturnFlag::ShapeMismatch);
             }
+            if w.buffers.interfered.contains(&p) {
+                flags.insert(ReturnFlag::Interference);
+            }
             returns.push(Return {
                 range_m: 0.5 * self.c_m_per_s * tof_s,
                 range_sigma_m: 0.5 * self.c_m_per_s * sigma_t,

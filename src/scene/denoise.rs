@@ -97,3 +97,38 @@ impl DenoiseConfig {
         Ok(())
     }
 }
+
+/// `[events]`: telling returns from the receiver's interference events
+/// (oscillations below `max_frequency_hz` at random times; see
+/// `detect::events`). On by default: the default scene is the prototype,
+/// whose receiver has them.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct EventsConfig {
+    /// Test every detection's shape; false: no events stage.
+    pub enabled: bool,
+    /// Highest frequency of an event's modes, Hz (the prototype's lay below 10 MHz).
+    pub max_frequency_hz: f64,
+    /// Span each side of a pulse's support where a return leaves only noise, s.
+    pub flank_s: f64,
+    /// Probability that a clean return's flanks fail the return-model test
+    /// (it is then tested against the event subspace, at some SNR cost).
+    pub fit_alpha: f64,
+}
+
+impl Default for EventsConfig {
+    fn default() -> Self {
+        EventsConfig { enabled: true, max_frequency_hz: 10e6, flank_s: 60e-9, fit_alpha: 1e-3 }
+    }
+}
+
+impl EventsConfig {
+    /// Checks `[events]`.
+    pub fn validate(&self) -> Result<(), FieldError> {
+        check(&[
+            ("events.max_frequency_hz", self.max_frequency_hz.into(), Range::positive(), "(0, inf) Hz"),
+            ("events.flank_s", self.flank_s.into(), Range::positive_max(1e-3), "(0, 1e-3] s"),
+            ("events.fit_alpha", self.fit_alpha.into(), Range::positive_max(0.5), "(0, 0.5]"),
+        ])
+    }
+}

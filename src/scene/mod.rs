@@ -10,7 +10,8 @@
 //! - `digitiser`: `[digitiser]`, `[channels]`;
 //! - `pulse`: `[return_pulse]`, `[start_pulse]`, and their dsp shapes;
 //! - `gates`: `[range_gate]`, `[noise_gate]`;
-//! - `detector`, `timing`, `averaging`, `baseline`, `denoise`: the section of that name;
+//! - `detector`, `timing`, `averaging`, `baseline`: the section of that name;
+//! - `denoise`: `[denoise]` and `[events]` (structured interference);
 //! - `calibration`: `[calibration]` and the calibration file;
 //! - [`simulation`]: `[simulation]`, which drives `physics` (its many
 //!   section types keep their module path: `scene::simulation::X`);
@@ -34,7 +35,7 @@ pub use averaging::{AveragingAlign, AveragingConfig, AveragingMethod, AveragingM
 pub use baseline::{BaselineConfig, BaselineEstimator};
 pub use calibration::{CalibrationConfig, CalibrationFile, CalibrationMeasurement};
 pub use check::FieldError;
-pub use denoise::{DenoiseConfig, DenoiseMethod};
+pub use denoise::{DenoiseConfig, DenoiseMethod, EventsConfig};
 pub use detector::{CfarKind, DetectorConfig, DetectorKind, PfaScope, ThresholdMode};
 pub use digitiser::{ChannelsConfig, DigitiserConfig};
 pub use gates::{NoiseGateConfig, RangeGateConfig};
@@ -128,6 +129,9 @@ pub struct Scene {
     /// Structured-interference cancellation; absent: no denoise stage.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub denoise: Option<DenoiseConfig>,
+    /// Returns told from interference events.
+    #[serde(default)]
+    pub events: EventsConfig,
     /// System delay.
     #[serde(default)]
     pub calibration: CalibrationConfig,
@@ -229,6 +233,7 @@ impl Scene {
         if let Some(d) = &self.denoise {
             d.validate(self.digitiser.sample_interval_s)?;
         }
+        self.events.validate()?;
         self.calibration.validate()?;
         self.medium.validate()
     }

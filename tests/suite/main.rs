@@ -18,6 +18,7 @@ mod denoise;
 mod detection;
 mod dsp;
 mod duplicates;
+mod events;
 mod false_alarm;
 mod false_alarm_coloured;
 mod forgetting;

@@ -1,0 +1,109 @@
+//! events: tells each detection's return from an interference event
+//! (`detect::events`), drops the events and marks the returns an event
+//! overlaps. Runs between detect and timing when `[events] enabled`.
+
+use super::{FrameError, Stage, Work};
+use crate::detect::events::{EventTest, EventTestConfig, NoiseTerms, Verdict};
+use crate::dsp::pulse::Shape;
+use crate::frame::FrameFlag;
+use crate::scene::{EventsConfig, PulseConfig, Scene};
+
+/// The events stage.
+#[derive(Debug)]
+pub struct Events {
+    cfg: EventsConfig,
+    pulse_cfg: PulseConfig,
+    /// Shape and test for the current sampling period.
+    plan: Option<(f64, Shape, EventTest)>,
+    /// Peak indices of the frame's detections (scratch).
+    peaks: Vec<f64>,
+    /// Verdicts, one per detection (scratch).
+    verdicts: Vec<Verdict>,
+}
+
+impl Events {
+    /// From the scene's `[events]` and return-pulse sections.
+    pub fn new(scene: &Scene) -> Events {
+        Events {
+            cfg: scene.events.clone(),
+            pulse_cfg: scene.return_pulse.clone(),
+            plan: None,
+            peaks: Vec::new(),
+            verdicts: Vec::new(),
+        }
+    }
+}
+
+impl Events {
+    /// Builds the shape and the test for sampling period `dt` when it changes.
+    fn refresh(&mut self, dt: f64) {
+        if self.plan.as_ref().is_none_or(|p| p.0 != dt) {
+            let cfg = EventTestConfig {
+                max_frequency: self.cfg.max_frequency_hz * dt,
+                flank: (self.cfg.flank_s / dt).ceil().max(1.0) as usize,
+                fit_alpha: self.cfg.fit_alpha,
+            };
+            self.plan = Some((dt, self.pulse_cfg.shape(dt), EventTest::new(cfg)));
+        }
+    }
+}
+
+impl Stage for Events {
+    fn name(&self) -> &'static str {
+        "events"
+    }
+
+    fn process(&mut self, mut w: Work, out: &mut Vec<Work>) -> Result<(), FrameError> {
+        w.buffers.interfered.clear();
+        let dt = w.frame.sample_interval_s;
+        self.refresh(dt);
+        let (_, shape, test) = self.plan.as_mut().expect("set above");
+        let noise = NoiseTerms { mean_v: w.noise.summary.mean_v, sigma_v: w.noise.raw_sigma_v, rho: &w.noise.rho };
+        // The test's null distribution, learned from this frame's noise gates.
+        test.learn_null(&w.buffers.stop_v, noise, &w.buffers.quiet, shape);
+        let resolved = !w.buffers.components.is_empty();
+        self.peaks.clear();
+        if resolved {
+            self.peaks.extend(w.buffers.components.iter().map(|c| c.peak_index));
+        } else {
+            self.peaks.extend(w.buffers.detections.iter().map(|&p| p as f64));
+        }
+        if self.peaks.is_empty() {
+            out.push(w);
+            return Ok(());
+        }
+        self.verdicts.clear();
+        for k in 0..self.peaks.len() {
+            self.verdicts.push(test.judge(&w.buffers.stop_v, noise, shape, &self.peaks, k, w.threshold.u));
+        }
+        let mut dropped = 0;
+        let mut k = 0;
+        let verdicts = &self.verdicts;
+        let interfered = &mut w.buffers.interfered;
+        let mut keep = |at: usize| {
+            let v = verdicts[k];
+            k += 1;
+            match v {
+                Verdict::Return => true,
+                Verdict::ReturnWithEvent(_) => {
+                    interfered.push(at);
+                    true
+                }
+                Verdict::Event(_) => {
+                    dropped += 1;
+                    false
+                }
+            }
+        };
+        if resolved {
+            w.buffers.components.retain(|c| keep(c.detected_at));
+        } else {
+            w.buffers.detections.retain(|&p| keep(p));
+        }
+        if dropped > 0 {
+            w.report.flags.push(FrameFlag::InterferenceEvents(dropped));
+        }
+        out.push(w);
+        Ok(())
+    }
+}

@@ -6,8 +6,10 @@
 //! It shares no model with the library: its pulse shapes are not the
 //! library's, it places pulses by their *onset*, it quantises as an
 //! oscilloscope does, and it can add the receiver's mains-tied interference
-//! bursts. Tests use it to check timing, detection and uncertainty on frames
-//! the library was not designed around. Only `tofwave::frame` is used.
+//! events (four shape families, placed at random, near the return or inside a
+//! gate, with fixed or random phases and peaks). Tests use it to check
+//! timing, detection and uncertainty on frames the library was not designed
+//! around. Only `tofwave::frame` is used.
 //!
 //! # Time base and truth
 //!
@@ -23,6 +25,9 @@
 //! * A target at `range_m` has `tof_s = 2 * range_m / c`, `c` being
 //!   [`GenConfig::speed_of_light_m_per_s`]; its return's onset is at
 //!   `t_ref_s = t_shot_s + system_delay_s + tof_s`.
+//! * An interference event ([`TrueEvent`]) is exactly zero outside
+//!   `[onset_s, end_s]`; `peak_s` is the instant of its largest positive
+//!   excursion `peak_v` (which the frame's samples straddle).
 //!
 //! A timing method that reports some other point of the pulse (a half-maximum
 //! crossing, a peak, a matched-filter centre) differs from these onsets by a
@@ -35,7 +40,8 @@
 //! 1. Pulses: `amplitude_v * shape(t - onset)`, point-sampled (the published
 //!    rise times and widths are of the digitised pulse, so the scope's
 //!    bandwidth is already in the shape).
-//! 2. Interference burst (stop channel only), see [`EventConfig`].
+//! 2. Interference event (stop channel only), see [`EventConfig`],
+//!    [`EventShape`], [`EventPlacement`].
 //! 3. Receiver noise: Gaussian, mean `noise_mean_v`, standard deviation
 //!    `noise_sigma_v`, white or one-pole band-limited (σ holds after the
 //!    filter). The start channel gets its own, smaller, white noise.
@@ -295,94 +301,378 @@ impl Evaluator {
     }
 }
 
-/// The receiver's interference bursts (ch. 10.4.1, 10.5): a fixed-shape,
-/// decaying oscillation whose modes lie below 10 MHz, tied to the 60 Hz mains
-/// that powers the APD bias, so it lands at random positions relative to the
-/// laser shots. Seen beside a weak return it looked like a second return of
-/// similar height.
+/// The shape of an interference event, as a function of the time `x`
+/// (seconds) after the event's onset. Every shape is exactly zero for
+/// `x <= 0` and past its cut ([`EventConfig::duration_s`]). Below, `f_k` are
+/// [`EventConfig::modes_hz`], `τ` is [`EventConfig::decay_s`] and `φ_k` the
+/// event's phases ([`EventWave::phases_rad`]; all zero unless
+/// [`EventConfig::random_phase`]). Each event is scaled so that its largest
+/// positive excursion is the event's peak ([`EventConfig::peak_v`], possibly
+/// spread per event), so that, like the prototype's, it can mimic a return of
+/// that height.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub enum EventShape {
+    /// A decaying multi-mode burst (the generator's original model):
+    /// `g(x) Σ_k sin(2π f_k x + φ_k)` with the envelope
+    /// `g(x) = (x/τ) exp(1 − x/τ)` (rises from zero, peaks at `x = τ`, then
+    /// decays); cut at `12 τ` (envelope below 2.1e-4). Starts smoothly.
+    #[default]
+    MultiMode,
+    /// A switching transient: a voltage step (the mains-side switching of the
+    /// APD bias supply) exciting a resonance of the receiver's supply filter.
+    /// The current of a series resonator driven by a step, one term per mode:
+    /// `exp(−x/τ) Σ_k sin(2π f_k x + φ_k)`; cut at `12 τ` (e^−12 = 6.1e-6).
+    /// With zero phases it leaves zero at the onset with the finite slope
+    /// `2π Σ_k f_k` (a corner: the sharp onset) and, unless its modes beat
+    /// up again later, its first lobe is the largest (a single mode's lobes
+    /// shrink by `exp(−1/(2 f τ))` each half cycle; true for the preset of
+    /// [`EventConfig::for_shape`]). With random phases each mode starts at `sin φ_k`: the onset is
+    /// an ideal step (a 50 MHz scope would round it over ~7 ns).
+    Ringing,
+    /// A Gaussian-windowed wave packet:
+    /// `w(x) Σ_k cos(2π f_k (x − c) + φ_k)`, `w(x) = exp(−(x − c)² / (2τ²))`,
+    /// centred `c = 5τ` after the onset (τ is the window's rms width); cut at
+    /// `10 τ` (window 3.7e-6). With one mode and `f τ ≈ 0.3` it is a
+    /// single-cycle packet; the carrier phase moves the largest positive
+    /// lobe (symmetric about `c` for `φ = 0`, an antisymmetric, bipolar
+    /// packet for `φ = ±π/2`).
+    WavePacket,
+    /// A bipolar doublet, the time derivative of a Gaussian (a switching
+    /// spike coupled through a capacitance):
+    /// `p · (−(x − c)/τ) exp(−(x − c)² / (2τ²))`, `c = 5τ`, cut at `10 τ`.
+    /// Zero net area, two lobes of equal size at `c ∓ τ`, energy spectrum
+    /// peaking at `1/(2π τ)` Hz. Ignores `modes_hz`; its one phase `φ_0` sets
+    /// the polarity: `p = +1` (positive lobe first) when `cos φ_0 >= 0`, else
+    /// `p = −1`.
+    Doublet,
+}
+
+impl EventShape {
+    /// Every shape, in declaration order.
+    pub const ALL: [EventShape; 4] = [
+        EventShape::MultiMode,
+        EventShape::Ringing,
+        EventShape::WavePacket,
+        EventShape::Doublet,
+    ];
+}
+
+/// Where an event lands in its frame. Times are relative to the trigger.
+/// Each uses the frame's one position draw `u` (uniform on [0, 1)).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub enum EventPlacement {
+    /// The onset is uniform over the frame's sample span:
+    /// `t_first + u · samples · dt_s` (the mains-tied events fall at random
+    /// against the shots). The event may run past the frame's end.
+    #[default]
+    Uniform,
+    /// The event's largest positive lobe lands at
+    /// `t_peak + (2u − 1) · max_offset_s`, uniform within `±max_offset_s` of
+    /// the first target's return peak
+    /// `t_peak = t_shot_s + system_delay_s + tof_s + return_pulse.peak_offset_s()`,
+    /// so that it overlaps the return as in Fig. 10.18(b). Laser-off frames
+    /// use the nominal return all the same. Needs at least one target.
+    NearReturn {
+        /// Largest distance between the event's peak and the return's, seconds.
+        max_offset_s: f64,
+    },
+    /// The event's largest positive lobe lands at `from_s + u (to_s − from_s)`,
+    /// e.g. inside a range gate.
+    InGate {
+        /// Earliest peak time relative to the trigger, seconds.
+        from_s: f64,
+        /// Latest peak time relative to the trigger, seconds.
+        to_s: f64,
+    },
+}
+
+/// The receiver's interference events (ch. 10.4.1, 10.5): fixed-shape,
+/// oscillating events whose dominant modes lie below 10 MHz, tied to the
+/// 60 Hz mains that powers the APD bias, so they land at random positions
+/// relative to the laser shots, in a minority of frames. Seen beside a weak
+/// return (350 mV) an event looked like a second return of similar height,
+/// sometimes partly overlapping it.
 ///
-/// Shape, `x` seconds after the burst's onset:
-/// `peak_v * g(x) * sum_k sin(2 pi f_k x) / norm`, with the envelope
-/// `g(x) = (x / decay_s) exp(1 − x / decay_s)` (rises from zero, peaks at
-/// `x = decay_s`, then decays) and `norm` the maximum of the unscaled burst,
-/// so that the largest positive excursion is exactly `peak_v`. The burst is
-/// cut at `x = 12 decay_s` (envelope below 2.1e-4).
+/// The shape is one of [`EventShape`] (default: the decaying multi-mode
+/// burst); the position one of [`EventPlacement`] (default: onset uniform
+/// over the frame). Each frame independently holds one event with
+/// `probability`.
 ///
-/// Each frame independently holds one burst with `probability`; its onset is
-/// uniform over the frame's sample span, so a burst may run past the frame's
-/// end.
+/// Per event, with `random_phase` each phase `φ_k` is uniform on [0, 2π)
+/// (zero otherwise); with `amplitude_spread = s > 0` the peak is log-normal,
+/// `peak_v · exp(σ z − σ²/2)`, `z` standard normal, `σ² = ln(1 + s²)`: mean
+/// `peak_v`, relative standard deviation exactly `s`, always positive.
+/// The event is then scaled so that its largest positive excursion is that
+/// peak (for the multi-mode burst with zero phases, the maximum on a grid of
+/// at most 1/200 of the fastest mode's period, as the generator always did:
+/// the true maximum exceeds it by less than 1e-3 relative).
 #[derive(Debug, Clone, PartialEq)]
 pub struct EventConfig {
-    /// Fraction of frames holding a burst (each frame independently).
+    /// Fraction of frames holding an event (each frame independently).
     pub probability: f64,
-    /// Largest positive excursion of the burst, volts.
+    /// Largest positive excursion of the event, volts (its mean when
+    /// `amplitude_spread > 0`).
     pub peak_v: f64,
-    /// Frequencies of the burst's modes, Hz (the prototype's were below 10 MHz).
+    /// Frequencies of the event's modes, Hz (the prototype's were below
+    /// 10 MHz). Unused by [`EventShape::Doublet`].
     pub modes_hz: Vec<f64>,
-    /// Envelope time constant, seconds: the envelope peaks this long after
-    /// the onset, and the burst lasts about five of these.
+    /// Time constant of the shape, seconds: the envelope's peak time
+    /// ([`MultiMode`](EventShape::MultiMode)), the ringing's decay
+    /// ([`Ringing`](EventShape::Ringing)), the window's rms width
+    /// ([`WavePacket`](EventShape::WavePacket),
+    /// [`Doublet`](EventShape::Doublet)).
     pub decay_s: f64,
+    /// The shape family. Default [`EventShape::MultiMode`].
+    pub shape: EventShape,
+    /// Where the event lands. Default [`EventPlacement::Uniform`].
+    pub placement: EventPlacement,
+    /// Draw each event's phases uniformly on [0, 2π); `false` (default): all
+    /// phases zero, every event the same shape.
+    pub random_phase: bool,
+    /// Relative standard deviation of the per-event peak (log-normal, mean
+    /// `peak_v`); 0 (default): every event peaks at `peak_v`.
+    pub amplitude_spread: f64,
 }
 
 impl Default for EventConfig {
-    /// Modes at 3 and 7 MHz, 150 ns decay (a burst of ~0.75 µs, under a third
-    /// of a frame), peak 0.35 V (the height of the weak return it mimicked,
-    /// L13895–13950), in 10 % of the frames. The source quantifies neither
-    /// the per-frame rate nor the modes' exact frequencies.
+    /// Multi-mode burst with modes at 3 and 7 MHz, 150 ns decay (a burst of
+    /// ~0.75 µs, under a third of a frame), peak 0.35 V (the height of the
+    /// weak return it mimicked, L13895–13950), in 10 % of the frames, onset
+    /// uniform, fixed phases and peak. The source quantifies neither the
+    /// per-frame rate nor the modes' exact frequencies.
     fn default() -> Self {
         EventConfig {
             probability: 0.1,
             peak_v: 0.35,
             modes_hz: vec![3e6, 7e6],
             decay_s: 150e-9,
+            shape: EventShape::MultiMode,
+            placement: EventPlacement::Uniform,
+            random_phase: false,
+            amplitude_spread: 0.0,
         }
     }
 }
 
+/// Golden-section ratio, `(sqrt 5 − 1) / 2`.
+const GOLDEN: f64 = 0.618_033_988_749_894_9;
+
 impl EventConfig {
-    /// Length after the onset past which the burst is cut, seconds.
-    pub fn duration_s(&self) -> f64 {
-        12.0 * self.decay_s
+    /// A default event of `shape` (0.35 V, 10 % of the frames, uniform onset,
+    /// fixed phases and peak), with time constants for which every shape
+    /// lasts a fraction of the 2.5 µs frame and keeps over 95 % of its energy
+    /// below 10 MHz (with zero phases):
+    ///
+    /// * [`MultiMode`](EventShape::MultiMode): [`EventConfig::default`]
+    ///   (3 and 7 MHz, τ = 150 ns);
+    /// * [`Ringing`](EventShape::Ringing): 1.5 and 4 MHz, τ = 300 ns (Q of
+    ///   1.4 and 3.8; below 5 % of its start after 0.9 µs);
+    /// * [`WavePacket`](EventShape::WavePacket): 3 MHz, τ = 100 ns
+    ///   (a single-cycle packet, ~0.6 µs between its 1 % points);
+    /// * [`Doublet`](EventShape::Doublet): τ = 50 ns (lobes 100 ns apart,
+    ///   energy peaking at 3.2 MHz).
+    pub fn for_shape(shape: EventShape) -> EventConfig {
+        let (modes_hz, decay_s) = match shape {
+            EventShape::MultiMode => (vec![3e6, 7e6], 150e-9),
+            EventShape::Ringing => (vec![1.5e6, 4e6], 300e-9),
+            EventShape::WavePacket => (vec![3e6], 100e-9),
+            EventShape::Doublet => (vec![], 50e-9),
+        };
+        EventConfig {
+            modes_hz,
+            decay_s,
+            shape,
+            ..EventConfig::default()
+        }
     }
 
-    fn raw(&self, x: f64) -> f64 {
+    /// Length after the onset past which the event is cut (exactly zero),
+    /// seconds: `12 decay_s` for the multi-mode burst and the ringing,
+    /// `10 decay_s` for the wave packet and the doublet.
+    pub fn duration_s(&self) -> f64 {
+        match self.shape {
+            EventShape::MultiMode | EventShape::Ringing => 12.0 * self.decay_s,
+            EventShape::WavePacket | EventShape::Doublet => 10.0 * self.decay_s,
+        }
+    }
+
+    /// Phases drawn for each event: one per mode, one for the doublet.
+    pub fn phase_count(&self) -> usize {
+        match self.shape {
+            EventShape::Doublet => 1,
+            _ => self.modes_hz.len(),
+        }
+    }
+
+    /// The unscaled shape `x` seconds after the onset with phases `phases`
+    /// (missing phases are zero).
+    fn raw(&self, x: f64, phases: &[f64]) -> f64 {
+        use std::f64::consts::PI;
         if x.is_nan() || x <= 0.0 || x > self.duration_s() {
             return 0.0;
         }
-        let u = x / self.decay_s;
-        let g = u * (1.0 - u).exp();
-        let s: f64 = self
-            .modes_hz
-            .iter()
-            .map(|f| (2.0 * std::f64::consts::PI * f * x).sin())
-            .sum();
-        g * s
+        let ph = |k: usize| phases.get(k).copied().unwrap_or(0.0);
+        match self.shape {
+            EventShape::MultiMode => {
+                let u = x / self.decay_s;
+                let g = u * (1.0 - u).exp();
+                // With φ = 0 the argument is unchanged (it is positive), so
+                // zero-phase bursts are bit-identical to the original model.
+                let s: f64 = self
+                    .modes_hz
+                    .iter()
+                    .enumerate()
+                    .map(|(k, f)| (2.0 * PI * f * x + ph(k)).sin())
+                    .sum();
+                g * s
+            }
+            EventShape::Ringing => {
+                let s: f64 = self
+                    .modes_hz
+                    .iter()
+                    .enumerate()
+                    .map(|(k, f)| (2.0 * PI * f * x + ph(k)).sin())
+                    .sum();
+                (-x / self.decay_s).exp() * s
+            }
+            EventShape::WavePacket => {
+                let y = x - 5.0 * self.decay_s;
+                let w = (-0.5 * (y / self.decay_s).powi(2)).exp();
+                let s: f64 = self
+                    .modes_hz
+                    .iter()
+                    .enumerate()
+                    .map(|(k, f)| (2.0 * PI * f * y + ph(k)).cos())
+                    .sum();
+                w * s
+            }
+            EventShape::Doublet => {
+                let y = (x - 5.0 * self.decay_s) / self.decay_s;
+                let p = if ph(0).cos() >= 0.0 { 1.0 } else { -1.0 };
+                -p * y * (-0.5 * y * y).exp()
+            }
+        }
     }
 
-    /// Maximum of the unscaled burst, on a grid of at most 1/200 of the
-    /// fastest mode's period (relative error below 1e-3).
+    /// Maximum of the unscaled zero-phase multi-mode burst, on a grid of at
+    /// most 1/200 of the fastest mode's period (relative error below 1e-3):
+    /// the original model's normalisation, kept so its frames are unchanged.
     fn norm(&self) -> f64 {
         let f_max = self.modes_hz.iter().copied().fold(0.0, f64::max);
         let n = (self.duration_s() * f_max * 200.0).clamp(2000.0, 1e6) as usize;
         let d = self.duration_s() / n as f64;
-        (0..=n).map(|k| self.raw(k as f64 * d)).fold(0.0, f64::max)
+        (0..=n)
+            .map(|k| self.raw(k as f64 * d, &[]))
+            .fold(0.0, f64::max)
     }
 
-    /// The burst `x_s` seconds after its onset, volts. Finds the burst's
-    /// maximum on every call: use [`render`](Self::render) for many samples.
+    /// (time after the onset, value) of the unscaled shape's largest
+    /// positive excursion with `phases`: the best point of a grid of at most
+    /// 1/200 of the fastest mode's period and of `decay_s` (its first point
+    /// just after the onset, so that a step there counts), refined by golden
+    /// section between its neighbours (to ~1e-15 s). A step at the onset
+    /// gives a time just after it.
+    fn peak_search(&self, phases: &[f64]) -> (f64, f64) {
+        let dur = self.duration_s();
+        let f_max = match self.shape {
+            EventShape::Doublet => 0.0,
+            _ => self.modes_hz.iter().copied().fold(0.0, f64::max),
+        };
+        let mut step = self.decay_s / 200.0;
+        if f_max > 0.0 {
+            step = step.min(1.0 / (200.0 * f_max));
+        }
+        let n = (dur / step).ceil().clamp(2000.0, 2e6) as usize;
+        let d = dur / n as f64;
+        let (mut k_best, mut best) = (0usize, f64::NEG_INFINITY);
+        for k in 0..=n {
+            // The first point is just after the onset, where a step starts.
+            let x = if k == 0 { 1e-9 * d } else { k as f64 * d };
+            let v = self.raw(x, phases);
+            if v > best {
+                (k_best, best) = (k, v);
+            }
+        }
+        let mut a = (k_best as f64 - 1.0).max(0.0) * d;
+        let mut b = ((k_best + 1) as f64 * d).min(dur);
+        let mut c = b - GOLDEN * (b - a);
+        let mut e = a + GOLDEN * (b - a);
+        let (mut fc, mut fe) = (self.raw(c, phases), self.raw(e, phases));
+        for _ in 0..200 {
+            if b - a <= 1e-15 {
+                break;
+            }
+            if fc >= fe {
+                (b, e, fe) = (e, c, fc);
+                c = b - GOLDEN * (b - a);
+                fc = self.raw(c, phases);
+            } else {
+                (a, c, fc) = (c, e, fe);
+                e = a + GOLDEN * (b - a);
+                fe = self.raw(e, phases);
+            }
+        }
+        let (x, v) = if fc >= fe { (c, fc) } else { (e, fe) };
+        if v >= best {
+            (x, v)
+        } else if k_best == 0 {
+            (1e-9 * d, best)
+        } else {
+            (k_best as f64 * d, best)
+        }
+    }
+
+    /// The event with phases `phases_rad` (radians; missing ones are zero)
+    /// scaled so that its largest positive excursion is `peak_v` volts. For
+    /// the zero-phase multi-mode burst the scale is the original model's,
+    /// `peak_v` over the grid maximum, and [`EventWave::peak_v`] (the true
+    /// maximum) may exceed `peak_v` by less than 1e-3 relative.
+    pub fn wave(&self, phases_rad: &[f64], peak_v: f64) -> EventWave {
+        let (peak_offset_s, max) = self.peak_search(phases_rad);
+        let legacy = self.shape == EventShape::MultiMode && phases_rad.iter().all(|&p| p == 0.0);
+        let norm = if legacy { self.norm() } else { max };
+        let scale = if norm > 0.0 { peak_v / norm } else { 0.0 };
+        EventWave {
+            cfg: self.clone(),
+            phases_rad: phases_rad.to_vec(),
+            scale,
+            peak_offset_s,
+            peak_v: scale * max,
+        }
+    }
+
+    /// The zero-phase event `x_s` seconds after its onset, peaking at
+    /// `peak_v`, volts. Finds the event's maximum on every call: use
+    /// [`render`](Self::render) or [`wave`](Self::wave) for many samples.
     pub fn value(&self, x_s: f64) -> f64 {
-        self.peak_v * self.raw(x_s) / self.norm()
+        self.peak_v * self.raw(x_s, &[]) / self.zero_phase_norm()
     }
 
-    /// The burst sampled every `dt_s` from `x0_s` after its onset: `n` values, volts.
+    /// The zero-phase event sampled every `dt_s` from `x0_s` after its
+    /// onset: `n` values, volts.
     pub fn render(&self, x0_s: f64, dt_s: f64, n: usize) -> Vec<f64> {
-        let scale = self.peak_v / self.norm();
+        let scale = self.peak_v / self.zero_phase_norm();
         (0..n)
-            .map(|k| scale * self.raw(x0_s + k as f64 * dt_s))
+            .map(|k| scale * self.raw(x0_s + k as f64 * dt_s, &[]))
             .collect()
     }
 
-    /// Checks the probability, amplitude, modes and decay.
+    /// Time from the onset to the zero-phase event's largest positive
+    /// excursion, seconds.
+    pub fn peak_offset_s(&self) -> f64 {
+        self.peak_search(&[]).0
+    }
+
+    fn zero_phase_norm(&self) -> f64 {
+        match self.shape {
+            EventShape::MultiMode => self.norm(),
+            _ => self.peak_search(&[]).1,
+        }
+    }
+
+    /// Checks the probability, amplitude, spread, modes, decay and placement
+    /// (that a [`NearReturn`](EventPlacement::NearReturn) event has a target
+    /// is checked by [`GenConfig::validate`]).
     pub fn validate(&self) -> Result<(), String> {
         if !(0.0..=1.0).contains(&self.probability) {
             return Err(format!(
@@ -396,7 +686,16 @@ impl EventConfig {
                 self.peak_v
             ));
         }
-        if self.modes_hz.is_empty() || self.modes_hz.iter().any(|f| !(*f > 0.0 && f.is_finite())) {
+        if !(self.amplitude_spread >= 0.0 && self.amplitude_spread.is_finite()) {
+            return Err(format!(
+                "events.amplitude_spread {} must be finite and >= 0",
+                self.amplitude_spread
+            ));
+        }
+        if self.shape != EventShape::Doublet
+            && (self.modes_hz.is_empty()
+                || self.modes_hz.iter().any(|f| !(*f > 0.0 && f.is_finite())))
+        {
             return Err(format!(
                 "events.modes_hz {:?}: at least one positive frequency",
                 self.modes_hz
@@ -405,10 +704,71 @@ impl EventConfig {
         if !(self.decay_s > 0.0 && self.decay_s.is_finite()) {
             return Err(format!("events.decay_s {} must be positive", self.decay_s));
         }
-        if self.norm() <= 0.0 {
-            return Err("events: the burst has no positive excursion".into());
+        match self.placement {
+            EventPlacement::Uniform => {}
+            EventPlacement::NearReturn { max_offset_s } => {
+                if !(max_offset_s >= 0.0 && max_offset_s.is_finite()) {
+                    return Err(format!(
+                        "events.placement: max_offset_s {max_offset_s} must be finite and >= 0"
+                    ));
+                }
+            }
+            EventPlacement::InGate { from_s, to_s } => {
+                if !(from_s.is_finite() && to_s.is_finite() && from_s <= to_s) {
+                    return Err(format!(
+                        "events.placement: gate [{from_s}, {to_s}] must be finite with from_s <= to_s"
+                    ));
+                }
+            }
+        }
+        if self.zero_phase_norm() <= 0.0 {
+            return Err("events: the event has no positive excursion".into());
         }
         Ok(())
+    }
+}
+
+/// One event's waveform: an [`EventConfig`] with the event's phases and
+/// scale fixed, ready to evaluate many times ([`EventConfig::wave`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct EventWave {
+    cfg: EventConfig,
+    phases_rad: Vec<f64>,
+    scale: f64,
+    peak_offset_s: f64,
+    peak_v: f64,
+}
+
+impl EventWave {
+    /// The event `x_s` seconds after its onset, volts.
+    pub fn value(&self, x_s: f64) -> f64 {
+        self.scale * self.cfg.raw(x_s, &self.phases_rad)
+    }
+
+    /// The event sampled every `dt_s` from `x0_s` after its onset: `n`
+    /// values, volts.
+    pub fn render(&self, x0_s: f64, dt_s: f64, n: usize) -> Vec<f64> {
+        (0..n).map(|k| self.value(x0_s + k as f64 * dt_s)).collect()
+    }
+
+    /// Time from the onset to the largest positive excursion, seconds.
+    pub fn peak_offset_s(&self) -> f64 {
+        self.peak_offset_s
+    }
+
+    /// The largest positive excursion, volts.
+    pub fn peak_v(&self) -> f64 {
+        self.peak_v
+    }
+
+    /// Length after the onset past which the event is zero, seconds.
+    pub fn duration_s(&self) -> f64 {
+        self.cfg.duration_s()
+    }
+
+    /// The event's phases, radians.
+    pub fn phases_rad(&self) -> &[f64] {
+        &self.phases_rad
     }
 }
 
@@ -471,9 +831,9 @@ pub struct GenConfig {
     /// Nominal time of the shot after the first sample, seconds; the frame's
     /// `first_sample_offset_s` is `−pretrigger_s`.
     pub pretrigger_s: f64,
-    /// Interference bursts on the stop channel; `None`: none.
+    /// Interference events on the stop channel; `None`: none.
     pub events: Option<EventConfig>,
-    /// No start pulse and no returns: noise (and bursts) only; the scope's
+    /// No start pulse and no returns: noise (and events) only; the scope's
     /// settings stay those of the laser-on configuration.
     pub laser_off: bool,
     /// Speed of light in the medium, m/s: [`C_VACUUM_M_PER_S`] /
@@ -491,7 +851,7 @@ impl Default for GenConfig {
     ///
     /// Assumed, as the source does not say: start-channel noise 2 mV, shot
     /// jitter 100 ps rms, shot 250 ns after the first sample, baseline a
-    /// quarter of the span above the bottom rail, no interference bursts
+    /// quarter of the span above the bottom rail, no interference events
     /// (their per-frame rate is not given; see [`EventConfig::default`]).
     fn default() -> Self {
         GenConfig {
@@ -591,6 +951,9 @@ impl GenConfig {
         }
         if let Some(e) = &self.events {
             e.validate()?;
+            if matches!(e.placement, EventPlacement::NearReturn { .. }) && self.targets.is_empty() {
+                return Err("events.placement: NearReturn needs at least one target".into());
+            }
         }
         Ok(())
     }
@@ -682,14 +1045,42 @@ pub struct GenTruth {
     /// The returns, in target order; empty when the laser is off. A return
     /// whose onset lies outside the frame is listed all the same.
     pub returns: Vec<TrueEcho>,
-    /// Onset of the interference burst relative to the trigger, seconds.
+    /// Onset of the interference event relative to the trigger, seconds
+    /// (the same as `event`'s `onset_s`; kept for existing callers).
     pub event_at_s: Option<f64>,
+    /// The interference event, if the frame holds one.
+    pub event: Option<TrueEvent>,
     /// The laser was off.
     pub laser_off: bool,
     /// Stop-channel samples clipped at an ADC rail.
     pub clipped_stop: usize,
     /// Start-channel samples clipped at an ADC rail.
     pub clipped_start: usize,
+}
+
+/// One interference event as generated. Times relative to the trigger.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TrueEvent {
+    /// Onset: the event is exactly zero up to here, seconds. It may lie
+    /// before the first sample (placements by peak) or after the last.
+    pub onset_s: f64,
+    /// Instant of the event's largest positive excursion, seconds.
+    pub peak_s: f64,
+    /// End: the event is exactly zero after `onset_s + duration_s`, seconds.
+    pub end_s: f64,
+    /// The event's largest positive excursion, volts (before noise, limit and
+    /// quantisation; between samples in general).
+    pub peak_v: f64,
+    /// The event's waveform, `x` seconds after `onset_s` (its phases are
+    /// [`EventWave::phases_rad`], all zero without `random_phase`).
+    pub wave: EventWave,
+}
+
+impl TrueEvent {
+    /// The event's contribution at `t_s` seconds after the trigger, volts.
+    pub fn value_at(&self, t_s: f64) -> f64 {
+        self.wave.value(t_s - self.onset_s)
+    }
 }
 
 /// `frames` frames, indices `0..frames`, each as [`frame_with_seed`] makes it.
@@ -713,17 +1104,17 @@ pub fn frame_with_seed(cfg: &GenConfig, seed: u64, index: u64) -> (Frame, GenTru
     let t_first = -cfg.pretrigger_s;
     let time = |k: usize| t_first + k as f64 * dt;
 
-    // Draw order is fixed: shot phase, jitter, burst, stop noise, start noise.
+    // Draw order is fixed: shot phase, jitter, event (2), stop noise (n),
+    // start noise (n), then, only in frames holding an event, its amplitude
+    // and phases. The last come after every other draw, so that they leave
+    // the frames of earlier versions (which did not make them) unchanged.
     let phase: f64 = rng.random();
     let jitter: f64 = rng.sample(StandardNormal);
     let t_shot_s = (phase - 0.5) * dt + cfg.start_jitter_s * jitter;
-    // Both burst draws are made whether or not bursts are configured, so
+    // Both event draws are made whether or not events are configured, so
     // switching them on leaves the rest of the frame's noise unchanged.
     let (u_event, u_position): (f64, f64) = (rng.random(), rng.random());
-    let event_at_s = match &cfg.events {
-        Some(ev) if u_event < ev.probability => Some(t_first + u_position * n as f64 * dt),
-        _ => None,
-    };
+    let event_cfg = cfg.events.as_ref().filter(|ev| u_event < ev.probability);
 
     let returns: Vec<TrueEcho> = if cfg.laser_off {
         Vec::new()
@@ -742,7 +1133,49 @@ pub fn frame_with_seed(cfg: &GenConfig, seed: u64, index: u64) -> (Frame, GenTru
             .collect()
     };
 
-    // Stop channel: returns + burst + noise, limit.
+    let stop_noise: Vec<f64> = (0..n).map(|_| rng.sample(StandardNormal)).collect();
+    let start_noise: Vec<f64> = (0..n).map(|_| rng.sample(StandardNormal)).collect();
+
+    let event: Option<TrueEvent> = event_cfg.map(|ev| {
+        // Both drawn in every event, whichever options are on.
+        let z: f64 = rng.sample(StandardNormal);
+        let phases: Vec<f64> = (0..ev.phase_count())
+            .map(|_| rng.random::<f64>() * std::f64::consts::TAU)
+            .collect();
+        let phases_rad = if ev.random_phase {
+            phases
+        } else {
+            vec![0.0; ev.phase_count()]
+        };
+        let peak_v = if ev.amplitude_spread > 0.0 {
+            let s2 = ev.amplitude_spread.powi(2).ln_1p();
+            ev.peak_v * (s2.sqrt() * z - 0.5 * s2).exp()
+        } else {
+            ev.peak_v
+        };
+        let wave = ev.wave(&phases_rad, peak_v);
+        let onset_s = match ev.placement {
+            EventPlacement::Uniform => t_first + u_position * n as f64 * dt,
+            EventPlacement::NearReturn { max_offset_s } => {
+                let tof_s = cfg.tof_s(cfg.targets[0].0);
+                let t_peak =
+                    t_shot_s + cfg.system_delay_s + tof_s + cfg.return_pulse.peak_offset_s();
+                t_peak + (2.0 * u_position - 1.0) * max_offset_s - wave.peak_offset_s()
+            }
+            EventPlacement::InGate { from_s, to_s } => {
+                from_s + u_position * (to_s - from_s) - wave.peak_offset_s()
+            }
+        };
+        TrueEvent {
+            onset_s,
+            peak_s: onset_s + wave.peak_offset_s(),
+            end_s: onset_s + wave.duration_s(),
+            peak_v: wave.peak_v(),
+            wave,
+        }
+    });
+
+    // Stop channel: returns + event + noise, limit.
     let ret = cfg.return_pulse.evaluator();
     let support = cfg.return_pulse.support_s();
     let mut stop = vec![0.0; n];
@@ -754,8 +1187,11 @@ pub fn frame_with_seed(cfg: &GenConfig, seed: u64, index: u64) -> (Frame, GenTru
             }
         }
     }
-    if let (Some(ev), Some(t_ev)) = (&cfg.events, event_at_s) {
-        for (v, b) in stop.iter_mut().zip(ev.render(t_first - t_ev, dt, n)) {
+    if let Some(e) = &event {
+        for (v, b) in stop
+            .iter_mut()
+            .zip(e.wave.render(t_first - e.onset_s, dt, n))
+        {
             *v += b;
         }
     }
@@ -764,8 +1200,7 @@ pub fn frame_with_seed(cfg: &GenConfig, seed: u64, index: u64) -> (Frame, GenTru
         .map_or(0.0, |b| (-2.0 * std::f64::consts::PI * b * dt).exp());
     let innovation = (1.0 - a * a).sqrt();
     let mut state = 0.0;
-    for (k, v) in stop.iter_mut().enumerate() {
-        let w: f64 = rng.sample(StandardNormal);
+    for (k, (v, &w)) in stop.iter_mut().zip(&stop_noise).enumerate() {
         // Stationary from the first sample: y[0] ~ N(0, 1).
         state = if k == 0 {
             w
@@ -782,14 +1217,13 @@ pub fn frame_with_seed(cfg: &GenConfig, seed: u64, index: u64) -> (Frame, GenTru
     let st = cfg.start_pulse.evaluator();
     let st_support = cfg.start_pulse.support_s();
     let mut start = vec![0.0; n];
-    for (k, v) in start.iter_mut().enumerate() {
+    for (k, (v, &w)) in start.iter_mut().zip(&start_noise).enumerate() {
         if !cfg.laser_off {
             let x = time(k) - t_shot_s;
             if x > 0.0 && x < st_support {
                 *v += cfg.start_amplitude_v * st.value(x);
             }
         }
-        let w: f64 = rng.sample(StandardNormal);
         *v += cfg.start_noise_sigma_v * w;
     }
 
@@ -819,7 +1253,8 @@ pub fn frame_with_seed(cfg: &GenConfig, seed: u64, index: u64) -> (Frame, GenTru
     let truth = GenTruth {
         t_shot_s,
         returns,
-        event_at_s,
+        event_at_s: event.as_ref().map(|e| e.onset_s),
+        event,
         laser_off: cfg.laser_off,
         clipped_stop,
         clipped_start,

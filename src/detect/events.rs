@@ -127,7 +127,11 @@ impl EventTest {
     /// Judges the detection `peaks[which]` (fractional peak indices into
     /// `x`, every detection of the frame) against `threshold` (the
     /// detector's, in units of its output sigma).
-    pub fn judge(&mut self, x: &[f64], noise: NoiseTerms, pulse: &Shape, peaks: &[f64], which: usize, threshold: f64) -> Verdict {
+    ///
+    /// Step 2 takes `accepted` as known pulses (the caller passes every
+    /// detection: `peaks` again).
+    #[allow(clippy::too_many_arguments)]
+    pub fn judge(&mut self, x: &[f64], noise: NoiseTerms, pulse: &Shape, peaks: &[f64], which: usize, accepted: &[f64], threshold: f64) -> Verdict {
         let cfg = self.cfg();
         let n = x.len();
         let c = peaks[which];
@@ -175,10 +179,8 @@ impl EventTest {
         // detection's pulse projected off them.
         self.q.clear();
         self.push_band(first, len, cfg.max_frequency);
-        for (k, &p) in peaks.iter().enumerate() {
-            if k != which && reaches(p) {
-                self.push_pulse(pulse, p, first, len, true);
-            }
+        for &p in accepted.iter().filter(|&&p| p != c && reaches(p)) {
+            self.push_pulse(pulse, p, first, len, true);
         }
         let z = self.pulse_statistic(&x[window], noise, pulse, c, first);
         if z > threshold { Verdict::ReturnWithEvent(z) } else { Verdict::Event(z) }
@@ -433,19 +435,19 @@ mod tests {
         for (i, v) in x.iter_mut().enumerate() {
             *v += 20.0 * s.value_and_slope(i as f64 - 300.3).0;
         }
-        assert_eq!(t.judge(&x, WHITE, &s, &[300.0], 0, 5.0), Verdict::Return);
+        assert_eq!(t.judge(&x, WHITE, &s, &[300.0], 0, &[], 5.0), Verdict::Return);
         // A 5 MHz event lobe of 4 sigma: wide, with lobes of the other sign.
         let mut y = noise(600, 4);
         for (i, v) in y.iter_mut().enumerate() {
             let t_s = (i as f64 - 300.0) * 1e-9;
             *v += 4.0 * (2.0 * std::f64::consts::PI * 5e6 * t_s).cos() * (-(t_s / 300e-9).powi(2)).exp();
         }
-        assert!(matches!(t.judge(&y, WHITE, &s, &[300.0], 0, 5.0), Verdict::Event(_)));
+        assert!(matches!(t.judge(&y, WHITE, &s, &[300.0], 0, &[], 5.0), Verdict::Event(_)));
         // The return on the lobe: still a return.
         for (i, v) in y.iter_mut().enumerate() {
             *v += 20.0 * s.value_and_slope(i as f64 - 310.0).0;
         }
-        assert!(matches!(t.judge(&y, WHITE, &s, &[310.0], 0, 5.0), Verdict::ReturnWithEvent(_)));
+        assert!(matches!(t.judge(&y, WHITE, &s, &[310.0], 0, &[], 5.0), Verdict::ReturnWithEvent(_)));
     }
 
     #[test]

@@ -257,8 +257,13 @@ impl GateCleaner {
         }
         let k = crate::math::special::q_inv(0.5 * CLIP_ANY / n as f64);
         let block = block.max(4);
-        let (mut c, mut s) = (centre, sigma);
+        // Pulses or events may cover most of a gate (a pulse train): its
+        // quietest block, about its own mean, bounds the starting sigma (low
+        // by a fifth for white noise: the first pass's clip is then at ~3.7σ).
+        let quiet_block = self.quiet_block_sigma(x, gates, block.max(4));
+        let sigma = if quiet_block > 0.0 { sigma.min(quiet_block) } else { sigma };
         let g = self.own_colour(x, gates, sigma);
+        let (mut c, mut s) = (centre, sigma);
         let mut last_kept = usize::MAX;
         for pass in 0..CLEAN_PASSES {
             self.dropped.clear();
@@ -314,6 +319,25 @@ impl GateCleaner {
             last_kept = count;
         }
         &self.kept
+    }
+
+    /// Smallest of the gates' block standard deviations (each block of
+    /// `block` samples about its own mean); 0 with fewer than four blocks.
+    fn quiet_block_sigma(&mut self, x: &[f64], gates: &[Range<usize>], block: usize) -> f64 {
+        self.diffs.clear();
+        for r in gates {
+            let mut start = r.start;
+            while start + block <= r.end {
+                let b = &x[start..start + block];
+                let m = b.iter().sum::<f64>() / block as f64;
+                self.diffs.push((b.iter().map(|v| (v - m) * (v - m)).sum::<f64>() / (block - 1) as f64).sqrt());
+                start += block;
+            }
+        }
+        if self.diffs.len() < 4 {
+            return 0.0;
+        }
+        self.diffs.iter().copied().fold(f64::INFINITY, f64::min)
     }
 
     /// 1 + 2 Σ ρ̂(k)² over lags 1..[`BLOCK_LAGS`], each ρ̂(k) robust:

@@ -186,6 +186,15 @@ impl EventTest {
         if z > threshold { Verdict::ReturnWithEvent(z) } else { Verdict::Event(z) }
     }
 
+    /// Grows the scratch for windows of `pulse` with up to 16 pulses in one,
+    /// so that judging does not allocate.
+    pub fn reserve(&mut self, pulse: &Shape) {
+        let len = self.window_len(pulse);
+        let band = (2.0 * self.cfg().max_frequency * len as f64).ceil() as usize * 2 + 2;
+        self.q.reserve((band + 32) * len);
+        self.col.reserve(len);
+    }
+
     /// Window length of a detection's test, samples (away from the frame's edges).
     pub fn window_len(&self, pulse: &Shape) -> usize {
         let (lo, hi) = pulse.support();
@@ -208,7 +217,12 @@ impl EventTest {
         if self.null.band.as_ref().is_none_or(|b| b.0 != len) {
             self.q.clear();
             self.push_band(0, len, cfg.max_frequency);
-            self.null = EmpiricalNull { band: Some((len, self.q.clone())), ..EmpiricalNull::default() };
+            self.null = EmpiricalNull {
+                band: Some((len, self.q.clone())),
+                values: Vec::with_capacity(NULL_CAP),
+                sorted: Vec::with_capacity(NULL_CAP),
+                ..EmpiricalNull::default()
+            };
         }
         let null = &mut self.null;
         let band = &null.band.as_ref().expect("set above").1;
@@ -235,7 +249,7 @@ impl EventTest {
             null.fresh = 0;
             null.sorted.clear();
             null.sorted.extend_from_slice(&null.values);
-            null.sorted.sort_by(f64::total_cmp);
+            null.sorted.sort_unstable_by(f64::total_cmp);
             let at = |p: f64| null.sorted[((null.sorted.len() - 1) as f64 * p).round() as usize];
             let (q1, med, q3) = (at(0.25), at(0.5), at(0.75));
             if med > 0.0 {

@@ -244,6 +244,14 @@ pub struct GateCleaner {
 }
 
 impl GateCleaner {
+    /// Grows the scratch for frames of `samples` samples now, so that the
+    /// first contaminated frame does not allocate.
+    pub fn reserve(&mut self, samples: usize, runs: usize) {
+        self.dropped.reserve(samples.saturating_sub(self.dropped.len()));
+        self.diffs.reserve(samples.saturating_sub(self.diffs.len()));
+        self.kept.reserve(runs.saturating_sub(self.kept.len()));
+    }
+
     /// Runs of `gates` kept after cleaning `x` (see the type's doc); `centre`
     /// and `sigma` start the passes: a robust centre of the gates, and a
     /// sigma that an event covering most of the gate has not inflated (the

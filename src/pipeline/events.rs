@@ -8,6 +8,9 @@ use crate::dsp::pulse::Shape;
 use crate::frame::FrameFlag;
 use crate::scene::{EventsConfig, PulseConfig, Scene};
 
+/// Scratch sized for this many detections a frame before any frame needs it.
+const MAX_DETECTIONS: usize = 64;
+
 /// The events stage.
 #[derive(Debug)]
 pub struct Events {
@@ -43,7 +46,10 @@ impl Events {
                 flank: (self.cfg.flank_s / dt).ceil().max(1.0) as usize,
                 fit_alpha: self.cfg.fit_alpha,
             };
-            self.plan = Some((dt, self.pulse_cfg.shape(dt), EventTest::new(cfg)));
+            let shape = self.pulse_cfg.shape(dt);
+            let mut test = EventTest::new(cfg);
+            test.reserve(&shape);
+            self.plan = Some((dt, shape, test));
         }
     }
 }
@@ -55,6 +61,9 @@ impl Stage for Events {
 
     fn process(&mut self, mut w: Work, out: &mut Vec<Work>) -> Result<(), FrameError> {
         w.buffers.interfered.clear();
+        w.buffers.interfered.reserve(MAX_DETECTIONS);
+        self.peaks.reserve(MAX_DETECTIONS);
+        self.verdicts.reserve(MAX_DETECTIONS);
         let dt = w.frame.sample_interval_s;
         self.refresh(dt);
         let (_, shape, test) = self.plan.as_mut().expect("set above");

@@ -16,6 +16,9 @@ use crate::detect::noise_model::{NoiseFitter, NoiseTracker};
 use crate::frame::NoiseSummary;
 use crate::scene::Scene;
 
+/// Most kept runs of a cleaned gate the noise model is fitted on.
+const MAX_RUNS: usize = 64;
+
 /// A gate whose sigma exceeds the last frame's by this factor is cleaned as
 /// if contaminated.
 const SIGMA_JUMP: f64 = 1.3;
@@ -87,8 +90,12 @@ impl Stage for Noise {
         let noise = self
             .fitter
             .fit(&[&stop_v[g.pre.clone()], &stop_v[g.beyond.clone()]], s.detector.normality_alpha);
+        // Scratch for a contaminated gate, grown on the first frame.
+        self.cleaner.reserve(stop_v.len(), MAX_RUNS);
+        self.sorted.reserve(stop_v.len().saturating_sub(self.sorted.len()));
         let quiet = &mut w.buffers.quiet;
         quiet.clear();
+        quiet.reserve(MAX_RUNS);
         quiet.extend([g.pre.clone(), g.beyond.clone()].into_iter().filter(|r| !r.is_empty()));
         // A gate holding pulses or events: fit on what looks like noise. An
         // event filling most of the gate inflates the robust sigma too, so a
@@ -116,8 +123,14 @@ impl Stage for Noise {
             let kept = self.cleaner.clean(&stop_v, quiet, median, start, dilate, block);
             quiet.clear();
             quiet.extend_from_slice(kept);
-            let parts: Vec<&[f64]> = quiet.iter().map(|r| &stop_v[r.clone()]).collect();
-            let clean = self.fitter.fit(&parts, s.detector.normality_alpha);
+            // The kept runs as slices, on the stack (a cleaned gate has a few
+            // dozen runs at most; any beyond MAX_RUNS are left out of the fit).
+            let mut parts: [&[f64]; MAX_RUNS] = [&[]; MAX_RUNS];
+            let runs = quiet.len().min(MAX_RUNS);
+            for (p, r) in parts.iter_mut().zip(quiet.iter()) {
+                *p = &stop_v[r.clone()];
+            }
+            let clean = self.fitter.fit(&parts[..runs], s.detector.normality_alpha);
             // The verdict stays the raw gate's; the model is the cleaned one's.
             NoiseSummary { contaminated: noise.contaminated || quiet.len() > 2 || clean.samples < noise.samples, robust_sigma_v: noise.robust_sigma_v, ..clean }
         } else {

@@ -213,6 +213,10 @@ const BLOCK_ALPHA: f64 = 1e-3;
 /// Lags of the gate's own autocorrelation that set a block's degrees of freedom.
 const BLOCK_LAGS: usize = 16;
 
+/// The smallest of some twenty block standard deviations of white noise
+/// (about 50 samples each) reads about 0.8 σ: the starting bound is scaled back by this.
+const QUIET_BLOCK_BIAS: f64 = 1.25;
+
 /// Most cleaning passes (each pass refits the centre and sigma on what it kept).
 const CLEAN_PASSES: usize = 8;
 
@@ -241,6 +245,8 @@ pub struct GateCleaner {
     kept: Vec<Range<usize>>,
     /// Lagged differences (scratch for the robust colour).
     diffs: Vec<f64>,
+    /// 1 + 2Σρ̂² of the last cleaned gate (robust; see `own_colour`).
+    colour_gain: f64,
 }
 
 impl GateCleaner {
@@ -266,11 +272,11 @@ impl GateCleaner {
         let k = crate::math::special::q_inv(0.5 * CLIP_ANY / n as f64);
         let block = block.max(4);
         // Pulses or events may cover most of a gate (a pulse train): its
-        // quietest block, about its own mean, bounds the starting sigma (low
-        // by a fifth for white noise: the first pass's clip is then at ~3.7σ).
+        // quietest block, about its own mean, bounds the starting sigma.
         let quiet_block = self.quiet_block_sigma(x, gates, block.max(4));
-        let sigma = if quiet_block > 0.0 { sigma.min(quiet_block) } else { sigma };
+        let sigma = if quiet_block > 0.0 { sigma.min(QUIET_BLOCK_BIAS * quiet_block) } else { sigma };
         let g = self.own_colour(x, gates, sigma);
+        self.colour_gain = g;
         let (mut c, mut s) = (centre, sigma);
         let mut last_kept = usize::MAX;
         for pass in 0..CLEAN_PASSES {
@@ -327,6 +333,12 @@ impl GateCleaner {
             last_kept = count;
         }
         &self.kept
+    }
+
+    /// 1 + 2 Σ ρ̂(k)² (lags 1..16, robust) of the last gate cleaned: the
+    /// variance of a variance estimate on it is this many times the white one's.
+    pub fn colour_gain(&self) -> f64 {
+        self.colour_gain.max(1.0)
     }
 
     /// Smallest of the gates' block standard deviations (each block of

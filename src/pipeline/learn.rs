@@ -226,6 +226,11 @@ pub fn learn_shapes(
     let dt = frames.first().ok_or(LearnError::NoFrames)?.sample_interval_s;
     let mut scene = scene.clone();
     let user_method = scene.timing.method;
+    // The shape is what is being learned: the scene's may not fit the data
+    // yet, and the events stage judges detections by it (a return wider
+    // than the scene's pulse looks like an event's lobe). It is restored below.
+    let user_events = scene.events.enabled;
+    scene.events.enabled = false;
     for pass in 0..opts.passes.max(1) {
         scene.timing.method = if pass == 0 { TimingMethod::PeakParabolic } else { TimingMethod::Ml };
         let p = pass + 1;
@@ -272,5 +277,6 @@ pub fn learn_shapes(
         });
     }
     scene.timing.method = user_method;
+    scene.events.enabled = user_events;
     Ok(scene)
 }

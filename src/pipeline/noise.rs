@@ -16,12 +16,16 @@ use crate::detect::noise_model::{NoiseFitter, NoiseTracker};
 use crate::frame::NoiseSummary;
 use crate::scene::Scene;
 
+/// A cleaning that keeps fewer samples than this (or than the scene's
+/// `noise_gate.min_samples`) is not used.
+const MIN_KEPT: usize = 32;
+
 /// Most kept runs of a cleaned gate the noise model is fitted on.
 const MAX_RUNS: usize = 64;
 
 /// A gate whose sigma exceeds the last frame's by this factor is cleaned as
 /// if contaminated.
-const SIGMA_JUMP: f64 = 1.3;
+const SIGMA_JUMP: f64 = 3.0;
 
 /// Fits the stop channel's noise model.
 #[derive(Debug)]
@@ -116,13 +120,20 @@ impl Stage for Noise {
             sorted.extend(quiet.iter().flat_map(|r| stop_v[r.clone()].iter().copied()).filter(|v| v.is_finite()));
             let mid = sorted.len() / 2;
             let median = if sorted.is_empty() { noise.mean_v } else { *sorted.select_nth_unstable_by(mid, f64::total_cmp).1 };
+            // The robust sigma, or the last frame's where lower (an event
+            // covering most of the gate inflates the robust one too).
             let start = match self.last_sigma {
                 Some(last) if last > 0.0 => last.min(noise.robust_sigma_v),
                 _ => noise.robust_sigma_v,
             };
             let kept = self.cleaner.clean(&stop_v, quiet, median, start, dilate, block);
-            quiet.clear();
-            quiet.extend_from_slice(kept);
+            // Too little left to rest a noise model on (coloured noise whose
+            // quiet blocks read low can clip nearly everything): the raw gates.
+            let kept_samples: usize = kept.iter().map(|r| r.len()).sum();
+            if kept_samples >= s.noise_gate.min_samples.max(MIN_KEPT) {
+                quiet.clear();
+                quiet.extend_from_slice(kept);
+            }
             // The kept runs as slices, on the stack (a cleaned gate has a few
             // dozen runs at most; any beyond MAX_RUNS are left out of the fit).
             let mut parts: [&[f64]; MAX_RUNS] = [&[]; MAX_RUNS];
@@ -131,8 +142,21 @@ impl Stage for Noise {
                 *p = &stop_v[r.clone()];
             }
             let clean = self.fitter.fit(&parts[..runs], s.detector.normality_alpha);
-            // The verdict stays the raw gate's; the model is the cleaned one's.
-            NoiseSummary { contaminated: noise.contaminated || quiet.len() > 2 || clean.samples < noise.samples, robust_sigma_v: noise.robust_sigma_v, ..clean }
+            // A cleaning that moves sigma by less than the raw gate's own
+            // sampling spread (z at normality_alpha; widened by the gate's
+            // colour) found nothing worth dropping (the flag's false alarms,
+            // frequent on strongly coloured noise): the raw fit stands.
+            let n = noise.samples.max(2) as f64;
+            let spread = crate::math::special::q_inv(0.5 * s.detector.normality_alpha.clamp(1e-12, 0.5)) * noise.sigma_v
+                * (self.cleaner.colour_gain() / (2.0 * (n - 1.0))).sqrt();
+            if (clean.sigma_v - noise.sigma_v).abs() <= spread {
+                quiet.clear();
+                quiet.extend([g.pre.clone(), g.beyond.clone()].into_iter().filter(|r| !r.is_empty()));
+                self.fitter.fit(&[&stop_v[g.pre.clone()], &stop_v[g.beyond.clone()]], s.detector.normality_alpha)
+            } else {
+                // The verdict stays the raw gate's; the model is the cleaned one's.
+                NoiseSummary { contaminated: true, robust_sigma_v: noise.robust_sigma_v, ..clean }
+            }
         } else {
             noise
         };

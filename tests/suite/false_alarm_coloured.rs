@@ -123,6 +123,12 @@ fn scene(pfa: f64) -> Scene {
     s.detector.pfa = pfa;
     s.timing.method = TimingMethod::PeakParabolic;
     s.range_gate = RangeGateConfig { min_m: 0.0, max_m: MAX_M };
+    // What these tests check is the detector's threshold design. The events
+    // stage (on in the default scene) can only take reports away: on strongly
+    // coloured noise it drops some noise crossings whose shape is
+    // band-limited (simulator TIA noise, gate 400, pfa 1e-3: 29 of 50 000
+    // reports with it, 35 without, design 50).
+    s.events.enabled = false;
     s
 }
 

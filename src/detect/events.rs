@@ -86,6 +86,12 @@ pub struct EventTest {
     q: Vec<f64>,
     /// The column being built.
     col: Vec<f64>,
+    /// x − μ over the window.
+    xw: Vec<f64>,
+    /// The pulses' own orthonormal columns (step 1).
+    qp: Vec<f64>,
+    /// Orthonormal band columns of the nominal window length.
+    band: Option<(usize, Vec<f64>)>,
     /// The step-1 statistic's distribution under noise, learned from the gates.
     null: EmpiricalNull,
 }
@@ -149,21 +155,23 @@ impl EventTest {
         }
         // The other detections whose pulse reaches the window.
         let reaches = |p: f64| p + hi >= first as f64 && p + lo <= last as f64;
-        // Step 1: every reaching detection as a pulse and its slope.
-        self.q.clear();
+        // Step 1: what the event subspace explains of x beyond the pulses
+        // (and slopes) of every reaching detection: the energy in the span
+        // of both less the energy in the pulses' span alone.
+        self.xw.clear();
+        self.xw.extend(x[window.clone()].iter().map(|v| v - noise.mean_v));
+        self.qp.clear();
+        std::mem::swap(&mut self.q, &mut self.qp);
         for &p in peaks.iter().filter(|&&p| reaches(p)) {
             self.push_pulse(pulse, p, first, len, true);
         }
-        let pulses = self.q.len() / len;
-        // The event subspace's columns, orthonormalised against the pulses:
-        // what they explain of x beyond the pulses is the test statistic.
-        self.push_band(first, len, cfg.max_frequency);
-        self.col.clear();
-        self.col.extend(x[window.clone()].iter().map(|v| v - noise.mean_v));
-        let explained: f64 = self.q[pulses * len..]
-            .chunks_exact(len)
-            .map(|b| b.iter().zip(&self.col).map(|(u, v)| u * v).sum::<f64>().powi(2))
-            .sum();
+        std::mem::swap(&mut self.q, &mut self.qp);
+        let pulses_alone = energy(&self.qp, len, &self.xw);
+        self.load_band(first, len, cfg.max_frequency);
+        for &p in peaks.iter().filter(|&&p| reaches(p)) {
+            self.push_pulse(pulse, p, first, len, true);
+        }
+        let explained = (energy(&self.q, len, &self.xw) - pulses_alone).max(0.0);
         let limit = match self.null.limit {
             Some((_, _, limit)) => limit,
             None => {
@@ -177,8 +185,7 @@ impl EventTest {
         }
         // Step 2: the event subspace and the other detections, then this
         // detection's pulse projected off them.
-        self.q.clear();
-        self.push_band(first, len, cfg.max_frequency);
+        self.load_band(first, len, cfg.max_frequency);
         for &p in accepted.iter().filter(|&&p| p != c && reaches(p)) {
             self.push_pulse(pulse, p, first, len, true);
         }
@@ -192,7 +199,11 @@ impl EventTest {
         let len = self.window_len(pulse);
         let band = (2.0 * self.cfg().max_frequency * len as f64).ceil() as usize * 2 + 2;
         self.q.reserve((band + 32) * len);
+        self.qp.reserve(32 * len);
         self.col.reserve(len);
+        self.xw.reserve(len);
+        let f_max = self.cfg().max_frequency;
+        self.load_band(0, len, f_max);
     }
 
     /// Window length of a detection's test, samples (away from the frame's edges).
@@ -314,6 +325,26 @@ impl EventTest {
         }
     }
 
+    /// Sets `q` to the orthonormal band columns of a window of `len`
+    /// (cached for the last length: they depend on nothing else).
+    fn load_band(&mut self, first: usize, len: usize, f_max: f64) {
+        if self.band.as_ref().is_some_and(|b| b.0 == len) {
+            self.q.clear();
+            self.q.extend_from_slice(&self.band.as_ref().expect("checked").1);
+            return;
+        }
+        self.q.clear();
+        self.push_band(first, len, f_max);
+        match &mut self.band {
+            Some((l, b)) => {
+                *l = len;
+                b.clear();
+                b.extend_from_slice(&self.q);
+            }
+            None => self.band = Some((len, self.q.clone())),
+        }
+    }
+
     /// Appends cos and sin columns at f = 0, Δf, … ≤ `f_max` (cycles per
     /// sample), Δf = 1/(2·len): the band-limited subspace over the window.
     fn push_band(&mut self, first: usize, len: usize, f_max: f64) {
@@ -352,6 +383,11 @@ impl EventTest {
             self.q.extend(self.col.iter().map(|v| v / e));
         }
     }
+}
+
+/// Σ (q_jᵀv)² over the orthonormal columns of `q`: the energy of `v` in their span.
+fn energy(q: &[f64], len: usize, v: &[f64]) -> f64 {
+    q.chunks_exact(len).map(|col| col.iter().zip(v).map(|(a, b)| a * b).sum::<f64>().powi(2)).sum()
 }
 
 /// Removes from `v` its components along the orthonormal columns of `q`.

@@ -37,7 +37,7 @@
 //! only where the flanks show something that is not noise.
 
 use crate::dsp::pulse::{PulseShape, Shape};
-use crate::math::special::q_inv;
+use crate::math::stats::chi2_upper;
 
 /// Columns whose norm falls below this fraction of their own before
 /// orthogonalisation are dependent on the earlier ones and dropped.
@@ -105,10 +105,10 @@ struct EmpiricalNull {
     /// Values added since the last fit.
     fresh: usize,
     sorted: Vec<f64>,
-    /// Orthonormal band columns of a window of `.0` samples.
-    band: Option<(usize, Vec<f64>)>,
-    /// Fitted scale a, degrees of freedom ν and the upper `fit_alpha` limit.
-    limit: Option<(f64, f64, f64)>,
+    /// Window length the values were taken with.
+    len: usize,
+    /// The upper `fit_alpha` limit of the scaled χ² fitted to the quartiles.
+    limit: Option<f64>,
 }
 
 /// Gate windows kept for the learned null.
@@ -133,11 +133,10 @@ impl EventTest {
     /// Judges the detection `peaks[which]` (fractional peak indices into
     /// `x`, every detection of the frame) against `threshold` (the
     /// detector's, in units of its output sigma).
-    ///
-    /// Step 2 takes `accepted` as known pulses (the caller passes every
-    /// detection: `peaks` again).
-    #[allow(clippy::too_many_arguments)]
-    pub fn judge(&mut self, x: &[f64], noise: NoiseTerms, pulse: &Shape, peaks: &[f64], which: usize, accepted: &[f64], threshold: f64) -> Verdict {
+    /// Every other detection is a known pulse to step 2 (taking only those
+    /// already judged returns lets a strong event lobe judged first stand
+    /// and mask the return under it).
+    pub fn judge(&mut self, x: &[f64], noise: NoiseTerms, pulse: &Shape, peaks: &[f64], which: usize, threshold: f64) -> Verdict {
         let cfg = self.cfg();
         let n = x.len();
         let c = peaks[which];
@@ -173,7 +172,7 @@ impl EventTest {
         }
         let explained = (energy(&self.q, len, &self.xw) - pulses_alone).max(0.0);
         let limit = match self.null.limit {
-            Some((_, _, limit)) => limit,
+            Some(limit) => limit,
             None => {
                 let (mean, var) = band_null_moments(len, cfg.max_frequency, noise.rho);
                 let scale = var / mean;
@@ -186,7 +185,7 @@ impl EventTest {
         // Step 2: the event subspace and the other detections, then this
         // detection's pulse projected off them.
         self.load_band(first, len, cfg.max_frequency);
-        for &p in accepted.iter().filter(|&&p| p != c && reaches(p)) {
+        for &p in peaks.iter().filter(|&&p| p != c && reaches(p)) {
             self.push_pulse(pulse, p, first, len, true);
         }
         let z = self.pulse_statistic(&x[window], noise, pulse, c, first);
@@ -225,27 +224,22 @@ impl EventTest {
         if !(noise.sigma_v > 0.0) {
             return;
         }
-        if self.null.band.as_ref().is_none_or(|b| b.0 != len) {
-            self.q.clear();
-            self.push_band(0, len, cfg.max_frequency);
+        if self.null.len != len {
             self.null = EmpiricalNull {
-                band: Some((len, self.q.clone())),
+                len,
                 values: Vec::with_capacity(NULL_CAP),
                 sorted: Vec::with_capacity(NULL_CAP),
                 ..EmpiricalNull::default()
             };
         }
+        self.load_band(0, len, cfg.max_frequency);
         let null = &mut self.null;
-        let band = &null.band.as_ref().expect("set above").1;
         for r in runs {
             let mut start = r.start;
             while start + len <= r.end {
-                let w = &x[start..start + len];
-                let e: f64 = band
-                    .chunks_exact(len)
-                    .map(|b| b.iter().zip(w).map(|(u, v)| u * (v - noise.mean_v)).sum::<f64>().powi(2))
-                    .sum();
-                let v = e / (noise.sigma_v * noise.sigma_v);
+                self.xw.clear();
+                self.xw.extend(x[start..start + len].iter().map(|v| v - noise.mean_v));
+                let v = energy(&self.q, len, &self.xw) / (noise.sigma_v * noise.sigma_v);
                 if null.values.len() < NULL_CAP {
                     null.values.push(v);
                 } else {
@@ -266,15 +260,9 @@ impl EventTest {
             if med > 0.0 {
                 let nu = dof_from_spread((q3 - q1) / med);
                 let a = med / chi2_upper(nu, 0.5);
-                null.limit = Some((a, nu, a * chi2_upper(nu, cfg.fit_alpha)));
+                null.limit = Some(a * chi2_upper(nu, cfg.fit_alpha));
             }
         }
-    }
-
-    /// The learned null's scale a and degrees of freedom ν (None before
-    /// [`NULL_MIN`] gate windows).
-    pub fn learned_null(&self) -> Option<(f64, f64)> {
-        self.null.limit.map(|(a, nu, _)| (a, nu))
     }
 
     /// Fraction of a clean return's matched-filter SNR that step 2 keeps
@@ -437,13 +425,6 @@ fn dof_from_spread(spread: f64) -> f64 {
     (0.5 * (lo + hi)).exp()
 }
 
-/// Upper `alpha` quantile of χ² with `nu` degrees of freedom
-/// (Wilson–Hilferty; relative error under 1 % for ν ≥ 3 at α ≥ 1e-6).
-pub fn chi2_upper(nu: f64, alpha: f64) -> f64 {
-    let z = q_inv(alpha);
-    let a = 2.0 / (9.0 * nu);
-    (nu * (1.0 - a + z * a.sqrt()).powi(3)).max(0.0)
-}
 
 #[cfg(test)]
 mod tests {
@@ -471,13 +452,6 @@ mod tests {
     const WHITE: NoiseTerms<'static> = NoiseTerms { mean_v: 0.0, sigma_v: 1.0, rho: &[] };
 
     #[test]
-    fn chi2_quantile_matches_tables() {
-        // χ²(100) upper 1e-3: 149.449; χ²(10) upper 0.01: 23.209.
-        assert!((chi2_upper(100.0, 1e-3) / 149.449 - 1.0).abs() < 2e-3);
-        assert!((chi2_upper(10.0, 0.01) / 23.209 - 1.0).abs() < 5e-3);
-    }
-
-    #[test]
     fn a_clean_return_passes_and_a_broad_lobe_does_not() {
         let s = shape();
         let mut t = test();
@@ -485,19 +459,19 @@ mod tests {
         for (i, v) in x.iter_mut().enumerate() {
             *v += 20.0 * s.value_and_slope(i as f64 - 300.3).0;
         }
-        assert_eq!(t.judge(&x, WHITE, &s, &[300.0], 0, &[], 5.0), Verdict::Return);
+        assert_eq!(t.judge(&x, WHITE, &s, &[300.0], 0, 5.0), Verdict::Return);
         // A 5 MHz event lobe of 4 sigma: wide, with lobes of the other sign.
         let mut y = noise(600, 4);
         for (i, v) in y.iter_mut().enumerate() {
             let t_s = (i as f64 - 300.0) * 1e-9;
             *v += 4.0 * (2.0 * std::f64::consts::PI * 5e6 * t_s).cos() * (-(t_s / 300e-9).powi(2)).exp();
         }
-        assert!(matches!(t.judge(&y, WHITE, &s, &[300.0], 0, &[], 5.0), Verdict::Event(_)));
+        assert!(matches!(t.judge(&y, WHITE, &s, &[300.0], 0, 5.0), Verdict::Event(_)));
         // The return on the lobe: still a return.
         for (i, v) in y.iter_mut().enumerate() {
             *v += 20.0 * s.value_and_slope(i as f64 - 310.0).0;
         }
-        assert!(matches!(t.judge(&y, WHITE, &s, &[310.0], 0, &[], 5.0), Verdict::ReturnWithEvent(_)));
+        assert!(matches!(t.judge(&y, WHITE, &s, &[310.0], 0, 5.0), Verdict::ReturnWithEvent(_)));
     }
 
     #[test]

@@ -296,7 +296,7 @@ impl GateCleaner {
                     continue;
                 }
                 let dof = block as f64 / g;
-                let limit = g * crate::detect::events::chi2_upper(dof, BLOCK_ALPHA) / block as f64;
+                let limit = g * crate::math::stats::chi2_upper(dof, BLOCK_ALPHA) / block as f64;
                 let mut start = r.start;
                 while start + block <= r.end {
                     let ms = x[start..start + block].iter().map(|v| (v - c) * (v - c)).sum::<f64>() / (block as f64 * s * s);

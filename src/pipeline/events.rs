@@ -81,12 +81,9 @@ impl Stage for Events {
             out.push(w);
             return Ok(());
         }
-        // Every other detection is a known pulse to each one's judgement
-        // (taking only those already judged returns, strongest first, lets a
-        // strong event lobe judged first stand and mask the return under it).
         self.verdicts.clear();
         for k in 0..self.peaks.len() {
-            self.verdicts.push(test.judge(&w.buffers.stop_v, noise, shape, &self.peaks, k, &self.peaks, w.threshold.u));
+            self.verdicts.push(test.judge(&w.buffers.stop_v, noise, shape, &self.peaks, k, w.threshold.u));
         }
         let mut dropped = 0;
         let mut k = 0;

@@ -118,8 +118,7 @@ impl Stage for Noise {
             let sorted = &mut self.sorted;
             sorted.clear();
             sorted.extend(quiet.iter().flat_map(|r| stop_v[r.clone()].iter().copied()).filter(|v| v.is_finite()));
-            let mid = sorted.len() / 2;
-            let median = if sorted.is_empty() { noise.mean_v } else { *sorted.select_nth_unstable_by(mid, f64::total_cmp).1 };
+            let median = crate::math::select::high_median(sorted).unwrap_or(noise.mean_v);
             // The robust sigma, or the last frame's where lower (an event
             // covering most of the gate inflates the robust one too).
             let start = match self.last_sigma {
@@ -187,8 +186,7 @@ impl Stage for Noise {
             let sorted = &mut self.sorted;
             sorted.clear();
             sorted.extend_from_slice(&stop_v);
-            let mid = sorted.len() / 2;
-            noise.mean_v = if sorted.is_empty() { 0.0 } else { *sorted.select_nth_unstable_by(mid, f64::total_cmp).1 };
+            noise.mean_v = crate::math::select::high_median(sorted).unwrap_or(0.0);
         }
         if noise.samples >= 2 && noise.sigma_v > 0.0 {
             self.last_sigma = Some(noise.sigma_v);

@@ -39,6 +39,10 @@
 use crate::dsp::pulse::{PulseShape, Shape};
 use crate::math::stats::chi2_upper;
 
+/// Pulses (each with its slope) whose columns one judgement reserves room
+/// for up front; more still work, with a one-off allocation.
+const MAX_PULSE_COLS: usize = 32;
+
 /// Columns whose norm falls below this fraction of their own before
 /// orthogonalisation are dependent on the earlier ones and dropped.
 const DEPENDENT: f64 = 1e-6;
@@ -88,8 +92,8 @@ pub struct EventTest {
     col: Vec<f64>,
     /// x − μ over the window.
     xw: Vec<f64>,
-    /// The pulses' own orthonormal columns (step 1).
-    qp: Vec<f64>,
+    /// The span of the model's columns (steps 1 and 2).
+    basis: Basis,
     /// Orthonormal band columns of the nominal window length.
     band: Option<(usize, Vec<f64>)>,
     /// The step-1 statistic's distribution under noise, learned from the gates.
@@ -154,23 +158,24 @@ impl EventTest {
         }
         // The other detections whose pulse reaches the window.
         let reaches = |p: f64| p + hi >= first as f64 && p + lo <= last as f64;
+        self.xw.clear();
+        self.xw.extend(x[window.clone()].iter().map(|v| v - noise.mean_v));
+        self.load_band(first, len, cfg.max_frequency);
+        let band = &self.band.as_ref().expect("loaded").1;
+        let bands = band.len() / len;
         // Step 1: what the event subspace explains of x beyond the pulses
         // (and slopes) of every reaching detection: the energy in the span
         // of both less the energy in the pulses' span alone.
-        self.xw.clear();
-        self.xw.extend(x[window.clone()].iter().map(|v| v - noise.mean_v));
-        self.qp.clear();
-        std::mem::swap(&mut self.q, &mut self.qp);
+        let basis = &mut self.basis;
+        basis.reset(band, len, &self.xw);
         for &p in peaks.iter().filter(|&&p| reaches(p)) {
-            self.push_pulse(pulse, p, first, len, true);
+            basis.push_pulse(band, len, &self.xw, pulse, p, first);
         }
-        std::mem::swap(&mut self.q, &mut self.qp);
-        let pulses_alone = energy(&self.qp, len, &self.xw);
-        self.load_band(first, len, cfg.max_frequency);
-        for &p in peaks.iter().filter(|&&p| reaches(p)) {
-            self.push_pulse(pulse, p, first, len, true);
+        let pulses_alone = basis.energy();
+        for j in 0..bands {
+            basis.push(band, len, &self.xw, Col::Band(j));
         }
-        let explained = (energy(&self.q, len, &self.xw) - pulses_alone).max(0.0);
+        let explained = (basis.energy() - pulses_alone).max(0.0);
         let limit = match self.null.limit {
             Some(limit) => limit,
             None => {
@@ -184,11 +189,15 @@ impl EventTest {
         }
         // Step 2: the event subspace and the other detections, then this
         // detection's pulse projected off them.
-        self.load_band(first, len, cfg.max_frequency);
-        for &p in peaks.iter().filter(|&&p| p != c && reaches(p)) {
-            self.push_pulse(pulse, p, first, len, true);
+        basis.reset(band, len, &self.xw);
+        for j in 0..bands {
+            basis.push(band, len, &self.xw, Col::Band(j));
         }
-        let z = self.pulse_statistic(&x[window], noise, pulse, c, first);
+        for &p in peaks.iter().filter(|&&p| p != c && reaches(p)) {
+            basis.push_pulse(band, len, &self.xw, pulse, p, first);
+        }
+        let (num, var) = basis.off_span(band, len, &self.xw, pulse, c, first, noise.rho, &mut self.col);
+        let z = if var > 0.0 { num / (sigma * var.sqrt()) } else { 0.0 };
         if z > threshold { Verdict::ReturnWithEvent(z) } else { Verdict::Event(z) }
     }
 
@@ -198,7 +207,12 @@ impl EventTest {
         let len = self.window_len(pulse);
         let band = (2.0 * self.cfg().max_frequency * len as f64).ceil() as usize * 2 + 2;
         self.q.reserve((band + 32) * len);
-        self.qp.reserve(32 * len);
+        self.basis.vals.reserve(2 * MAX_PULSE_COLS * len);
+        self.basis.cols.reserve(CAP_COLS);
+        self.basis.y.reserve(CAP_COLS);
+        self.basis.g.reserve(CAP_COLS);
+        self.basis.bx.reserve(band);
+        self.basis.l.resize(CAP_COLS * CAP_COLS, 0.0);
         self.col.reserve(len);
         self.xw.reserve(len);
         let f_max = self.cfg().max_frequency;
@@ -282,37 +296,6 @@ impl EventTest {
         10.0 * (e1 / e0).log10()
     }
 
-    /// z of the pulse at `c` off the columns in `q` (see the module doc).
-    fn pulse_statistic(&mut self, x: &[f64], noise: NoiseTerms, pulse: &Shape, c: f64, first: usize) -> f64 {
-        let len = x.len();
-        self.col.clear();
-        self.col.extend((0..len).map(|i| pulse.value_and_slope((first + i) as f64 - c).0));
-        project_off(&self.q, len, &mut self.col);
-        let num: f64 = self.col.iter().zip(x).map(|(q, v)| q * (v - noise.mean_v)).sum();
-        // qᵀRq with R Toeplitz in ρ.
-        let mut var = self.col.iter().map(|v| v * v).sum::<f64>();
-        for (lag, r) in noise.rho.iter().enumerate().skip(1).take(len.saturating_sub(1)) {
-            var += 2.0 * r * self.col.iter().zip(&self.col[lag..]).map(|(a, b)| a * b).sum::<f64>();
-        }
-        if !(var > 0.0) {
-            return 0.0;
-        }
-        num / (noise.sigma_v * var.sqrt())
-    }
-
-    /// Appends the pulse at peak `p` (and its slope when `slope`) as columns,
-    /// orthonormalised against the columns already there.
-    fn push_pulse(&mut self, pulse: &Shape, p: f64, first: usize, len: usize, slope: bool) {
-        for d in 0..(1 + slope as usize) {
-            self.col.clear();
-            self.col.extend((0..len).map(|i| {
-                let (v, s) = pulse.value_and_slope((first + i) as f64 - p);
-                if d == 0 { v } else { s }
-            }));
-            self.push_col();
-        }
-    }
-
     /// Sets `q` to the orthonormal band columns of a window of `len`
     /// (cached for the last length: they depend on nothing else).
     fn load_band(&mut self, first: usize, len: usize, f_max: f64) {
@@ -371,6 +354,202 @@ impl EventTest {
             self.q.extend(self.col.iter().map(|v| v / e));
         }
     }
+}
+
+/// One column of a judgement's model: a band column (dense over the
+/// window, orthonormal to the other band columns) or a pulse column (its
+/// values on its support only: zero elsewhere in the window).
+#[derive(Debug, Clone, Copy)]
+enum Col {
+    /// Band column `j` of the cached band basis.
+    Band(usize),
+    /// Values `vals[off..off + len]` at window samples `start..start + len`.
+    Sparse { start: usize, off: usize, len: usize },
+}
+
+/// The span of a judgement's columns, held by their inner products: an
+/// incremental Cholesky factor of the Gram matrix and the coordinates of
+/// x − μ in it, so adding a column costs its inner products with the others
+/// (a pulse column's over its support only) and no pass over the window
+/// per existing column.
+#[derive(Debug, Clone, Default)]
+struct Basis {
+    /// Columns kept (independent of the ones before them).
+    cols: Vec<Col>,
+    /// Sparse columns' values.
+    vals: Vec<f64>,
+    /// Lower-triangular factor L of the Gram matrix, row `r` at `r * CAP_COLS`.
+    l: Vec<f64>,
+    /// y = L⁻¹ Aᵀ(x − μ): the squared norm of its entries is the energy of x − μ in the span.
+    y: Vec<f64>,
+    /// Bᵀ(x − μ) for the band columns.
+    bx: Vec<f64>,
+    /// Scratch: the new column's inner products with the kept ones, then L⁻¹ of them.
+    g: Vec<f64>,
+}
+
+/// Most columns one judgement holds (band columns plus a pulse and its slope
+/// per reaching detection); columns past it are left out (the test then
+/// explains less, never more).
+const CAP_COLS: usize = 96;
+
+impl Basis {
+    /// Starts an empty span over the window `xw` (x − μ) with the band basis `band` (`len` each).
+    fn reset(&mut self, band: &[f64], len: usize, xw: &[f64]) {
+        self.cols.clear();
+        self.vals.clear();
+        self.y.clear();
+        if self.l.len() < CAP_COLS * CAP_COLS {
+            self.l.resize(CAP_COLS * CAP_COLS, 0.0);
+        }
+        self.bx.clear();
+        self.bx.extend(band.chunks_exact(len).map(|b| dot(b, xw)));
+    }
+
+    /// Energy of x − μ in the span so far.
+    fn energy(&self) -> f64 {
+        self.y.iter().map(|v| v * v).sum()
+    }
+
+    /// Inner product of two columns.
+    fn inner(&self, band: &[f64], len: usize, a: Col, b: Col) -> f64 {
+        match (a, b) {
+            (Col::Band(i), Col::Band(j)) => f64::from(u8::from(i == j)),
+            (Col::Band(j), Col::Sparse { start, off, len: n }) | (Col::Sparse { start, off, len: n }, Col::Band(j)) => {
+                dot(&band[j * len + start..j * len + start + n], &self.vals[off..off + n])
+            }
+            (Col::Sparse { start: s1, off: o1, len: n1 }, Col::Sparse { start: s2, off: o2, len: n2 }) => {
+                let (lo, hi) = (s1.max(s2), (s1 + n1).min(s2 + n2));
+                if hi <= lo {
+                    return 0.0;
+                }
+                dot(&self.vals[o1 + lo - s1..o1 + hi - s1], &self.vals[o2 + lo - s2..o2 + hi - s2])
+            }
+        }
+    }
+
+    /// Column `a`'s inner product with x − μ.
+    fn with_x(&self, xw: &[f64], a: Col) -> f64 {
+        match a {
+            Col::Band(j) => self.bx[j],
+            Col::Sparse { start, off, len } => dot(&self.vals[off..off + len], &xw[start..start + len]),
+        }
+    }
+
+    /// Leaves in `g` the coordinates l = L⁻¹ Aᵀa of column `a` and returns
+    /// (d², aᵀa): d² is the squared norm of `a` off the span.
+    fn project(&mut self, band: &[f64], len: usize, a: Col) -> (f64, f64) {
+        let k = self.cols.len();
+        self.g.clear();
+        for i in 0..k {
+            let v = self.inner(band, len, self.cols[i], a);
+            self.g.push(v);
+        }
+        // Forward substitution: L l = g.
+        for i in 0..k {
+            let row = &self.l[i * CAP_COLS..i * CAP_COLS + i];
+            let s = self.g[i] - dot(row, &self.g[..i]);
+            self.g[i] = s / self.l[i * CAP_COLS + i];
+        }
+        let norm2 = self.inner(band, len, a, a);
+        let d2 = norm2 - self.g.iter().map(|v| v * v).sum::<f64>();
+        (d2, norm2)
+    }
+
+    /// Adds column `a` unless it depends on the kept ones (or the cap is reached).
+    fn push(&mut self, band: &[f64], len: usize, xw: &[f64], a: Col) {
+        let k = self.cols.len();
+        if k >= CAP_COLS {
+            return;
+        }
+        let (d2, norm2) = self.project(band, len, a);
+        if !(norm2 > 0.0) || !(d2 > DEPENDENT * DEPENDENT * norm2) {
+            return;
+        }
+        let d = d2.sqrt();
+        let row = k * CAP_COLS;
+        self.l[row..row + k].copy_from_slice(&self.g);
+        self.l[row + k] = d;
+        let y = (self.with_x(xw, a) - dot(&self.g, &self.y)) / d;
+        self.y.push(y);
+        self.cols.push(a);
+    }
+
+    /// Appends the pulse at peak `p` (and its slope) as sparse columns over
+    /// its support within the window `first..first + len`.
+    fn push_pulse(&mut self, band: &[f64], len: usize, xw: &[f64], pulse: &Shape, p: f64, first: usize) {
+        let (lo, hi) = pulse.support();
+        let a = ((p + lo).ceil() - first as f64).max(0.0);
+        let b = ((p + hi).floor() - first as f64).min(len as f64 - 1.0);
+        if !(b >= a) {
+            return;
+        }
+        let (start, n) = (a as usize, (b - a) as usize + 1);
+        for d in 0..2 {
+            let off = self.vals.len();
+            self.vals.extend((0..n).map(|i| {
+                let (v, s) = pulse.value_and_slope((first + start + i) as f64 - p);
+                if d == 0 { v } else { s }
+            }));
+            self.push(band, len, xw, Col::Sparse { start, off, len: n });
+        }
+    }
+
+    /// The pulse at `c` projected off the span: (qᵀ(x − μ), qᵀRq) with R
+    /// the Toeplitz noise correlation in `rho` (white when empty). The dense
+    /// q goes to `q` (window length).
+    fn off_span(&mut self, band: &[f64], len: usize, xw: &[f64], pulse: &Shape, c: f64, first: usize, rho: &[f64], q: &mut Vec<f64>) -> (f64, f64) {
+        q.clear();
+        q.resize(len, 0.0);
+        let (lo, hi) = pulse.support();
+        let a = ((c + lo).ceil() - first as f64).max(0.0);
+        let b = ((c + hi).floor() - first as f64).min(len as f64 - 1.0);
+        if !(b >= a) {
+            return (0.0, 0.0);
+        }
+        let (start, n) = (a as usize, (b - a) as usize + 1);
+        let off = self.vals.len();
+        self.vals.extend((0..n).map(|i| pulse.value_and_slope((first + start + i) as f64 - c).0));
+        let col = Col::Sparse { start, off, len: n };
+        let (d2, _) = self.project(band, len, col);
+        if !(d2 > 0.0) {
+            return (0.0, 0.0);
+        }
+        let num = self.with_x(xw, col) - dot(&self.g, &self.y);
+        if rho.len() <= 1 {
+            return (num, d2);
+        }
+        // Coefficients of the column on the kept ones: Lᵀ β = l.
+        let k = self.cols.len();
+        for i in (0..k).rev() {
+            let mut s = self.g[i];
+            for j in i + 1..k {
+                s -= self.l[j * CAP_COLS + i] * self.g[j];
+            }
+            self.g[i] = s / self.l[i * CAP_COLS + i];
+        }
+        q[start..start + n].copy_from_slice(&self.vals[off..off + n]);
+        for (i, &col) in self.cols.iter().enumerate() {
+            let beta = self.g[i];
+            match col {
+                Col::Band(j) => q.iter_mut().zip(&band[j * len..(j + 1) * len]).for_each(|(v, b)| *v -= beta * b),
+                Col::Sparse { start, off, len: m } => {
+                    q[start..start + m].iter_mut().zip(&self.vals[off..off + m]).for_each(|(v, b)| *v -= beta * b)
+                }
+            }
+        }
+        let mut var = dot(q, q);
+        for (lag, r) in rho.iter().enumerate().skip(1).take(len.saturating_sub(1)) {
+            var += 2.0 * r * dot(q, &q[lag..]);
+        }
+        (num, var)
+    }
+}
+
+/// Σ aᵢbᵢ over the shorter of the two.
+#[inline]
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
 }
 
 /// Σ (q_jᵀv)² over the orthonormal columns of `q`: the energy of `v` in their span.

@@ -11,7 +11,7 @@
 use super::grpc;
 use super::session::{Session, StartError, Verdict};
 use super::{Shared, status};
-use crate::frame::{ChannelRole, Frame, channel_key};
+use crate::frame::{ChannelRole, Frame, channel_key, limits};
 use crate::scene::Scene;
 use crate::telemetry;
 use crate::wire::{self, ConvertError, proto};
@@ -217,7 +217,10 @@ async fn start_batch(shared: &Shared, batch: proto::FrameBatch) -> PendingBatch 
     let mut ack = proto::IngestAck::default();
     let mut pending = Vec::with_capacity(batch.frames.len());
     for (index, msg) in batch.frames.iter().enumerate() {
-        let sensor = msg.sensor_id.clone();
+        // An id the wire refuses (control characters, too long) is echoed and
+        // labelled only in its bounded, escaped form.
+        let sensor = limits::shown_sensor_id(&msg.sensor_id);
+        let sensor_ok = limits::sensor_id_problem(&msg.sensor_id).is_none();
         let sequence = msg.sequence;
         let mut reject = |r: EdgeRejection, session: Option<&Session>| {
             match session {
@@ -225,7 +228,7 @@ async fn start_batch(shared: &Shared, batch: proto::FrameBatch) -> PendingBatch 
                     s.metrics.frames_rejected(r.reason, 1);
                     s.stats.frames_rejected.fetch_add(1, Ordering::Relaxed);
                 }
-                None => telemetry::frames_rejected(&sensor, r.reason, 1),
+                None => telemetry::frames_rejected(if sensor_ok { &sensor } else { "" }, r.reason, 1),
             }
             ack.rejections.push(proto::Rejection {
                 sensor_id: sensor.clone(),
@@ -243,6 +246,11 @@ async fn start_batch(shared: &Shared, batch: proto::FrameBatch) -> PendingBatch 
                 },
                 None,
             );
+            continue;
+        }
+        // Checked before a session exists: the id names its thread, files and metrics.
+        if let Err(e) = wire::check_sensor_id(&msg.sensor_id) {
+            reject(e.into(), None);
             continue;
         }
         let session = match shared.sessions.get_or_start(&sensor) {

@@ -6,6 +6,7 @@ use super::ServiceError;
 use super::session::StartError;
 use crate::scene::SceneError;
 use crate::telemetry;
+use crate::wire::ConvertError;
 use tonic::Status;
 
 impl From<ServiceError> for Status {
@@ -15,6 +16,11 @@ impl From<ServiceError> for Status {
             _ => Status::internal(e.to_string()),
         }
     }
+}
+
+/// A request field the wire checks refused (the message names the field).
+pub(super) fn invalid_field(e: ConvertError) -> Status {
+    Status::invalid_argument(e.to_string())
 }
 
 /// A bad scene: the message names the field (dotted path or TOML key).

@@ -1061,3 +1061,75 @@ async fn concurrent_streams_per_connection_are_limited() {
     server.shutdown().await.unwrap();
 }
 
+
+/// A sensor id with a NUL byte once killed the server: the worker thread was
+/// named after the sensor, the OS refused the name, the session map's lock
+/// was poisoned, and every later push was acknowledged with nothing. The id
+/// is now refused at the wire, naming `sensor_id`, and the server carries on.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sensor_id_with_nul_is_refused_and_other_sensors_continue() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let mut c = server.connect(None).await;
+    let bad = frames("bad\0sensor", 0..1, 40);
+    let acks = tokio::time::timeout(Duration::from_secs(30), push_batches(&mut c, vec![batch(&bad)]))
+        .await
+        .expect("the push is answered")
+        .unwrap();
+    assert_eq!(acks.len(), 1);
+    assert_eq!((acks[0].accepted, acks[0].rejected), (0, 1), "{:?}", acks[0]);
+    let r = &acks[0].rejections[0];
+    assert_eq!(r.code, "INVALID_ARGUMENT", "{r:?}");
+    assert!(r.message.starts_with("frames[0].sensor_id: "), "{r:?}");
+    assert!(r.message.contains("control character"), "{r:?}");
+    // An over-long id too, and its echo stays bounded.
+    let mut long = frames("x", 0..1, 41);
+    long[0].sensor_id = "L".repeat(100_000);
+    let a = &push_batches(&mut c, vec![batch(&long)]).await.unwrap()[0];
+    assert_eq!((a.accepted, a.rejected), (0, 1));
+    assert!(a.rejections[0].message.starts_with("frames[0].sensor_id: "), "{:?}", a.rejections[0].message);
+    assert!(a.rejections[0].sensor_id.len() < 100 && a.rejections[0].message.len() < 300);
+
+    // A normal sensor, on the same connection and a new one, is processed and reported.
+    let mut sub = c
+        .reports
+        .subscribe(proto::SubscribeRequest::default())
+        .await
+        .unwrap()
+        .into_inner();
+    let good = frames("after-nul", 0..3, 42);
+    let acks = push_batches(&mut c, vec![batch(&good)]).await.unwrap();
+    assert_eq!((acks[0].accepted, acks[0].rejected), (3, 0), "{:?}", acks[0]);
+    let mut c2 = server.connect(None).await;
+    let acks = push_batches(&mut c2, vec![batch(&frames("after-nul-2", 0..1, 43))]).await.unwrap();
+    assert_eq!(acks[0].accepted, 1);
+    let first = tokio::time::timeout(Duration::from_secs(30), sub.message())
+        .await
+        .expect("a report arrives")
+        .unwrap()
+        .unwrap();
+    let Some(Event::Report(r)) = first.event else { panic!("a report first") };
+    assert!(r.json.contains("after-nul"), "{}", r.json);
+    // Control calls answer normally, and refuse a bad id by name.
+    let st = c
+        .control
+        .get_status(proto::SensorRequest { sensor_id: "after-nul".into() })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(st.frames_processed, 3);
+    let e = c
+        .control
+        .set_scene(proto::SetSceneRequest { sensor_id: "a\0b".into(), toml: String::new() })
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Code::InvalidArgument);
+    assert!(e.message().starts_with("sensor_id: "), "{}", e.message());
+    let e = c
+        .control
+        .get_status(proto::SensorRequest { sensor_id: "a\0b".into() })
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Code::InvalidArgument, "{e:?}");
+    drop(sub);
+    server.shutdown().await.unwrap();
+}

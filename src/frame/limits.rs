@@ -93,7 +93,7 @@ pub fn sample_interval_problem(dt_s: f64) -> Option<String> {
         None
     } else {
         Some(format!(
-            "{dt_s} s is out of range: allowed [{MIN_SAMPLE_INTERVAL_S:e}, {MAX_SAMPLE_INTERVAL_S}] s"
+            "{dt_s:e} s is out of range: allowed [{MIN_SAMPLE_INTERVAL_S:e}, {MAX_SAMPLE_INTERVAL_S}] s"
         ))
     }
 }

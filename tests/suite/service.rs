@@ -1133,3 +1133,36 @@ async fn sensor_id_with_nul_is_refused_and_other_sensors_continue() {
     drop(sub);
     server.shutdown().await.unwrap();
 }
+
+/// Tiny sampling periods pushed over gRPC: each frame is refused by name
+/// (`sample_interval_s`, at the wire or by the pipeline's resource bound),
+/// never a crash, and another sensor is served normally afterwards.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn tiny_sample_intervals_are_refused_and_the_server_keeps_serving() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let mut c = server.connect(None).await;
+    for (k, dt) in [1e-12, 1e-14, 1e-16, 1e-19, 1e-28, 1e-30].into_iter().enumerate() {
+        let mut fs = frames("tiny-dt", k as u64..k as u64 + 1, 50 + k as u64);
+        fs[0].sample_interval_s = dt;
+        let acks = push_batches(&mut c, vec![batch(&fs)]).await.unwrap();
+        let a = &acks[0];
+        assert_eq!((a.accepted, a.rejected), (0, 1), "dt {dt:e}: {a:?}");
+        let r = &a.rejections[0];
+        assert_eq!(r.code, "INVALID_ARGUMENT", "dt {dt:e}: {r:?}");
+        assert!(r.message.starts_with("frames[0].sample_interval_s: "), "dt {dt:e}: {r:?}");
+    }
+    let acks = push_batches(&mut c, vec![batch(&frames("normal-dt", 0..2, 60))]).await.unwrap();
+    assert_eq!((acks[0].accepted, acks[0].rejected), (2, 0), "{:?}", acks[0]);
+    // The scene refuses a pulse too wide for any template bound, by name.
+    let mut doc: toml::Table = toml::from_str(&Scene::default_scene().to_toml()).unwrap();
+    doc["return_pulse"]["fwhm_s"] = toml::Value::Float(1e-3);
+    let toml = toml::to_string(&doc).unwrap();
+    let e = c
+        .control
+        .set_scene(proto::SetSceneRequest { sensor_id: "normal-dt".into(), toml })
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Code::InvalidArgument);
+    assert!(e.message().contains("return_pulse.fwhm_s"), "{}", e.message());
+    server.shutdown().await.unwrap();
+}

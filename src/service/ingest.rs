@@ -116,6 +116,8 @@ struct StreamTotals {
     batches: u64,
     accepted: u64,
     rejected: u64,
+    /// Of the rejected: refused because the server is shutting down.
+    unavailable: u64,
 }
 
 #[tonic::async_trait]
@@ -156,10 +158,14 @@ impl grpc::ingest_server::Ingest for IngestService {
                 totals
             });
             let mut failure = None;
+            let mut cut_off = false;
             loop {
                 let msg = tokio::select! {
                     biased;
-                    _ = shared.shutdown.cancelled() => break,
+                    _ = shared.shutdown.cancelled() => {
+                        cut_off = true;
+                        break;
+                    }
                     m = incoming.message() => m,
                 };
                 match msg {
@@ -178,7 +184,30 @@ impl grpc::ingest_server::Ingest for IngestService {
             }
             // Acks of every batch taken in go out before the stream ends.
             drop(pending_tx);
+            // Frames the client already sent that this stream will not read
+            // (counted as far as they have arrived, without waiting).
+            let mut unread = 0u64;
+            if cut_off {
+                for _ in 0..256 {
+                    match tokio::time::timeout(std::time::Duration::ZERO, incoming.message()).await {
+                        Ok(Ok(Some(b))) => unread += b.frames.len() as u64,
+                        _ => break,
+                    }
+                }
+            }
             let totals = acker.await.unwrap_or_default();
+            if failure.is_none() && (cut_off || totals.unavailable > 0) {
+                // Ending with OK would tell the client everything was taken.
+                failure = Some(Status::unavailable(format!(
+                    "server is shutting down: {} frames not acknowledged ({} refused at shutdown, {unread} sent and not read; \
+                     more may still be in flight); {} accepted and {} rejected in {} batches before",
+                    totals.unavailable + unread,
+                    totals.unavailable,
+                    totals.accepted,
+                    totals.rejected - totals.unavailable,
+                    totals.batches
+                )));
+            }
             if let Some(status) = failure {
                 tracing::warn!(?peer, %status, "ingest stream failed");
                 let _ = tx.send(Err(status)).await;
@@ -363,6 +392,7 @@ async fn finish_batch(batch: PendingBatch, totals: &mut StreamTotals) -> proto::
         }
     }
     ack.rejected = ack.rejections.len() as u64;
+    totals.unavailable += ack.rejections.iter().filter(|r| r.code == "UNAVAILABLE").count() as u64;
     totals.batches += 1;
     totals.accepted += ack.accepted;
     totals.rejected += ack.rejected;

@@ -198,3 +198,11 @@ fn tiny_sample_intervals_are_named_errors_not_crashes() {
     assert_eq!(code, 2, "{err}");
     assert!(err.contains("return_pulse.fwhm_s") && err.contains("0.001") && err.contains("(0, 1e-6] s"), "{err}");
 }
+
+/// `--token ""` used to start an open server with only a log warning.
+#[test]
+fn serve_refuses_an_empty_token() {
+    let (code, _, err) = tofwave(&["serve", "--listen", "127.0.0.1:0", "--token", ""]);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("--token") && err.contains("empty"), "{err}");
+}

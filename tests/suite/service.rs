@@ -744,8 +744,17 @@ async fn shutdown_drains_in_flight_frames() {
                 assert_eq!(a.rejected, 0);
                 accepted += a.accepted;
             }
-            Ok(None) => break,
-            Err(e) => panic!("ingest stream should end cleanly: {e:?}"),
+            // Clean only when every frame was acknowledged; otherwise the
+            // stream says shutdown cut it off, and how many frames it left.
+            Ok(None) => {
+                assert_eq!(accepted, 200, "an OK end means every frame was acknowledged");
+                break;
+            }
+            Err(e) => {
+                assert_eq!(e.code(), Code::Unavailable, "{e:?}");
+                assert!(e.message().contains("not acknowledged"), "{e:?}");
+                break;
+            }
         }
     }
     stop.await.unwrap().unwrap();
@@ -1165,4 +1174,62 @@ async fn tiny_sample_intervals_are_refused_and_the_server_keeps_serving() {
     assert_eq!(e.code(), Code::InvalidArgument);
     assert!(e.message().contains("return_pulse.fwhm_s"), "{}", e.message());
     server.shutdown().await.unwrap();
+}
+
+/// A SetScene error used to echo the whole input: a 200 KB line made a
+/// 400 KB status that clients refused (RESOURCE_EXHAUSTED). The echo is
+/// bounded and says how long the line was.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn set_scene_error_echo_is_bounded() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let mut c = server.connect(None).await;
+    let toml = format!("name = {}\n", "z".repeat(200_000));
+    let e = c
+        .control
+        .set_scene(proto::SetSceneRequest { sensor_id: "echo".into(), toml })
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Code::InvalidArgument, "{}", &e.message()[..e.message().len().min(300)]);
+    assert!(e.message().len() < 5000, "{} bytes", e.message().len());
+    assert!(e.message().starts_with("toml: ") && e.message().contains("bytes)"), "{}", e.message());
+    server.shutdown().await.unwrap();
+}
+
+/// Shutdown used to end open Push streams with OK, frames unacknowledged:
+/// the stream now ends UNAVAILABLE, saying so, and the client's summary
+/// counts what was sent and not acknowledged.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn shutdown_ends_open_push_streams_with_unavailable() {
+    let mut server = TestServer::start(ServerConfig::default()).await;
+    let c = server.connect(None).await;
+    let (tx, rx) = tokio::sync::mpsc::channel::<proto::FrameBatch>(4);
+    let (ack_tx, mut ack_rx) = tokio::sync::mpsc::unbounded_channel();
+    let mut ingest = c.ingest.clone();
+    let push = tokio::spawn(async move {
+        client::push(&mut ingest, ReceiverStream::new(rx), move |a| {
+            let _ = ack_tx.send(a.accepted);
+        })
+        .await
+    });
+    tx.send(batch(&frames("cut", 0..3, 70))).await.unwrap();
+    assert_eq!(ack_rx.recv().await, Some(3));
+    // Shutdown begins with the stream open (the client still holds its sender).
+    let _ = server.stop.take().unwrap().send(());
+    let _ = tx.send(batch(&frames("cut", 3..5, 71))).await;
+    let failed = tokio::time::timeout(Duration::from_secs(30), push)
+        .await
+        .expect("the stream ends")
+        .unwrap()
+        .expect_err("a stream cut off by shutdown is not OK");
+    assert_eq!(failed.status.code(), Code::Unavailable, "{failed}");
+    assert!(failed.status.message().contains("not acknowledged"), "{failed}");
+    assert_eq!(failed.summary.accepted, 3, "{failed}");
+    assert!(failed.summary.sent >= 3 && failed.summary.unacknowledged() == failed.summary.sent - 3, "{failed}");
+    drop(tx);
+    drop(c);
+    tokio::time::timeout(Duration::from_secs(30), server.task)
+        .await
+        .expect("server drains")
+        .unwrap()
+        .unwrap();
 }

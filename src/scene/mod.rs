@@ -269,7 +269,7 @@ impl Scene {
                 allowed: "a template of at most 8192 taps at the sampling period (frame::limits::MAX_TEMPLATE_TAPS)",
             })
         };
-        let excess = pulse(&self.return_pulse, "return_pulse")
+        pulse(&self.return_pulse, "return_pulse")
             .or_else(|| pulse(&self.start_pulse, "start_pulse"))
             .or_else(|| {
                 let n = ((self.return_pulse.support_s() + 2.0 * self.events.flank_s) / dt_s).ceil() + 1.0;
@@ -306,8 +306,7 @@ impl Scene {
                     limit: MAX_AVERAGING_WINDOW_BYTES,
                     allowed: "a stored averaging window of at most 1 GiB (frame::limits::MAX_AVERAGING_WINDOW_BYTES)",
                 })
-            });
-        excess
+            })
     }
 }
 

@@ -5,6 +5,8 @@
 
 use serde::Serialize;
 
+pub mod limits;
+
 /// What a channel carries.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]

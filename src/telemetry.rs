@@ -121,7 +121,7 @@ impl SensorMetrics {
     /// Handles of `sensor`'s metrics (none registered yet).
     pub fn new(sensor: &str) -> Self {
         SensorMetrics {
-            sensor: sensor.to_string(),
+            sensor: sensor_label(sensor),
             frames_received: OnceLock::new(),
             frames_processed: OnceLock::new(),
             processing_seconds: OnceLock::new(),
@@ -196,16 +196,32 @@ impl SensorMetrics {
     }
 }
 
+/// The `sensor` label value of a sensor id: the id with every character the
+/// Prometheus text format would have to escape (`\`, `"`) or could not show
+/// (control characters) replaced by `_`, and at most 64 bytes. Ingest refuses
+/// such ids anyway (`wire::check_sensor_id`); this keeps `/metrics`
+/// well-formed whatever reaches it.
+pub fn sensor_label(sensor: &str) -> String {
+    let mut out = String::with_capacity(sensor.len().min(64));
+    for c in sensor.chars() {
+        if out.len() + c.len_utf8() > 64 {
+            break;
+        }
+        out.push(if c == '\\' || c == '"' || c.is_control() { '_' } else { c });
+    }
+    out
+}
+
 /// A frame was decoded from an ingest message of a sensor that has no
 /// session (sessions use [`SensorMetrics`]).
 pub fn frame_received(sensor: &str) {
-    metrics::counter!(FRAMES_RECEIVED, "sensor" => sensor.to_string()).increment(1);
+    metrics::counter!(FRAMES_RECEIVED, "sensor" => sensor_label(sensor)).increment(1);
 }
 
 /// `count` frames were refused for `reason` (one of [`REJECT_REASONS`]), for
 /// a sensor without a session (sessions use [`SensorMetrics`]).
 pub fn frames_rejected(sensor: &str, reason: &'static str, count: u64) {
-    metrics::counter!(FRAMES_REJECTED, "sensor" => sensor.to_string(), "reason" => reason)
+    metrics::counter!(FRAMES_REJECTED, "sensor" => sensor_label(sensor), "reason" => reason)
         .increment(count);
 }
 

@@ -27,7 +27,7 @@ use std::fs::File;
 use std::io::{BufReader, Read};
 use std::path::{Path, PathBuf};
 
-use crate::frame::Frame;
+use crate::frame::{limits, Frame};
 
 pub use csv::write_csv;
 pub use isf::write_isf;
@@ -223,6 +223,19 @@ pub enum CaptureError {
         /// The directory.
         path: PathBuf,
     },
+    /// A frame outside the resource bounds of [`crate::frame::limits`]
+    /// (sampling period, samples per frame).
+    #[error("{}: frame {}: {}: {}", .path.display(), .frame, .field, .message)]
+    OutOfBounds {
+        /// The file.
+        path: PathBuf,
+        /// Index of the frame (segment) in the file, from 0.
+        frame: usize,
+        /// The frame field at fault (`sample_interval_s`, `samples`).
+        field: &'static str,
+        /// Its value and the allowed range.
+        message: String,
+    },
     /// A writer was given a frame the format cannot hold.
     #[error("{}: cannot write: expected {}, found {}", .path.display(), .expected, .found)]
     InvalidFrame {
@@ -362,8 +375,23 @@ pub fn read_bytes(path: &Path, data: &[u8], format: Format) -> Result<Vec<Frame>
     };
     for (i, f) in frames.iter_mut().enumerate() {
         f.sequence = i as u64;
+        check_bounds(path, i, f)?;
     }
     Ok(frames)
+}
+
+/// Refuses a frame outside the resource bounds (frame::limits) as the
+/// readers deliver it, so that no caller sizes work from it. Recordings are
+/// checked by the wire conversion they decode through.
+fn check_bounds(path: &Path, frame: usize, f: &Frame) -> Result<(), CaptureError> {
+    let out = |field, message| CaptureError::OutOfBounds { path: path.to_path_buf(), frame, field, message };
+    if let Some(m) = limits::sample_interval_problem(f.sample_interval_s) {
+        return Err(out("sample_interval_s", m));
+    }
+    if let Some(m) = limits::samples_per_frame_problem(f.len()) {
+        return Err(out("samples", m));
+    }
+    Ok(())
 }
 
 /// Expands directories (capture files in name order, hidden files skipped).

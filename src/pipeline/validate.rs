@@ -5,7 +5,7 @@
 use super::{Buffers, FrameError, NoiseModel, Source, ThresholdTerms, TimeReference, Work};
 use crate::detect::gates::Gates;
 use std::sync::Arc;
-use crate::frame::FrameFlag;
+use crate::frame::{limits, FrameFlag};
 use crate::frame::{channel_key, channel_key_into, ChannelRole, Frame, NoiseSummary, Report, Samples};
 use crate::scene::Scene;
 
@@ -23,6 +23,9 @@ pub struct Validate {
     key_scratch: String,
     /// The empty autocorrelation (white noise) every unit starts with, shared.
     white: Arc<[f64]>,
+    /// The scene, for the resource bounds a frame's sampling period makes of
+    /// its durations (checked before any later stage sizes a buffer).
+    scene: Scene,
 }
 
 impl Validate {
@@ -40,6 +43,7 @@ impl Validate {
                 .then_some((d.full_scale_low_v, d.full_scale_high_v)),
             key_scratch: String::new(),
             white: Arc::from(Vec::new()),
+            scene: scene.clone(),
         }
     }
 
@@ -85,6 +89,26 @@ impl Validate {
                     format!("scale {} / offset {} must be finite and the scale non-zero", c.volts_per_code, c.offset_v),
                 );
             }
+        }
+        // Resource bounds (frame::limits): the period and length every later
+        // stage sizes its buffers and templates from.
+        if let Some(problem) = limits::sample_interval_problem(dt) {
+            return err("sample_interval_s", problem);
+        }
+        if let Some(problem) = limits::samples_per_frame_problem(n) {
+            return err(&format!("channels[{}].samples", frame.channels[0].name), problem);
+        }
+        if let Some(e) = self.scene.work_at(dt, n) {
+            return err(
+                "sample_interval_s",
+                format!(
+                    "{dt:e} s with the scene's {} ({}) makes {}: a longer sampling period or a smaller {} is needed",
+                    e.field,
+                    e.value,
+                    e.describe(),
+                    e.field
+                ),
+            );
         }
         if self.samples_per_frame > 0 && n != self.samples_per_frame {
             return err(

@@ -1,6 +1,7 @@
 //! `[digitiser]` and `[channels]`: what the digitiser delivers and which channel is which.
 
 use super::check::{check, FieldError, Range};
+use crate::frame::limits::{MAX_SAMPLES_PER_FRAME, MAX_SAMPLE_INTERVAL_S, MIN_SAMPLE_INTERVAL_S};
 use serde::{Deserialize, Serialize};
 
 /// Digitiser expectations.
@@ -45,11 +46,19 @@ impl Default for ChannelsConfig {
 impl DigitiserConfig {
     /// Checks `[digitiser]`.
     pub fn validate(&self) -> Result<(), FieldError> {
+        if self.sample_interval_s != 0.0 {
+            check(&[(
+                "digitiser.sample_interval_s",
+                self.sample_interval_s.into(),
+                Range::closed(MIN_SAMPLE_INTERVAL_S, MAX_SAMPLE_INTERVAL_S),
+                "0 (any) or a period in [1e-12, 1] s (frame::limits::MIN_SAMPLE_INTERVAL_S, MAX_SAMPLE_INTERVAL_S)",
+            )])?;
+        }
         check(&[(
-            "digitiser.sample_interval_s",
-            self.sample_interval_s.into(),
-            Range::closed(0.0, 1.0),
-            "0 (any) or a period in (0, 1] s",
+            "digitiser.samples_per_frame",
+            self.samples_per_frame.into(),
+            Range::closed(0.0, MAX_SAMPLES_PER_FRAME as f64),
+            "0 (any) or at most 4194304 (frame::limits::MAX_SAMPLES_PER_FRAME)",
         )])?;
         let (low, high) = (self.full_scale_low_v, self.full_scale_high_v);
         if !low.is_finite() || !high.is_finite() || (low != 0.0 || high != 0.0) && low >= high {

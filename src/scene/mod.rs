@@ -235,7 +235,102 @@ impl Scene {
         }
         self.events.validate()?;
         self.calibration.validate()?;
-        self.medium.validate()
+        self.medium.validate()?;
+        // A scene that states its sampling period is checked against the
+        // resource bounds now; otherwise each frame is, at its own period.
+        let dt = self.digitiser.sample_interval_s;
+        if dt > 0.0 && let Some(e) = self.work_at(dt, self.digitiser.samples_per_frame) {
+            return Err(FieldError {
+                field: e.field.to_string(),
+                value: format!("{} at digitiser.sample_interval_s = {dt} s: {}", e.value, e.describe()),
+                allowed: e.allowed,
+            });
+        }
+        Ok(())
+    }
+
+    /// The first resource bound ([`crate::frame::limits`]) that frames at
+    /// sampling period `dt_s` with `samples` samples per channel would exceed
+    /// in a pipeline built from this scene (`samples` 0: not known), or `None`.
+    /// Arithmetic only: no shape is built and nothing is allocated, so the
+    /// pipeline calls it for every frame before any buffer is sized.
+    pub fn work_at(&self, dt_s: f64, samples: usize) -> Option<WorkExcess> {
+        use crate::frame::limits::{MAX_AVERAGING_WINDOW_BYTES, MAX_TEMPLATE_TAPS, MAX_WINDOW_SAMPLES};
+        let taps = MAX_TEMPLATE_TAPS as f64;
+        let window = MAX_WINDOW_SAMPLES as f64;
+        let pulse = |p: &PulseConfig, field: &'static str| {
+            let n = p.template_taps(dt_s);
+            (!(n <= taps)).then(|| WorkExcess {
+                field,
+                value: format!("support {:.4e} s", p.support_s()),
+                what: "template taps",
+                needed: n,
+                limit: MAX_TEMPLATE_TAPS,
+                allowed: "a template of at most 8192 taps at the sampling period (frame::limits::MAX_TEMPLATE_TAPS)",
+            })
+        };
+        pulse(&self.return_pulse, "return_pulse")
+            .or_else(|| pulse(&self.start_pulse, "start_pulse"))
+            .or_else(|| {
+                let n = ((self.return_pulse.support_s() + 2.0 * self.events.flank_s) / dt_s).ceil() + 1.0;
+                (self.events.enabled && !(n <= window)).then(|| WorkExcess {
+                    field: "events.flank_s",
+                    value: format!("{} s", self.events.flank_s),
+                    what: "event-test window samples",
+                    needed: n,
+                    limit: MAX_WINDOW_SAMPLES,
+                    allowed: "an event window (pulse support + 2 flanks) of at most 1048576 samples (frame::limits::MAX_WINDOW_SAMPLES)",
+                })
+            })
+            .or_else(|| {
+                let d = self.denoise.as_ref()?;
+                let n = (d.max_burst_s / dt_s).ceil();
+                (!(n <= window)).then(|| WorkExcess {
+                    field: "denoise.max_burst_s",
+                    value: format!("{} s", d.max_burst_s),
+                    what: "burst template samples",
+                    needed: n,
+                    limit: MAX_WINDOW_SAMPLES,
+                    allowed: "a burst template of at most 1048576 samples (frame::limits::MAX_WINDOW_SAMPLES)",
+                })
+            })
+            .or_else(|| {
+                let a = &self.averaging;
+                let stored = a.frames > 1 && (a.mode == AveragingMode::Sliding || a.method != AveragingMethod::Mean);
+                let bytes = a.frames as f64 * samples as f64 * 8.0;
+                (stored && bytes > MAX_AVERAGING_WINDOW_BYTES as f64).then(|| WorkExcess {
+                    field: "averaging.frames",
+                    value: format!("{} frames of {samples} samples", a.frames),
+                    what: "bytes held by the averaging window",
+                    needed: bytes,
+                    limit: MAX_AVERAGING_WINDOW_BYTES,
+                    allowed: "a stored averaging window of at most 1 GiB (frame::limits::MAX_AVERAGING_WINDOW_BYTES)",
+                })
+            })
+    }
+}
+
+/// A resource bound a scene would exceed at some sampling period ([`Scene::work_at`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct WorkExcess {
+    /// The scene field (or section) whose duration or count makes the work.
+    pub field: &'static str,
+    /// Its value, as the message shows it.
+    pub value: String,
+    /// What is counted (template taps, window samples, bytes).
+    pub what: &'static str,
+    /// How many the sampling period makes of it.
+    pub needed: f64,
+    /// The bound.
+    pub limit: usize,
+    /// The bound as a sentence, for [`FieldError::allowed`].
+    pub allowed: &'static str,
+}
+
+impl WorkExcess {
+    /// `"<needed> <what> (at most <limit>)"`.
+    pub fn describe(&self) -> String {
+        format!("{:.4e} {} (at most {})", self.needed, self.what, self.limit)
     }
 }
 

@@ -1,7 +1,8 @@
 //! `[return_pulse]` and `[start_pulse]`: pulse shapes, and their conversion to
 //! the dsp shapes at a sampling period.
 
-use super::check::{FieldError, Range};
+use super::check::{check, FieldError, Range};
+use crate::frame::limits::{MAX_PULSE_FWHM_S, MAX_PULSE_TABLE_SPAN_S, MAX_PULSE_TABLE_VALUES};
 use crate::dsp::pulse::{Pulse, Shape, TablePulse};
 use serde::{Deserialize, Serialize};
 
@@ -77,7 +78,46 @@ impl PulseConfig {
         }
     }
     /// Checks one pulse section; `section` is its name (`return_pulse`, `start_pulse`).
+    /// Length of the pulse's support (where its template has taps), seconds:
+    /// independent of the sampling period, and computed without building the
+    /// shape (no allocation, so the per-frame bound check can call it).
+    pub fn support_s(&self) -> f64 {
+        match self.model {
+            PulseModel::Table => self.table.len().saturating_sub(1) as f64 * self.table_step_s,
+            _ => {
+                let (lo, hi) = self.pulse(1.0).support();
+                hi - lo
+            }
+        }
+    }
+
+    /// Taps of this pulse's template at sampling period `dt_s` (an upper bound;
+    /// `inf` or NaN for a period that is not positive).
+    pub fn template_taps(&self, dt_s: f64) -> f64 {
+        (self.support_s() / dt_s).ceil() + 1.0
+    }
+
+    /// Checks the section (`section` names it in errors). Besides the shape's
+    /// own consistency, the resource bounds of [`crate::frame::limits`]:
+    /// `fwhm_s` at most `MAX_PULSE_FWHM_S`, a table of at most
+    /// `MAX_PULSE_TABLE_VALUES` values spanning at most `MAX_PULSE_TABLE_SPAN_S`.
     pub fn validate(&self, section: &str) -> Result<(), FieldError> {
+        if self.model == PulseModel::Table {
+            check(&[(
+                &format!("{section}.table"),
+                self.table.len().into(),
+                Range::closed(0.0, MAX_PULSE_TABLE_VALUES as f64),
+                "at most 262144 values (frame::limits::MAX_PULSE_TABLE_VALUES)",
+            )])?;
+            let span_s = self.support_s();
+            if span_s.is_finite() && span_s > MAX_PULSE_TABLE_SPAN_S {
+                return Err(FieldError::new(
+                    format!("{section}.table_step_s"),
+                    format!("{} s over {} values ({span_s} s)", self.table_step_s, self.table.len()),
+                    "a table spanning at most 1e-5 s (frame::limits::MAX_PULSE_TABLE_SPAN_S)",
+                ));
+            }
+        }
         if self.model == PulseModel::Table {
             let peak = self.table.iter().copied().fold(f64::NEG_INFINITY, f64::max);
             if self.table.len() < 4
@@ -99,8 +139,12 @@ impl PulseConfig {
             }
             return Ok(());
         }
-        if !Range::positive_max(1e-3).contains(self.fwhm_s) {
-            return Err(FieldError::new(format!("{section}.fwhm_s"), self.fwhm_s, "(0, 1e-3] s"));
+        if !Range::positive_max(MAX_PULSE_FWHM_S).contains(self.fwhm_s) {
+            return Err(FieldError::new(
+                format!("{section}.fwhm_s"),
+                self.fwhm_s,
+                "(0, 1e-6] s (frame::limits::MAX_PULSE_FWHM_S)",
+            ));
         }
         if self.model == PulseModel::Bigaussian {
             // The rising half's share of the FWHM is 1.1774/1.6869 of the

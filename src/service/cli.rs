@@ -163,6 +163,13 @@ fn read_file(path: &PathBuf, what: &str) -> anyhow::Result<Vec<u8>> {
 impl ServeArgs {
     /// The server configuration these flags describe (files read, listeners not bound).
     pub fn config(&self) -> anyhow::Result<ServerConfig> {
+        // An empty token would read as "set" to an operator and as "open" to
+        // the server: refuse it rather than serve without authentication.
+        for (flag, token) in [("--token (TOFWAVE_TOKEN)", &self.token), ("--read-token (TOFWAVE_READ_TOKEN)", &self.read_token)] {
+            if token.as_deref().is_some_and(|t| t.trim().is_empty()) {
+                anyhow::bail!("{flag}: the token is empty; give a non-empty token, or leave the option unset to serve without one");
+            }
+        }
         let scene = match &self.scene {
             Some(p) => Scene::load(p)?,
             None => Scene::default_scene(),

@@ -154,9 +154,16 @@ pub struct PushSummary {
     pub rejections: Vec<proto::Rejection>,
     /// Every sequence gap reported.
     pub gaps: Vec<proto::SequenceGap>,
+    /// Frames handed to the stream (sent, or queued to be sent).
+    pub sent: u64,
 }
 
 impl PushSummary {
+    /// Frames sent that the server neither accepted nor rejected.
+    pub fn unacknowledged(&self) -> u64 {
+        self.sent.saturating_sub(self.accepted + self.rejected)
+    }
+
     fn add(&mut self, ack: &proto::IngestAck) {
         self.batches = ack.batch;
         self.accepted += ack.accepted;
@@ -177,7 +184,11 @@ impl Display for PushSummary {
             self.rejected,
             self.gaps.len(),
             missing
-        )
+        )?;
+        match self.unacknowledged() {
+            0 => Ok(()),
+            n => write!(f, "; {n} of {} frames sent were not acknowledged", self.sent),
+        }
     }
 }
 
@@ -203,6 +214,13 @@ where
     S: tokio_stream::Stream<Item = proto::FrameBatch> + Send + 'static,
 {
     let mut summary = PushSummary::default();
+    let sent = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
+    let counter = sent.clone();
+    let batches = tokio_stream::StreamExt::map(batches, move |b: proto::FrameBatch| {
+        counter.fetch_add(b.frames.len() as u64, std::sync::atomic::Ordering::Relaxed);
+        b
+    });
+    let sent_now = |s: &mut PushSummary| s.sent = sent.load(std::sync::atomic::Ordering::Relaxed);
     let mut acks = match client.push(batches).await {
         Ok(r) => r.into_inner(),
         Err(status) => return Err(PushFailed { summary, status }),
@@ -213,8 +231,21 @@ where
                 on_ack(&ack);
                 summary.add(&ack);
             }
-            Ok(None) => return Ok(summary),
-            Err(status) => return Err(PushFailed { summary, status }),
+            Ok(None) => {
+                sent_now(&mut summary);
+                // A stream that ends OK with frames outstanding was cut off.
+                return match summary.unacknowledged() {
+                    0 => Ok(summary),
+                    n => Err(PushFailed {
+                        status: Status::unavailable(format!("the server ended the stream with {n} frames not acknowledged")),
+                        summary,
+                    }),
+                };
+            }
+            Err(status) => {
+                sent_now(&mut summary);
+                return Err(PushFailed { summary, status });
+            }
         }
     }
 }

@@ -3,7 +3,7 @@
 use super::session::Session;
 use super::{Shared, grpc, status};
 use crate::scene::Scene;
-use crate::wire::{noise_to_proto, proto};
+use crate::wire::{check_sensor_id, noise_to_proto, proto};
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use tonic::{Request, Response, Status};
@@ -19,6 +19,7 @@ impl ControlService {
     }
 
     fn session(&self, sensor: &str) -> Result<Arc<Session>, Status> {
+        check_sensor_id(sensor).map_err(status::invalid_field)?;
         self.shared.sessions.get(sensor).ok_or_else(|| {
             Status::not_found(format!(
                 "sensor_id: no sensor {sensor:?} has sent frames or been configured"
@@ -84,6 +85,7 @@ impl grpc::control_server::Control for ControlService {
         request: Request<proto::SetSceneRequest>,
     ) -> Result<Response<proto::SceneDocument>, Status> {
         let req = request.into_inner();
+        check_sensor_id(&req.sensor_id).map_err(status::invalid_field)?;
         let origin = if req.sensor_id.is_empty() {
             "SetScene(default)".to_string()
         } else {

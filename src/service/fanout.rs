@@ -5,6 +5,7 @@
 //! the oldest reports and is told how many ([`proto::Lagged`]); publishing
 //! never waits for subscribers, so a slow one cannot slow ingestion or others.
 
+use super::lock;
 use crate::frame::Report;
 use crate::pipeline::report_json;
 use crate::wire::{proto, report_to_proto};
@@ -81,7 +82,7 @@ impl Hub {
     pub fn publish(&self, report: Report) {
         let json = report_json(&report);
         let p = Arc::new(Published { report, json });
-        let mut g = self.inner.lock().unwrap();
+        let mut g = lock(&self.inner);
         let cap = g.history_cap;
         if cap > 0 {
             let h = g.history.entry(p.report.sensor.clone()).or_default();
@@ -105,7 +106,7 @@ impl Hub {
         resume_from: Option<u64>,
         wanted: impl Fn(&str) -> bool,
     ) -> Option<Subscription> {
-        let g = self.inner.lock().unwrap();
+        let g = lock(&self.inner);
         let live = g.tx.as_ref()?.subscribe();
         let mut backlog = Vec::new();
         if let Some(from) = resume_from {
@@ -125,6 +126,6 @@ impl Hub {
 
     /// Stops publishing: subscribers receive what is buffered, then their streams end.
     pub fn close(&self) {
-        self.inner.lock().unwrap().tx.take();
+        lock(&self.inner).tx.take();
     }
 }

@@ -11,7 +11,7 @@
 use super::grpc;
 use super::session::{Session, StartError, Verdict};
 use super::{Shared, status};
-use crate::frame::{ChannelRole, Frame, channel_key};
+use crate::frame::{ChannelRole, Frame, channel_key, limits};
 use crate::scene::Scene;
 use crate::telemetry;
 use crate::wire::{self, ConvertError, proto};
@@ -116,6 +116,8 @@ struct StreamTotals {
     batches: u64,
     accepted: u64,
     rejected: u64,
+    /// Of the rejected: refused because the server is shutting down.
+    unavailable: u64,
 }
 
 #[tonic::async_trait]
@@ -156,10 +158,14 @@ impl grpc::ingest_server::Ingest for IngestService {
                 totals
             });
             let mut failure = None;
+            let mut cut_off = false;
             loop {
                 let msg = tokio::select! {
                     biased;
-                    _ = shared.shutdown.cancelled() => break,
+                    _ = shared.shutdown.cancelled() => {
+                        cut_off = true;
+                        break;
+                    }
                     m = incoming.message() => m,
                 };
                 match msg {
@@ -178,7 +184,30 @@ impl grpc::ingest_server::Ingest for IngestService {
             }
             // Acks of every batch taken in go out before the stream ends.
             drop(pending_tx);
+            // Frames the client already sent that this stream will not read
+            // (counted as far as they have arrived, without waiting).
+            let mut unread = 0u64;
+            if cut_off {
+                for _ in 0..256 {
+                    match tokio::time::timeout(std::time::Duration::ZERO, incoming.message()).await {
+                        Ok(Ok(Some(b))) => unread += b.frames.len() as u64,
+                        _ => break,
+                    }
+                }
+            }
             let totals = acker.await.unwrap_or_default();
+            if failure.is_none() && (cut_off || totals.unavailable > 0) {
+                // Ending with OK would tell the client everything was taken.
+                failure = Some(Status::unavailable(format!(
+                    "server is shutting down: {} frames not acknowledged ({} refused at shutdown, {unread} sent and not read; \
+                     more may still be in flight); {} accepted and {} rejected in {} batches before",
+                    totals.unavailable + unread,
+                    totals.unavailable,
+                    totals.accepted,
+                    totals.rejected - totals.unavailable,
+                    totals.batches
+                )));
+            }
             if let Some(status) = failure {
                 tracing::warn!(?peer, %status, "ingest stream failed");
                 let _ = tx.send(Err(status)).await;
@@ -217,7 +246,10 @@ async fn start_batch(shared: &Shared, batch: proto::FrameBatch) -> PendingBatch 
     let mut ack = proto::IngestAck::default();
     let mut pending = Vec::with_capacity(batch.frames.len());
     for (index, msg) in batch.frames.iter().enumerate() {
-        let sensor = msg.sensor_id.clone();
+        // An id the wire refuses (control characters, too long) is echoed and
+        // labelled only in its bounded, escaped form.
+        let sensor = limits::shown_sensor_id(&msg.sensor_id);
+        let sensor_ok = limits::sensor_id_problem(&msg.sensor_id).is_none();
         let sequence = msg.sequence;
         let mut reject = |r: EdgeRejection, session: Option<&Session>| {
             match session {
@@ -225,7 +257,7 @@ async fn start_batch(shared: &Shared, batch: proto::FrameBatch) -> PendingBatch 
                     s.metrics.frames_rejected(r.reason, 1);
                     s.stats.frames_rejected.fetch_add(1, Ordering::Relaxed);
                 }
-                None => telemetry::frames_rejected(&sensor, r.reason, 1),
+                None => telemetry::frames_rejected(if sensor_ok { &sensor } else { "" }, r.reason, 1),
             }
             ack.rejections.push(proto::Rejection {
                 sensor_id: sensor.clone(),
@@ -243,6 +275,11 @@ async fn start_batch(shared: &Shared, batch: proto::FrameBatch) -> PendingBatch 
                 },
                 None,
             );
+            continue;
+        }
+        // Checked before a session exists: the id names its thread, files and metrics.
+        if let Err(e) = wire::check_sensor_id(&msg.sensor_id) {
+            reject(e.into(), None);
             continue;
         }
         let session = match shared.sessions.get_or_start(&sensor) {
@@ -355,6 +392,7 @@ async fn finish_batch(batch: PendingBatch, totals: &mut StreamTotals) -> proto::
         }
     }
     ack.rejected = ack.rejections.len() as u64;
+    totals.unavailable += ack.rejections.iter().filter(|r| r.code == "UNAVAILABLE").count() as u64;
     totals.batches += 1;
     totals.accepted += ack.accepted;
     totals.rejected += ack.rejected;

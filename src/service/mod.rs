@@ -154,6 +154,15 @@ pub enum ServiceError {
     },
 }
 
+/// Locks `m`, recovering from poisoning. Every mutex of the service guards
+/// data that stays consistent whatever point a panic interrupts (each
+/// critical section is one assignment, insert, take or push), so a panic
+/// elsewhere while a guard was held must not turn every later call into a
+/// panic: the lock is simply taken again.
+pub(crate) fn lock<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
 /// Shared state of one server: sessions, fan-out and configuration.
 pub(crate) struct Shared {
     /// Per-sensor sessions.

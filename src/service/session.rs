@@ -6,7 +6,7 @@
 //! flow control slows the digitiser. Nothing is dropped. Scene changes travel
 //! through the same queue, so they take effect between two frames, in order.
 
-use super::ServiceError;
+use super::{ServiceError, lock};
 use super::fanout::Hub;
 use super::state::StateDir;
 use crate::capture::RecordingWriter;
@@ -121,19 +121,17 @@ pub enum QueueError {
 impl Session {
     /// Current scene.
     pub fn scene(&self) -> Arc<Scene> {
-        self.scene.lock().unwrap().clone()
+        lock(&self.scene).clone()
     }
 
     /// Latest noise model.
     pub fn noise(&self) -> Option<NoiseSummary> {
-        *self.noise.lock().unwrap()
+        *lock(&self.noise)
     }
 
     /// Frames waiting in the queue.
     pub fn queue_depth(&self) -> usize {
-        self.tx
-            .lock()
-            .unwrap()
+        lock(&self.tx)
             .as_ref()
             .map_or(0, |tx| tx.max_capacity() - tx.capacity())
     }
@@ -142,7 +140,7 @@ impl Session {
     /// numbers were skipped. A sequence at or below the last one (a digitiser
     /// restart) restarts the count without a gap.
     pub fn observe_sequence(&self, seq: u64) -> Option<(u64, u64)> {
-        let mut last = self.last_seq.lock().unwrap();
+        let mut last = lock(&self.last_seq);
         let gap = match *last {
             Some(l) if seq > l.saturating_add(1) => Some((l + 1, seq - l - 1)),
             _ => None,
@@ -157,7 +155,7 @@ impl Session {
     }
 
     fn sender(&self) -> Result<mpsc::Sender<Job>, QueueError> {
-        self.tx.lock().unwrap().clone().ok_or(QueueError::Closed)
+        lock(&self.tx).clone().ok_or(QueueError::Closed)
     }
 
     /// Queues a frame, waiting while the queue is full (backpressure). The
@@ -187,7 +185,7 @@ impl Session {
         .await
         .map_err(|_| QueueError::Closed.to_string())?;
         rx.await.map_err(|_| QueueError::Closed.to_string())??;
-        *self.scene.lock().unwrap() = Arc::new(scene);
+        *lock(&self.scene) = Arc::new(scene);
         Ok(())
     }
 }
@@ -272,7 +270,7 @@ impl Sessions {
                     sensor: s.sensor.clone(),
                     message: e.to_string(),
                 })?;
-            *session.noise.lock().unwrap() = s.noise;
+            *lock(&session.noise) = s.noise;
             tracing::info!(sensor = %s.sensor, "reloaded sensor state");
         }
         Ok(sessions)
@@ -280,7 +278,7 @@ impl Sessions {
 
     /// Scene new sensors start with.
     pub fn default_scene(&self) -> Scene {
-        self.default_scene.lock().unwrap().clone()
+        lock(&self.default_scene).clone()
     }
 
     /// Changes the scene new sensors start with (and persists it).
@@ -288,18 +286,18 @@ impl Sessions {
         if let Some(st) = &self.state {
             st.save_scene(None, &scene)?;
         }
-        *self.default_scene.lock().unwrap() = scene;
+        *lock(&self.default_scene) = scene;
         Ok(())
     }
 
     /// Existing session of `sensor`.
     pub fn get(&self, sensor: &str) -> Option<Arc<Session>> {
-        self.map.lock().unwrap().get(sensor).cloned()
+        lock(&self.map).get(sensor).cloned()
     }
 
     /// All sessions, sorted by sensor id.
     pub fn all(&self) -> Vec<Arc<Session>> {
-        let mut v: Vec<_> = self.map.lock().unwrap().values().cloned().collect();
+        let mut v: Vec<_> = lock(&self.map).values().cloned().collect();
         v.sort_by(|a, b| a.sensor.cmp(&b.sensor));
         v
     }
@@ -322,7 +320,7 @@ impl Sessions {
 
     /// Starts a session; `limited`: refuse past `max_sensors`.
     fn start(&self, sensor: &str, scene: Scene, limited: bool) -> Result<Arc<Session>, StartError> {
-        let mut map = self.map.lock().unwrap();
+        let mut map = lock(&self.map);
         if let Some(s) = map.get(sensor) {
             return Ok(s.clone());
         }
@@ -354,10 +352,10 @@ impl Sessions {
             recorder,
         };
         let handle = std::thread::Builder::new()
-            .name(format!("tofwave-{sensor}"))
+            .name(thread_name(sensor))
             .spawn(move || worker.run(rx))
             .map_err(|e| StartError::Build(format!("cannot start worker thread: {e}")))?;
-        *session.worker.lock().unwrap() = Some(handle);
+        *lock(&session.worker) = Some(handle);
         map.insert(sensor.to_string(), session.clone());
         tracing::info!(sensor, "session started");
         Ok(session)
@@ -380,10 +378,10 @@ impl Sessions {
     pub async fn close_all(&self) -> Result<(), ServiceError> {
         let sessions = self.all();
         for s in &sessions {
-            s.tx.lock().unwrap().take();
+            lock(&s.tx).take();
         }
         for s in &sessions {
-            let handle = s.worker.lock().unwrap().take();
+            let handle = lock(&s.worker).take();
             if let Some(h) = handle {
                 let _ = tokio::task::spawn_blocking(move || h.join()).await;
             }
@@ -399,6 +397,19 @@ impl Sessions {
         }
         Ok(())
     }
+}
+
+/// The worker thread's name: `tofwave-` and the sensor id reduced to ASCII
+/// letters, digits, `-`, `_` and `.` (others become `_`), at most 24
+/// characters. The OS refuses some names (a NUL byte; long names on some
+/// platforms), and a refused name must never stop a session from starting.
+fn thread_name(sensor: &str) -> String {
+    let id: String = sensor
+        .chars()
+        .take(24)
+        .map(|c| if c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.') { c } else { '_' })
+        .collect();
+    format!("tofwave-{id}")
 }
 
 fn open_recording(
@@ -530,7 +541,7 @@ impl Worker {
 
     fn publish(&mut self, reports: &mut Vec<Report>) {
         if let Some(n) = self.pipeline.noise_model() {
-            *self.session.noise.lock().unwrap() = Some(n);
+            *lock(&self.session.noise) = Some(n);
         }
         for r in reports.drain(..) {
             let st = &self.session.stats;

@@ -11,6 +11,7 @@
 use bytes::Bytes;
 
 use super::proto;
+use crate::frame::limits::{self, MAX_SAMPLES_PER_FRAME};
 use crate::frame::{Channel, ChannelRole, Frame, Samples};
 
 /// A wire message that does not make a valid domain value.
@@ -203,6 +204,19 @@ fn unpack(format: i32, bytes: &[u8], field: &str) -> Result<Samples, ConvertErro
     })
 }
 
+/// Checks a sensor id as every wire message carries it: at most
+/// [`MAX_SENSOR_ID_BYTES`](limits::MAX_SENSOR_ID_BYTES) bytes, printable
+/// (no control characters: a NUL, newline or escape in an id would reach
+/// thread names, file names, metric labels and logs). The empty id passes
+/// here (it means "the default" in control calls); ingest refuses it itself.
+/// The error's [`field`](ConvertError::field) is `sensor_id`.
+pub fn check_sensor_id(id: &str) -> Result<(), ConvertError> {
+    match limits::sensor_id_problem(id) {
+        Some(problem) => Err(ConvertError::new("sensor_id", problem)),
+        None => Ok(()),
+    }
+}
+
 /// Converts and validates a wire frame; the error names the offending field.
 ///
 /// Refused: no channels; channels of unequal length; a byte length that is
@@ -211,7 +225,14 @@ fn unpack(format: i32, bytes: &[u8], field: &str) -> Result<Samples, ConvertErro
 /// finite and > 0; non-finite `trigger_time_s`, `first_sample_offset_s` or
 /// `offset_v`; `volts_per_code` zero or non-finite for integer codes. A zero
 /// `volts_per_code` on float samples is read as 1 (the values are volts).
+/// Resource bounds ([`limits`](crate::frame::limits)): a sensor id that
+/// [`check_sensor_id`] refuses; `sample_interval_s` outside
+/// [`MIN_SAMPLE_INTERVAL_S`](limits::MIN_SAMPLE_INTERVAL_S),
+/// [`MAX_SAMPLE_INTERVAL_S`](limits::MAX_SAMPLE_INTERVAL_S); more than
+/// [`MAX_SAMPLES_PER_FRAME`] samples per channel (checked on the byte
+/// length, before anything is unpacked).
 pub fn frame_from_proto(msg: &proto::Frame) -> Result<Frame, ConvertError> {
+    check_sensor_id(&msg.sensor_id)?;
     if !(msg.sample_interval_s.is_finite() && msg.sample_interval_s > 0.0) {
         return Err(ConvertError::new(
             "sample_interval_s",
@@ -220,6 +241,9 @@ pub fn frame_from_proto(msg: &proto::Frame) -> Result<Frame, ConvertError> {
                 msg.sample_interval_s
             ),
         ));
+    }
+    if let Some(problem) = limits::sample_interval_problem(msg.sample_interval_s) {
+        return Err(ConvertError::new("sample_interval_s", problem));
     }
     if !msg.trigger_time_s.is_finite() {
         return Err(ConvertError::new(
@@ -244,6 +268,22 @@ pub fn frame_from_proto(msg: &proto::Frame) -> Result<Frame, ConvertError> {
     }
     let mut channels = Vec::with_capacity(msg.channels.len());
     for (i, c) in msg.channels.iter().enumerate() {
+        let width = match proto::SampleFormat::try_from(c.format) {
+            Ok(proto::SampleFormat::I16) => 2,
+            Ok(proto::SampleFormat::I32 | proto::SampleFormat::F32) => 4,
+            Ok(proto::SampleFormat::F64) => 8,
+            _ => 1,
+        };
+        if c.samples.len() / width > MAX_SAMPLES_PER_FRAME {
+            return Err(ConvertError::new(
+                format!("channels[{i}].samples"),
+                format!(
+                    "{} samples ({} bytes) is out of range: allowed at most {MAX_SAMPLES_PER_FRAME} samples per channel",
+                    c.samples.len() / width,
+                    c.samples.len()
+                ),
+            ));
+        }
         let samples = unpack(c.format, &c.samples, &format!("channels[{i}].samples"))?;
         let role = proto::ChannelRole::try_from(c.role).map_err(|_| {
             ConvertError::new(

@@ -160,3 +160,49 @@ fn every_subcommand_explains_its_flags() {
     let text = String::from_utf8(out.stdout).unwrap();
     Scene::from_toml_str(&text, "printed default").expect("the printed default scene parses");
 }
+
+/// A tiny sampling period once sized the pipeline's buffers (1e-12 s: seconds
+/// per frame; 1e-19 s: an allocation abort, exit 134; 1e-28 s: a capacity
+/// overflow panic, exit 101). Each is now a named error within the exit-code
+/// contract: 2 when the reader refuses the file, 1 when the pipeline refuses
+/// the frame (its period with the scene's pulse makes a template past the
+/// bound).
+#[test]
+fn tiny_sample_intervals_are_named_errors_not_crashes() {
+    let dir = tempfile::tempdir().unwrap();
+    for dt in [1e-12, 1e-14, 1e-16, 1e-19, 1e-28, 1e-30] {
+        let p = dir.path().join(format!("dt{dt:e}.csv"));
+        let rows: String = (0..200).map(|k| format!("{:e},{}\n", k as f64 * dt, 0.01 * ((k * 7919) % 13) as f64)).collect();
+        std::fs::write(&p, format!("time,CH2\n{rows}")).unwrap();
+        let (code, reports, err) = tofwave(&["process", "--input", p.to_str().unwrap()]);
+        assert!(code == 1 || code == 2, "dt {dt:e}: exit {code}: {err}");
+        assert!(reports.is_empty(), "dt {dt:e}");
+        assert!(err.contains("sample_interval_s"), "dt {dt:e}: {err}");
+        if code == 2 {
+            assert!(err.contains(p.file_name().unwrap().to_str().unwrap()) && err.contains("[1e-12, 1] s"), "{err}");
+        } else {
+            assert!(err.contains("template taps") && err.contains("return_pulse"), "{err}");
+        }
+    }
+    // A pulse width whose template alone outgrows any sane frame is refused
+    // when the scene is loaded, by name.
+    let scene = dir.path().join("wide.toml");
+    let text = Scene::default_scene().to_toml();
+    let mut doc: toml::Table = toml::from_str(&text).unwrap();
+    doc["return_pulse"]["fwhm_s"] = toml::Value::Float(1e-3);
+    std::fs::write(&scene, toml::to_string(&doc).unwrap()).unwrap();
+    let p = dir.path().join("ok.csv");
+    let rows: String = (0..200).map(|k| format!("{:e},0.01\n", k as f64 * 1e-9)).collect();
+    std::fs::write(&p, format!("time,CH2\n{rows}")).unwrap();
+    let (code, _, err) = tofwave(&["process", "--scene", scene.to_str().unwrap(), "--input", p.to_str().unwrap()]);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("return_pulse.fwhm_s") && err.contains("0.001") && err.contains("(0, 1e-6] s"), "{err}");
+}
+
+/// `--token ""` used to start an open server with only a log warning.
+#[test]
+fn serve_refuses_an_empty_token() {
+    let (code, _, err) = tofwave(&["serve", "--listen", "127.0.0.1:0", "--token", ""]);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("--token") && err.contains("empty"), "{err}");
+}

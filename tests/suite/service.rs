@@ -744,8 +744,17 @@ async fn shutdown_drains_in_flight_frames() {
                 assert_eq!(a.rejected, 0);
                 accepted += a.accepted;
             }
-            Ok(None) => break,
-            Err(e) => panic!("ingest stream should end cleanly: {e:?}"),
+            // Clean only when every frame was acknowledged; otherwise the
+            // stream says shutdown cut it off, and how many frames it left.
+            Ok(None) => {
+                assert_eq!(accepted, 200, "an OK end means every frame was acknowledged");
+                break;
+            }
+            Err(e) => {
+                assert_eq!(e.code(), Code::Unavailable, "{e:?}");
+                assert!(e.message().contains("not acknowledged"), "{e:?}");
+                break;
+            }
         }
     }
     stop.await.unwrap().unwrap();
@@ -1061,3 +1070,166 @@ async fn concurrent_streams_per_connection_are_limited() {
     server.shutdown().await.unwrap();
 }
 
+
+/// A sensor id with a NUL byte once killed the server: the worker thread was
+/// named after the sensor, the OS refused the name, the session map's lock
+/// was poisoned, and every later push was acknowledged with nothing. The id
+/// is now refused at the wire, naming `sensor_id`, and the server carries on.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sensor_id_with_nul_is_refused_and_other_sensors_continue() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let mut c = server.connect(None).await;
+    let bad = frames("bad\0sensor", 0..1, 40);
+    let acks = tokio::time::timeout(Duration::from_secs(30), push_batches(&mut c, vec![batch(&bad)]))
+        .await
+        .expect("the push is answered")
+        .unwrap();
+    assert_eq!(acks.len(), 1);
+    assert_eq!((acks[0].accepted, acks[0].rejected), (0, 1), "{:?}", acks[0]);
+    let r = &acks[0].rejections[0];
+    assert_eq!(r.code, "INVALID_ARGUMENT", "{r:?}");
+    assert!(r.message.starts_with("frames[0].sensor_id: "), "{r:?}");
+    assert!(r.message.contains("control character"), "{r:?}");
+    // An over-long id too, and its echo stays bounded.
+    let mut long = frames("x", 0..1, 41);
+    long[0].sensor_id = "L".repeat(100_000);
+    let a = &push_batches(&mut c, vec![batch(&long)]).await.unwrap()[0];
+    assert_eq!((a.accepted, a.rejected), (0, 1));
+    assert!(a.rejections[0].message.starts_with("frames[0].sensor_id: "), "{:?}", a.rejections[0].message);
+    assert!(a.rejections[0].sensor_id.len() < 100 && a.rejections[0].message.len() < 300);
+
+    // A normal sensor, on the same connection and a new one, is processed and reported.
+    let mut sub = c
+        .reports
+        .subscribe(proto::SubscribeRequest::default())
+        .await
+        .unwrap()
+        .into_inner();
+    let good = frames("after-nul", 0..3, 42);
+    let acks = push_batches(&mut c, vec![batch(&good)]).await.unwrap();
+    assert_eq!((acks[0].accepted, acks[0].rejected), (3, 0), "{:?}", acks[0]);
+    let mut c2 = server.connect(None).await;
+    let acks = push_batches(&mut c2, vec![batch(&frames("after-nul-2", 0..1, 43))]).await.unwrap();
+    assert_eq!(acks[0].accepted, 1);
+    let first = tokio::time::timeout(Duration::from_secs(30), sub.message())
+        .await
+        .expect("a report arrives")
+        .unwrap()
+        .unwrap();
+    let Some(Event::Report(r)) = first.event else { panic!("a report first") };
+    assert!(r.json.contains("after-nul"), "{}", r.json);
+    // Control calls answer normally, and refuse a bad id by name.
+    let st = c
+        .control
+        .get_status(proto::SensorRequest { sensor_id: "after-nul".into() })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(st.frames_processed, 3);
+    let e = c
+        .control
+        .set_scene(proto::SetSceneRequest { sensor_id: "a\0b".into(), toml: String::new() })
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Code::InvalidArgument);
+    assert!(e.message().starts_with("sensor_id: "), "{}", e.message());
+    let e = c
+        .control
+        .get_status(proto::SensorRequest { sensor_id: "a\0b".into() })
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Code::InvalidArgument, "{e:?}");
+    drop(sub);
+    server.shutdown().await.unwrap();
+}
+
+/// Tiny sampling periods pushed over gRPC: each frame is refused by name
+/// (`sample_interval_s`, at the wire or by the pipeline's resource bound),
+/// never a crash, and another sensor is served normally afterwards.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn tiny_sample_intervals_are_refused_and_the_server_keeps_serving() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let mut c = server.connect(None).await;
+    for (k, dt) in [1e-12, 1e-14, 1e-16, 1e-19, 1e-28, 1e-30].into_iter().enumerate() {
+        let mut fs = frames("tiny-dt", k as u64..k as u64 + 1, 50 + k as u64);
+        fs[0].sample_interval_s = dt;
+        let acks = push_batches(&mut c, vec![batch(&fs)]).await.unwrap();
+        let a = &acks[0];
+        assert_eq!((a.accepted, a.rejected), (0, 1), "dt {dt:e}: {a:?}");
+        let r = &a.rejections[0];
+        assert_eq!(r.code, "INVALID_ARGUMENT", "dt {dt:e}: {r:?}");
+        assert!(r.message.starts_with("frames[0].sample_interval_s: "), "dt {dt:e}: {r:?}");
+    }
+    let acks = push_batches(&mut c, vec![batch(&frames("normal-dt", 0..2, 60))]).await.unwrap();
+    assert_eq!((acks[0].accepted, acks[0].rejected), (2, 0), "{:?}", acks[0]);
+    // The scene refuses a pulse too wide for any template bound, by name.
+    let mut doc: toml::Table = toml::from_str(&Scene::default_scene().to_toml()).unwrap();
+    doc["return_pulse"]["fwhm_s"] = toml::Value::Float(1e-3);
+    let toml = toml::to_string(&doc).unwrap();
+    let e = c
+        .control
+        .set_scene(proto::SetSceneRequest { sensor_id: "normal-dt".into(), toml })
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Code::InvalidArgument);
+    assert!(e.message().contains("return_pulse.fwhm_s"), "{}", e.message());
+    server.shutdown().await.unwrap();
+}
+
+/// A SetScene error used to echo the whole input: a 200 KB line made a
+/// 400 KB status that clients refused (RESOURCE_EXHAUSTED). The echo is
+/// bounded and says how long the line was.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn set_scene_error_echo_is_bounded() {
+    let server = TestServer::start(ServerConfig::default()).await;
+    let mut c = server.connect(None).await;
+    let toml = format!("name = {}\n", "z".repeat(200_000));
+    let e = c
+        .control
+        .set_scene(proto::SetSceneRequest { sensor_id: "echo".into(), toml })
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Code::InvalidArgument, "{}", &e.message()[..e.message().len().min(300)]);
+    assert!(e.message().len() < 5000, "{} bytes", e.message().len());
+    assert!(e.message().starts_with("toml: ") && e.message().contains("bytes)"), "{}", e.message());
+    server.shutdown().await.unwrap();
+}
+
+/// Shutdown used to end open Push streams with OK, frames unacknowledged:
+/// the stream now ends UNAVAILABLE, saying so, and the client's summary
+/// counts what was sent and not acknowledged.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn shutdown_ends_open_push_streams_with_unavailable() {
+    let mut server = TestServer::start(ServerConfig::default()).await;
+    let c = server.connect(None).await;
+    let (tx, rx) = tokio::sync::mpsc::channel::<proto::FrameBatch>(4);
+    let (ack_tx, mut ack_rx) = tokio::sync::mpsc::unbounded_channel();
+    let mut ingest = c.ingest.clone();
+    let push = tokio::spawn(async move {
+        client::push(&mut ingest, ReceiverStream::new(rx), move |a| {
+            let _ = ack_tx.send(a.accepted);
+        })
+        .await
+    });
+    tx.send(batch(&frames("cut", 0..3, 70))).await.unwrap();
+    assert_eq!(ack_rx.recv().await, Some(3));
+    // Shutdown begins with the stream open (the client still holds its sender).
+    let _ = server.stop.take().unwrap().send(());
+    let _ = tx.send(batch(&frames("cut", 3..5, 71))).await;
+    let failed = tokio::time::timeout(Duration::from_secs(30), push)
+        .await
+        .expect("the stream ends")
+        .unwrap()
+        .expect_err("a stream cut off by shutdown is not OK");
+    assert_eq!(failed.status.code(), Code::Unavailable, "{failed}");
+    assert!(failed.status.message().contains("not acknowledged"), "{failed}");
+    assert_eq!(failed.summary.accepted, 3, "{failed}");
+    assert!(failed.summary.sent >= 3 && failed.summary.unacknowledged() == failed.summary.sent - 3, "{failed}");
+    drop(tx);
+    drop(c);
+    tokio::time::timeout(Duration::from_secs(30), server.task)
+        .await
+        .expect("server drains")
+        .unwrap()
+        .unwrap();
+}

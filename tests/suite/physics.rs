@@ -679,7 +679,9 @@ full_scale_high_v = 1.0
             .to_string()
             .contains("gian")
     );
-    let plain = Scene::default_scene();
+    // A scene of a real sensor has no [simulation] (the default scene has one: the prototype's).
+    let mut plain = Scene::default_scene();
+    plain.simulation = None;
     match Simulator::new(&plain) {
         Err(e @ SimulationError::MissingSection { .. }) => {
             assert!(e.to_string().contains("[simulation]"), "{e}")

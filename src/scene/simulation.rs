@@ -810,3 +810,41 @@ impl SimulationConfig {
         Ok(())
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn events(text: &str) -> Result<InterferenceEventsConfig, String> {
+        let c: InterferenceEventsConfig = toml::from_str(text).map_err(|e| e.to_string())?;
+        c.validate().map_err(|e| e.to_string())?;
+        Ok(c)
+    }
+
+    const GOOD: &str = "peak_v = 0.35\ndecay_s = 80e-9\nfrequencies_hz = [1.3e6, 3.1e6]\nprobability_per_frame = 0.3\n";
+
+    #[test]
+    fn interference_events_section_is_checked_by_name() {
+        let c = events(GOOD).unwrap();
+        assert_eq!(c.frequencies_hz.len(), 2);
+        let e = events(&format!("{GOOD}peak = 1.0\n")).unwrap_err();
+        assert!(e.contains("unknown field") && e.contains("peak"), "{e}");
+        for (from, to, field, allowed) in [
+            ("peak_v = 0.35", "peak_v = -0.1", "simulation.interference_events.peak_v", "[0, 1000] V"),
+            ("decay_s = 80e-9", "decay_s = 0.0", "simulation.interference_events.decay_s", "[1e-10, 1e-3] s"),
+            (
+                "probability_per_frame = 0.3",
+                "probability_per_frame = 1.5",
+                "simulation.interference_events.probability_per_frame",
+                "[0, 1]",
+            ),
+            ("[1.3e6, 3.1e6]", "[]", "simulation.interference_events.frequencies_hz", "1 to 16 modes"),
+            ("[1.3e6, 3.1e6]", "[1.3e6, -3.1e6]", "simulation.interference_events.frequencies_hz[1]", "(0, 1e10] Hz"),
+        ] {
+            let e = events(&GOOD.replace(from, to)).unwrap_err();
+            assert!(e.contains(field) && e.contains(allowed), "{to}: {e}");
+        }
+        let e = events("peak_v = 0.35\ndecay_s = 80e-9\nfrequencies_hz = [1e6]\n").unwrap_err();
+        assert!(e.contains("probability_per_frame"), "{e}");
+    }
+}

@@ -201,7 +201,7 @@ fn simulate_without_a_scene_gives_the_lab_targets_and_the_interference_events() 
     let mut frames: Vec<&str> = events.iter().map(|r| r[0]).collect();
     frames.dedup();
     assert_eq!(frames.len(), events.len(), "at most one event per frame");
-    let p = 1.0 / 3.0;
+    let p: f64 = 1.0 / 3.0;
     let tol = 3.29 * (300.0 * p * (1.0 - p)).sqrt();
     assert!((events.len() as f64 - 300.0 * p).abs() < tol, "{} of 300 frames hold an event", events.len());
     for e in &events {

@@ -149,7 +149,8 @@ struct CalibrateArgs {
 #[derive(Args, Debug)]
 struct SimulateArgs {
     /// Scene with a [simulation] section (e.g. replay-data/scenes/weak-32m.toml).
-    /// The embedded default has none: pass one.
+    /// Without one: the embedded default, the source's prototype (Table 10.20's lab
+    /// targets and the receiver's interference events; `tofwave scene` prints it).
     #[arg(long, value_name = "FILE")]
     scene: Option<PathBuf>,
     /// Frames to simulate.
@@ -158,12 +159,17 @@ struct SimulateArgs {
     /// Random seed; the same seed gives the same frames, whatever the thread count.
     #[arg(long, default_value_t = 1, value_name = "S")]
     seed: u64,
-    /// Output file: `.twr` writes tofwave's lossless recording, `.trc` a LeCroy
-    /// sequence file (stop channel only), `.csv` one generic CSV per frame into the
-    /// directory of that name.
+    /// Output; the extension chooses the format: `.twr` tofwave's lossless recording
+    /// (all channels), `.trc` a LeCroy sequence file (stop channel only), `.csv` one
+    /// generic CSV file (a single frame: --frames 1). A path without an extension (or
+    /// ending in `/`) is a directory, created if needed, of one generic CSV per frame
+    /// (frame-00000000.csv, ...).
     #[arg(long, value_name = "PATH")]
     out: PathBuf,
-    /// Ground truth, one JSON line per frame (true times of flight, amplitudes, samples holding signal).
+    /// Ground truth per frame (true times of flight, amplitudes, samples holding signal,
+    /// interference events: onset, peak time, peak volts). `.csv`: CSV, one row per
+    /// frame, return and event (columns sequence,kind,index,t_s,t_peak_s,peak_v,range_m,
+    /// tof_s,flags); any other name: one JSON line per frame.
     #[arg(long, value_name = "FILE")]
     truth: Option<PathBuf>,
 }
@@ -314,7 +320,35 @@ fn simulate(a: SimulateArgs) -> Result<i32> {
         indicatif::ProgressStyle::with_template("{bar:40} {pos}/{len} frames {per_sec} eta {eta}")
             .expect("static template"),
     );
-    // Parent directories of the outputs are created, as for the CSV directory.
+    // The extension chooses the format; no extension (or a trailing `/`): a directory of CSVs.
+    let dir_out = a.out.as_os_str().to_string_lossy().ends_with(['/', std::path::MAIN_SEPARATOR])
+        || a.out.extension().is_none();
+    let ext = if dir_out {
+        "dir".to_string()
+    } else {
+        a.out.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase()
+    };
+    match ext.as_str() {
+        "twr" | "trc" | "dir" => {}
+        "csv" if a.frames == 1 => {}
+        "csv" => bail!(
+            "--out {}: a CSV file holds one frame and {} were asked for: use --frames 1, a .twr or .trc file, \
+             or a directory (a path without an extension) for one CSV per frame",
+            a.out.display(),
+            a.frames
+        ),
+        _ => bail!(
+            "--out {}: the extension must be .twr, .trc or .csv (or no extension: a directory of CSVs)",
+            a.out.display()
+        ),
+    }
+    let truth_csv = a
+        .truth
+        .as_ref()
+        .and_then(|p| p.extension())
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| e.eq_ignore_ascii_case("csv"));
+    // Parent directories of the outputs are created, as is the CSV directory.
     for p in a.truth.iter().chain(std::iter::once(&a.out)) {
         if let Some(dir) = p.parent().filter(|d| !d.as_os_str().is_empty()) {
             std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
@@ -326,7 +360,9 @@ fn simulate(a: SimulateArgs) -> Result<i32> {
         )),
         None => None,
     };
-    let ext = a.out.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
+    if let Some(t) = truth_out.as_mut().filter(|_| truth_csv) {
+        writeln!(t, "{}", tofwave::physics::simulator::TRUTH_CSV_HEADER)?;
+    }
     let mut frames = Vec::new();
     let mut writer = if ext == "twr" {
         let f = std::fs::File::create(&a.out).with_context(|| format!("cannot create {}", a.out.display()))?;
@@ -334,19 +370,22 @@ fn simulate(a: SimulateArgs) -> Result<i32> {
     } else {
         None
     };
-    if ext == "csv" {
+    if ext == "dir" {
         std::fs::create_dir_all(&a.out).with_context(|| format!("cannot create {}", a.out.display()))?;
-    } else if ext != "twr" && ext != "trc" {
-        bail!("--out {}: the extension must be .twr, .trc or .csv", a.out.display());
     }
     for i in 0..a.frames {
         let (frame, truth) = sim.frame(a.seed, i);
         if let Some(t) = &mut truth_out {
-            writeln!(t, "{}", serde_json::to_string(&truth)?)?;
+            if truth_csv {
+                write!(t, "{}", truth.csv_rows())?;
+            } else {
+                writeln!(t, "{}", serde_json::to_string(&truth)?)?;
+            }
         }
         match ext.as_str() {
             "twr" => writer.as_mut().expect("opened").write_frame(&frame)?,
-            "csv" => capture::write_csv(&a.out.join(format!("frame-{i:08}.csv")), &frame, Format::GenericCsv)?,
+            "dir" => capture::write_csv(&a.out.join(format!("frame-{i:08}.csv")), &frame, Format::GenericCsv)?,
+            "csv" => capture::write_csv(&a.out, &frame, Format::GenericCsv)?,
             _ => frames.push(frame),
         }
         bar.inc(1);

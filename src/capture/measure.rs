@@ -24,7 +24,7 @@ use crate::detect::noise_model::NoiseFitter;
 use crate::frame::{channel_key, ChannelRole, Frame};
 use crate::math::quantised::{grid_step, quantised_sigma};
 use crate::math::select::{mad_sigma, median};
-use crate::scene::{PulseConfig, PulseModel, Scene, SceneError, DEFAULT_SCENE_TOML};
+use crate::scene::{PulseConfig, PulseModel, Scene, SceneError, DEFAULT_PROCESSING_TOML};
 
 /// At most this many frames are measured (the first ones): enough for
 /// medians and noise statistics, and memory stays bounded on long recordings.
@@ -908,10 +908,10 @@ impl PulseChannel {
 
 impl CaptureMeasurement {
     /// The measured scene as commented TOML: the embedded default scene's
-    /// text with the measured fields replaced, each preceded by a comment
+    /// processing text (without the prototype's `[simulation]`) with the measured fields replaced, each preceded by a comment
     /// saying what it was measured from. It validates with `Scene::from_toml_str`.
     pub fn scene_toml(&self) -> String {
-        let mut text: Vec<String> = DEFAULT_SCENE_TOML.lines().map(str::to_string).collect();
+        let mut text: Vec<String> = DEFAULT_PROCESSING_TOML.lines().map(str::to_string).collect();
         // The default's opening paragraph describes the prototype: replace it.
         let para = text.iter().position(|l| l.trim().is_empty()).unwrap_or(0);
         let mut header = vec![

@@ -8,7 +8,7 @@
 //! Layout (one concern per file):
 //! - [`link_budget`]: received power, currents, voltages, noise, SNR.
 //! - [`photodetector`]: state-space models of the APD/TIA receiver chain, discretised exactly.
-//! - [`noise_source`]: coloured/skewed noise with a shot-noise envelope; the mains burst.
+//! - [`noise_source`]: coloured/skewed noise with a shot-noise envelope; the mains burst; interference events.
 //! - [`digitiser`]: quantisation to codes, clipping, jittered sampling.
 //! - [`simulator`]: [`Simulator`], [`Truth`].
 //!
@@ -22,4 +22,4 @@ pub mod simulator;
 
 pub use crate::scene::simulation::{SimulationConfig, SimulationError};
 pub use link_budget::LinkBudgetLine;
-pub use simulator::{Simulator, TrueReturn, Truth};
+pub use simulator::{Simulator, TrueEvent, TrueReturn, Truth};

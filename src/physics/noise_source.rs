@@ -1,5 +1,6 @@
 //! Noise: coloured (chain-filtered) Gaussian or skewed noise with a
-//! signal-dependent shot-noise envelope, and the structured mains burst.
+//! signal-dependent shot-noise envelope, the structured mains burst, and the
+//! short interference events.
 //!
 //! All random noise enters as a white current at the receiver input, held over
 //! each digitiser sample, and passes through the exact discrete equivalent of
@@ -298,10 +299,237 @@ impl Burst {
     }
 }
 
+/// Envelope cut of an interference event, in decay times after its onset
+/// (the envelope `u e^{1−u}` is 3.6e-4 of its peak there).
+pub const EVENT_CUT_DECAYS: f64 = 12.0;
+
+/// A short interference event of fixed shape: `g(x) Σ_k sin(2π f_k x)` with
+/// `g(x) = (x/τ) exp(1 − x/τ)`, `x` the time since the onset, zero before the
+/// onset and past `EVENT_CUT_DECAYS · τ`, scaled so that its largest positive
+/// excursion is `peak_v`. The envelope starts from zero with zero value (no
+/// step) and its spectrum around each mode falls as `1/(1 + (2π Δf τ)²)`, so
+/// the event's energy stays near its modes.
+#[derive(Debug, Clone)]
+pub struct InterferenceEvent {
+    /// Mode angular frequencies, rad/s.
+    omegas: Vec<f64>,
+    /// Envelope time constant τ, s.
+    decay_s: f64,
+    /// Scale from the unit shape to volts.
+    scale: f64,
+    /// Time of the largest positive excursion after the onset, s.
+    peak_after_onset_s: f64,
+    /// Largest positive excursion, V.
+    peak_v: f64,
+    /// Probability that a frame holds an event.
+    probability: f64,
+}
+
+impl InterferenceEvent {
+    /// The event shape with modes `frequencies_hz`, envelope time constant
+    /// `decay_s` and largest positive excursion `peak_v`; each frame holds one
+    /// with `probability`.
+    pub fn new(peak_v: f64, decay_s: f64, frequencies_hz: &[f64], probability: f64) -> InterferenceEvent {
+        let mut e = InterferenceEvent {
+            omegas: frequencies_hz.iter().map(|f| 2.0 * std::f64::consts::PI * f).collect(),
+            decay_s,
+            scale: 1.0,
+            peak_after_onset_s: decay_s,
+            peak_v,
+            probability,
+        };
+        // The largest positive excursion, on a grid fine against the fastest
+        // mode and the envelope, then refined by golden-section search.
+        let f_max = frequencies_hz.iter().fold(0.0f64, |m, f| m.max(*f));
+        let span = e.duration_s();
+        let step = (0.01 / f_max.max(1.0 / decay_s)).min(span / 2000.0);
+        let n = (span / step).ceil() as usize;
+        let (mut best_x, mut best) = (decay_s, f64::NEG_INFINITY);
+        for i in 1..n {
+            let x = i as f64 * step;
+            let v = e.unit(x);
+            if v > best {
+                best = v;
+                best_x = x;
+            }
+        }
+        let (mut a, mut b) = ((best_x - step).max(0.0), (best_x + step).min(span));
+        let r = 0.5 * (5f64.sqrt() - 1.0);
+        for _ in 0..80 {
+            let (c, d) = (b - r * (b - a), a + r * (b - a));
+            if e.unit(c) > e.unit(d) {
+                b = d;
+            } else {
+                a = c;
+            }
+        }
+        let x = 0.5 * (a + b);
+        let top = e.unit(x).max(best);
+        e.peak_after_onset_s = x;
+        e.scale = if top > 0.0 { peak_v / top } else { 0.0 };
+        e
+    }
+
+    /// Unscaled shape `x` seconds after the onset.
+    fn unit(&self, x: f64) -> f64 {
+        if !(x > 0.0 && x <= self.duration_s()) {
+            return 0.0;
+        }
+        let u = x / self.decay_s;
+        u * (1.0 - u).exp() * self.omegas.iter().map(|w| (w * x).sin()).sum::<f64>()
+    }
+
+    /// The event's value `x` seconds after its onset, V.
+    pub fn value_v(&self, x: f64) -> f64 {
+        self.scale * self.unit(x)
+    }
+
+    /// Length from the onset to the cut, s.
+    pub fn duration_s(&self) -> f64 {
+        EVENT_CUT_DECAYS * self.decay_s
+    }
+
+    /// Time from the onset to the largest positive excursion, s.
+    pub fn peak_after_onset_s(&self) -> f64 {
+        self.peak_after_onset_s
+    }
+
+    /// Largest positive excursion, V.
+    pub fn peak_v(&self) -> f64 {
+        self.peak_v
+    }
+
+    /// Draws whether a frame of `span_s` seconds starting at `t_first_s`
+    /// holds an event, and if so its onset (uniform over the frame), s.
+    pub fn draw<R: Rng>(&self, rng: &mut R, t_first_s: f64, span_s: f64) -> Option<f64> {
+        // Both numbers are drawn every frame, so a frame's draw does not
+        // depend on the probability's value beyond the comparison.
+        let (p, u) = (rng.random::<f64>(), rng.random::<f64>());
+        (p < self.probability).then_some(t_first_s + u * span_s)
+    }
+
+    /// Adds an event with onset `onset_s` to `out`, whose sample `k` is at
+    /// `t_first_s + k dt_s`.
+    pub fn add_to(&self, out: &mut [f64], t_first_s: f64, dt_s: f64, onset_s: f64) {
+        for (k, v) in out.iter_mut().enumerate() {
+            let x = t_first_s + k as f64 * dt_s - onset_s;
+            if x > 0.0 && x <= self.duration_s() {
+                *v += self.value_v(x);
+            }
+        }
+    }
+}
+
 /// SplitMix64 finaliser: a well-mixed 64-bit hash.
 fn splitmix64(mut z: u64) -> u64 {
     z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
     z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
     z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
     z ^ (z >> 31)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+    use rand_chacha::ChaCha8Rng;
+
+    /// The default scene's events: modes 1.3, 3.1 and 6.7 MHz, τ = 80 ns, 0.35 V.
+    fn prototype() -> InterferenceEvent {
+        InterferenceEvent::new(0.35, 80e-9, &[1.3e6, 3.1e6, 6.7e6], 1.0 / 3.0)
+    }
+
+    /// The event on a 1 ns grid from its onset to its cut.
+    fn samples(e: &InterferenceEvent, dt: f64) -> Vec<f64> {
+        let mut v = vec![0.0; (e.duration_s() / dt).ceil() as usize + 2];
+        e.add_to(&mut v, 0.0, dt, 0.0);
+        v
+    }
+
+    #[test]
+    fn event_energy_lies_below_10_mhz() {
+        use realfft::RealFftPlanner;
+        for (modes, decay) in [(vec![1.3e6, 3.1e6, 6.7e6], 80e-9), (vec![3e6, 7e6], 150e-9), (vec![2e6], 50e-9)] {
+            let e = InterferenceEvent::new(0.35, decay, &modes, 1.0);
+            let dt = 1e-9;
+            let x = samples(&e, dt);
+            // Zero-padded to a fine frequency grid (1/(65536 ns) = 15 kHz).
+            let n = 1 << 16;
+            let mut buf = vec![0.0; n];
+            buf[..x.len()].copy_from_slice(&x);
+            let fft = RealFftPlanner::<f64>::new().plan_fft_forward(n);
+            let mut spec = fft.make_output_vec();
+            fft.process(&mut buf, &mut spec).unwrap();
+            let (mut above, mut total) = (0.0, 0.0);
+            for (k, s) in spec.iter().enumerate() {
+                let p = s.norm_sqr();
+                total += p;
+                if k as f64 / (n as f64 * dt) > 10e6 {
+                    above += p;
+                }
+            }
+            // The envelope's spectrum around a mode at f falls as
+            // 1/(1 + (2π Δf τ)²): for 6.7 MHz and τ = 80 ns about 4 % of that
+            // mode's energy lies beyond 10 MHz; the default scene's event has
+            // 1.4 % of its energy there.
+            let frac = above / total;
+            assert!(frac < 0.05, "modes {modes:?} tau {decay}: {frac:.4} of the energy above 10 MHz");
+        }
+    }
+
+    #[test]
+    fn event_peaks_at_the_configured_amplitude_and_decays() {
+        let e = prototype();
+        // A fine grid (0.05 ns) finds the largest positive excursion.
+        let x = samples(&e, 0.05e-9);
+        let top = x.iter().fold(f64::NEG_INFINITY, |m, v| m.max(*v));
+        assert!((top - 0.35).abs() < 1e-4, "peak {top}");
+        assert!((e.value_v(e.peak_after_onset_s()) - 0.35).abs() < 1e-9);
+        assert_eq!(e.peak_v(), 0.35);
+        // Smooth onset, and zero before it and past the cut.
+        assert_eq!(e.value_v(0.0), 0.0);
+        assert_eq!(e.value_v(-1e-9), 0.0);
+        assert_eq!(e.value_v(e.duration_s() + 1e-9), 0.0);
+        assert!(e.value_v(1e-9).abs() < 0.02, "{}", e.value_v(1e-9));
+        // Decays: the largest |value| in successive windows of 2 τ after the
+        // envelope's peak falls every window, and is below 5 % of the peak from 6 τ.
+        let tau = 80e-9;
+        let win_max = |a: f64, b: f64| {
+            let n = 4000;
+            (0..=n).map(|i| e.value_v(a + (b - a) * i as f64 / n as f64).abs()).fold(0.0, f64::max)
+        };
+        let maxima: Vec<f64> = (0..5).map(|k| win_max((2 + 2 * k) as f64 * tau, (4 + 2 * k) as f64 * tau)).collect();
+        assert!(maxima.windows(2).all(|w| w[1] < w[0]), "{maxima:?}");
+        assert!(win_max(6.0 * tau, 12.0 * tau) < 0.05 * 0.35, "{maxima:?}");
+        // A fraction of the 2.5 us frame: 99 % of its energy within 500 ns of the onset.
+        let x = samples(&e, 1e-9);
+        let total: f64 = x.iter().map(|v| v * v).sum();
+        let early: f64 = x[..500].iter().map(|v| v * v).sum();
+        assert!(early > 0.99 * total, "{}", early / total);
+    }
+
+    /// Of 3000 frames with probability 1/3, the fraction holding an event is
+    /// within the 99.9 % binomial interval: ±3.29 sqrt(p(1−p)/N) = ±0.028
+    /// (normal approximation, N p = 1000); the onsets are uniform over the
+    /// frame (mean within 3.29 sqrt(1/12/K) of the middle, K the events).
+    #[test]
+    fn events_fall_in_the_configured_fraction_of_frames_at_uniform_positions() {
+        let e = prototype();
+        let (frames, p) = (3000usize, 1.0 / 3.0);
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let (t_first, span) = (-250e-9, 2500e-9);
+        let onsets: Vec<f64> = (0..frames).filter_map(|_| e.draw(&mut rng, t_first, span)).collect();
+        let frac = onsets.len() as f64 / frames as f64;
+        let tol = 3.29 * (p * (1.0 - p) / frames as f64).sqrt();
+        assert!((frac - p).abs() < tol, "fraction {frac} vs {p} +- {tol}");
+        assert!(onsets.iter().all(|t| (t_first..t_first + span).contains(t)));
+        let mean_u = onsets.iter().map(|t| (t - t_first) / span).sum::<f64>() / onsets.len() as f64;
+        let tol_u = 3.29 * (1.0 / 12.0 / onsets.len() as f64).sqrt();
+        assert!((mean_u - 0.5).abs() < tol_u, "mean position {mean_u} +- {tol_u}");
+        // Probability 0 and 1 are exact.
+        let never = InterferenceEvent::new(0.35, 80e-9, &[3e6], 0.0);
+        let always = InterferenceEvent::new(0.35, 80e-9, &[3e6], 1.0);
+        assert!((0..100).all(|_| never.draw(&mut rng, 0.0, 1e-6).is_none()));
+        assert!((0..100).all(|_| always.draw(&mut rng, 0.0, 1e-6).is_some()));
+    }
 }

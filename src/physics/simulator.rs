@@ -6,8 +6,10 @@
 //! so AC-coupling baselines and returns of earlier shots beyond the
 //! unambiguous range are in place), the truth template, the coloured-noise
 //! filters and the shot-noise envelope. [`Simulator::frame`] then only samples
-//! (with trigger and aperture jitter), adds noise and the interference burst,
-//! and quantises, from an RNG derived from `(seed, index)` alone.
+//! (with trigger and aperture jitter), adds noise, the interference burst and
+//! the interference events, and quantises, from an RNG derived from
+//! `(seed, index)` alone (the events from their own stream, so a scene with
+//! events gives the same noise as the scene without them).
 //!
 //! ## Ground truth
 //!
@@ -22,13 +24,19 @@
 //! `t_start_s + shot_offset / PRF`), nothing subtracted: the chain's system delay
 //! (different rise times and electrical delays of the two paths) stays in, and
 //! is what `calibrate` learns. `range_m` is the geometric range.
+//!
+//! Each interference event ([`TrueEvent`]) is given by its onset `start_s`
+//! (nominal sample time, like the samples it is added to: sample `k` of the
+//! frame is at `first_sample_offset_s + k·dt` whatever the trigger jitter, as
+//! the events are tied to the mains, not to the shot), the instant of its
+//! largest positive excursion `t_peak_s` and that excursion `peak_v`.
 
 use crate::scene::simulation::SimulationError;
 use crate::scene::simulation::{LaserPulseShape, RingingConfig, SimulationConfig};
 use super::photodetector::{Chain, StateSpace, coast, periodic_state, run_chain};
 use super::digitiser::{FineWave, Quantiser};
 use super::link_budget::{self, LinkBudgetLine, Q_E};
-use super::noise_source::{Burst, ColouredNoise, c_for_skew};
+use super::noise_source::{Burst, ColouredNoise, InterferenceEvent, c_for_skew};
 use crate::frame::{Channel, ChannelRole, Frame};
 use crate::scene::{FieldError, Scene};
 use rand::{Rng, SeedableRng};
@@ -67,6 +75,19 @@ pub struct TrueReturn {
     pub saturated: bool,
 }
 
+/// One interference event in a frame (see the module docs).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct TrueEvent {
+    /// Onset, s from the trigger (nominal sample time).
+    pub start_s: f64,
+    /// Instant of the largest positive excursion, s from the trigger.
+    pub t_peak_s: f64,
+    /// Largest positive excursion, V.
+    pub peak_v: f64,
+    /// The event's largest positive excursion falls within the frame's samples.
+    pub peak_in_frame: bool,
+}
+
 /// Ground truth of one frame.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Truth {
@@ -80,8 +101,71 @@ pub struct Truth {
     pub trigger_offset_s: f64,
     /// The interference burst is present in this frame.
     pub interference: bool,
+    /// Interference events in this frame (`[simulation.interference_events]`).
+    pub events: Vec<TrueEvent>,
     /// The laser is off (noise-only frame).
     pub laser_off: bool,
+}
+
+/// Header of the truth as CSV ([`Truth::csv_rows`]): one row per frame
+/// (`kind` = `frame`: `t_s` the start crossing, `flags` `interference` when
+/// the burst is present and `laser_off`), one per return (`return`: `index`
+/// the target, `t_s` the 50 % crossing, `t_peak_s`, `peak_v`, `range_m`,
+/// `tof_s`, `flags` `truncated`/`saturated`/`shot_offset=K`) and one per
+/// interference event (`event`: `index` its number in the frame, `t_s` its
+/// onset, `t_peak_s`, `peak_v`, `flags` `peak_outside_frame`). Times in
+/// seconds from the trigger; empty cells where a column does not apply.
+pub const TRUTH_CSV_HEADER: &str = "sequence,kind,index,t_s,t_peak_s,peak_v,range_m,tof_s,flags";
+
+impl Truth {
+    /// The frame's rows of the truth as CSV (see [`TRUTH_CSV_HEADER`]), each ending in a newline.
+    pub fn csv_rows(&self) -> String {
+        use std::fmt::Write;
+        let mut out = String::new();
+        let seq = self.sequence;
+        let mut flags: Vec<&str> = Vec::new();
+        if self.interference {
+            flags.push("interference");
+        }
+        if self.laser_off {
+            flags.push("laser_off");
+        }
+        let _ = writeln!(out, "{seq},frame,,{:e},,,,,{}", self.t_start_s, flags.join(" "));
+        for r in &self.returns {
+            let mut f = Vec::new();
+            if r.truncated {
+                f.push("truncated".to_string());
+            }
+            if r.saturated {
+                f.push("saturated".to_string());
+            }
+            if r.shot_offset != 0 {
+                f.push(format!("shot_offset={}", r.shot_offset));
+            }
+            let _ = writeln!(
+                out,
+                "{seq},return,{},{:e},{:e},{:e},{},{:e},{}",
+                r.target,
+                r.t_stop_s,
+                r.t_peak_s,
+                r.peak_amplitude_v,
+                r.range_m,
+                r.tof_s,
+                f.join(" ")
+            );
+        }
+        for (k, e) in self.events.iter().enumerate() {
+            let _ = writeln!(
+                out,
+                "{seq},event,{k},{:e},{:e},{:e},,,{}",
+                e.start_s,
+                e.t_peak_s,
+                e.peak_v,
+                if e.peak_in_frame { "" } else { "peak_outside_frame" }
+            );
+        }
+        out
+    }
 }
 
 /// Truth of a return before the frame's jitter is applied.
@@ -871,6 +955,8 @@ pub struct Simulator {
     start_noise: Option<ColouredNoise>,
     /// Interference burst.
     burst: Option<Burst>,
+    /// Interference events.
+    events: Option<InterferenceEvent>,
     /// DC offset of the stop channel, V.
     offset_v: f64,
     /// Unjittered truth of the returns.
@@ -881,6 +967,8 @@ pub struct Simulator {
 
 /// Stream reserved for per-seed (not per-frame) randomness.
 const SEED_STREAM: u64 = u64::MAX;
+/// Mixed into the seed of the interference events' generator (one stream per frame).
+const EVENT_SEED_SALT: u64 = 0x6576_656E_7473_2121;
 
 impl Simulator {
     /// Builds the simulator; fails if the scene has no `[simulation]` section
@@ -909,6 +997,10 @@ impl Simulator {
         let returns = return_truth(&cfg, &tb, &stop, quant, offset_v, t_start_s);
         let noise = NoiseGenerators::new(&cfg, &tb, &stop, &start)?;
         let burst = burst(&cfg);
+        let events = cfg
+            .interference_events
+            .as_ref()
+            .map(|e| InterferenceEvent::new(e.peak_v, e.decay_s, &e.frequencies_hz, e.probability_per_frame));
         let no_jitter =
             d.trigger_jitter_s == 0.0 && d.aperture_jitter_s == 0.0 && !d.sample_clock_asynchronous;
         let sample_all = |w: &FineWave| {
@@ -937,6 +1029,7 @@ impl Simulator {
             stop_envelope: noise.stop_envelope,
             start_noise: noise.start,
             burst,
+            events,
             offset_v,
             returns,
             t_start_s,
@@ -1042,6 +1135,22 @@ impl Simulator {
                 }
             }
         }
+        let mut events = Vec::new();
+        if let Some(ev) = &self.events {
+            // Its own stream: the frame's other draws are those of the scene without events.
+            let mut erng = ChaCha8Rng::seed_from_u64(seed ^ EVENT_SEED_SALT);
+            erng.set_stream(index);
+            if let Some(onset) = ev.draw(&mut erng, self.t_first_s, n as f64 * dt) {
+                ev.add_to(&mut stop, self.t_first_s, dt, onset);
+                let t_peak_s = onset + ev.peak_after_onset_s();
+                events.push(TrueEvent {
+                    start_s: onset,
+                    t_peak_s,
+                    peak_v: ev.peak_v(),
+                    peak_in_frame: t_peak_s <= self.t_first_s + (n - 1) as f64 * dt,
+                });
+            }
+        }
         let mut channels = Vec::with_capacity(2);
         if let Some(w) = &self.start_wave {
             let mut start = sample(&mut rng, w, &self.start_fixed);
@@ -1089,6 +1198,7 @@ impl Simulator {
             },
             trigger_offset_s: delta,
             interference,
+            events,
             laser_off: self.laser_off,
         };
         (frame, truth)

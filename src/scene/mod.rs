@@ -46,8 +46,16 @@ use check::{check, Range};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
-/// The embedded default scene (the source's prototype), commented.
-pub const DEFAULT_SCENE_TOML: &str = include_str!("../default_scene.toml");
+/// The embedded default scene (the source's prototype), commented: the
+/// processing sections ([`DEFAULT_PROCESSING_TOML`]) followed by the
+/// `[simulation]` section that `tofwave simulate` uses without `--scene`
+/// (Table 10.20's lab targets and the receiver's interference events).
+pub const DEFAULT_SCENE_TOML: &str =
+    concat!(include_str!("../default_scene.toml"), include_str!("../default_simulation.toml"));
+
+/// The default scene's processing sections alone (no `[simulation]`): the
+/// starting text of scenes of real sensors (`tofwave scene --from-capture`).
+pub const DEFAULT_PROCESSING_TOML: &str = include_str!("../default_scene.toml");
 
 /// Speed of light in vacuum, m/s.
 pub const C_VACUUM_M_PER_S: f64 = 299_792_458.0;

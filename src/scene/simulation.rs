@@ -2,7 +2,8 @@
 //!
 //! Every effect is modelled only when its section is present, so a scene says
 //! exactly which physics it wants: no `[simulation.atmosphere]` means no
-//! extinction, no `[simulation.interference]` means no mains burst, and so on.
+//! extinction, no `[simulation.interference]` means no mains burst, no
+//! `[simulation.interference_events]` means no interference events, and so on.
 //! All types are serde with `deny_unknown_fields`; [`SimulationConfig::validate`]
 //! checks every value and names the dotted field and its allowed range.
 
@@ -57,6 +58,10 @@ pub struct SimulationConfig {
     /// Structured mains-rate interference burst on the stop channel.
     #[serde(default)]
     pub interference: Option<InterferenceConfig>,
+    /// Short interference events on the stop channel (a fraction of a frame
+    /// long, at a random position, in some frames).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub interference_events: Option<InterferenceEventsConfig>,
     /// Extra noise options (thermal override, skewness, DC offset).
     #[serde(default)]
     pub noise: Option<NoiseConfig>,
@@ -520,6 +525,62 @@ impl InterferenceConfig {
     }
 }
 
+/// `[simulation.interference_events]`: the receiver's interference events as
+/// the source describes them (ch. 10.4.1, 10.5): a spurious signal at random
+/// instants, a fraction of a frame long, with dominant modes below 10 MHz,
+/// sometimes beside the return and sometimes an extra dominant peak. Each
+/// event has one fixed shape, `g(x) Σ_k sin(2π f_k x)` with the envelope
+/// `g(x) = (x/τ) exp(1 − x/τ)` (rises smoothly from its onset, peaks at
+/// `x = τ`, then decays; cut at 12 τ), scaled so that its largest positive
+/// excursion is `peak_v`. Each frame independently holds one event with
+/// probability `probability_per_frame`; its onset is uniform over the frame
+/// (tied to the mains, not to the shots), and it may run past the frame's end.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct InterferenceEventsConfig {
+    /// Largest positive excursion of an event, V.
+    pub peak_v: f64,
+    /// Envelope time constant τ, s: the envelope peaks τ after the onset and
+    /// decays as exp(−x/τ); the event is cut 12 τ after its onset.
+    pub decay_s: f64,
+    /// Mode frequencies, Hz (the source's were below 10 MHz).
+    pub frequencies_hz: Vec<f64>,
+    /// Probability that a frame holds an event (each frame independently).
+    pub probability_per_frame: f64,
+}
+
+impl InterferenceEventsConfig {
+    /// Checks `[simulation.interference_events]`.
+    pub fn validate(&self) -> Result<(), FieldError> {
+        check(&[
+            ("simulation.interference_events.peak_v", self.peak_v.into(), Range::closed(0.0, 1e3), "[0, 1000] V"),
+            ("simulation.interference_events.decay_s", self.decay_s.into(), Range::closed(1e-10, 1e-3), "[1e-10, 1e-3] s"),
+            (
+                "simulation.interference_events.probability_per_frame",
+                self.probability_per_frame.into(),
+                Range::closed(0.0, 1.0),
+                "[0, 1]",
+            ),
+        ])?;
+        if self.frequencies_hz.is_empty() || self.frequencies_hz.len() > 16 {
+            return Err(FieldError::new(
+                "simulation.interference_events.frequencies_hz",
+                format!("{} modes", self.frequencies_hz.len()),
+                "1 to 16 modes",
+            ));
+        }
+        for (k, f) in self.frequencies_hz.iter().enumerate() {
+            check(&[(
+                &format!("simulation.interference_events.frequencies_hz[{k}]"),
+                (*f).into(),
+                Range::positive_max(1e10),
+                "(0, 1e10] Hz",
+            )])?;
+        }
+        Ok(())
+    }
+}
+
 fn default_wander() -> f64 {
     2e-3
 }
@@ -698,6 +759,9 @@ impl SimulationConfig {
         if let Some(i) = &self.interference {
             i.validate()?;
         }
+        if let Some(e) = &self.interference_events {
+            e.validate()?;
+        }
         if let Some(n) = &self.noise {
             n.validate()?;
         }
@@ -744,5 +808,43 @@ impl SimulationConfig {
             });
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn events(text: &str) -> Result<InterferenceEventsConfig, String> {
+        let c: InterferenceEventsConfig = toml::from_str(text).map_err(|e| e.to_string())?;
+        c.validate().map_err(|e| e.to_string())?;
+        Ok(c)
+    }
+
+    const GOOD: &str = "peak_v = 0.35\ndecay_s = 80e-9\nfrequencies_hz = [1.3e6, 3.1e6]\nprobability_per_frame = 0.3\n";
+
+    #[test]
+    fn interference_events_section_is_checked_by_name() {
+        let c = events(GOOD).unwrap();
+        assert_eq!(c.frequencies_hz.len(), 2);
+        let e = events(&format!("{GOOD}peak = 1.0\n")).unwrap_err();
+        assert!(e.contains("unknown field") && e.contains("peak"), "{e}");
+        for (from, to, field, allowed) in [
+            ("peak_v = 0.35", "peak_v = -0.1", "simulation.interference_events.peak_v", "[0, 1000] V"),
+            ("decay_s = 80e-9", "decay_s = 0.0", "simulation.interference_events.decay_s", "[1e-10, 1e-3] s"),
+            (
+                "probability_per_frame = 0.3",
+                "probability_per_frame = 1.5",
+                "simulation.interference_events.probability_per_frame",
+                "[0, 1]",
+            ),
+            ("[1.3e6, 3.1e6]", "[]", "simulation.interference_events.frequencies_hz", "1 to 16 modes"),
+            ("[1.3e6, 3.1e6]", "[1.3e6, -3.1e6]", "simulation.interference_events.frequencies_hz[1]", "(0, 1e10] Hz"),
+        ] {
+            let e = events(&GOOD.replace(from, to)).unwrap_err();
+            assert!(e.contains(field) && e.contains(allowed), "{to}: {e}");
+        }
+        let e = events("peak_v = 0.35\ndecay_s = 80e-9\nfrequencies_hz = [1e6]\n").unwrap_err();
+        assert!(e.contains("probability_per_frame"), "{e}");
     }
 }

@@ -206,3 +206,68 @@ fn serve_refuses_an_empty_token() {
     assert_eq!(code, 2, "{err}");
     assert!(err.contains("--token") && err.contains("empty"), "{err}");
 }
+
+/// `simulate` with no scene simulates the prototype (the default scene's
+/// `[simulation]`): `process` on its frames reports Table 10.20's lab targets
+/// (the five above the noise; the 20.8 mV return at 32.1 m needs averaging)
+/// at their ranges plus the uncalibrated chain delay (about 0.3 m), and the
+/// CSV truth lists the receiver's interference events in about a third of
+/// the frames: within the 99.9 % binomial interval, 300 p ± 3.29 sqrt(300
+/// p (1 − p)) = 100 ± 27 for p = 1/3, each with its 0.35 V peak inside the
+/// 2.5 us frame's span after its onset.
+#[test]
+fn simulate_without_a_scene_gives_the_lab_targets_and_the_interference_events() {
+    let dir = tempfile::tempdir().unwrap();
+    let (out, truth) = (dir.path().join("prototype.twr"), dir.path().join("truth.csv"));
+    let (out_s, truth_s) = (out.to_str().unwrap(), truth.to_str().unwrap());
+    let (code, _, err) = tofwave(&["simulate", "--frames", "300", "--out", out_s, "--truth", truth_s]);
+    assert_eq!(code, 0, "{err}");
+    assert!(out.is_file() && truth.is_file());
+    let (code, reports, err) = tofwave(&["process", "--input", out_s]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(reports.len(), 300);
+    for range_m in [3.45, 9.5, 15.3986, 19.6814, 24.8122] {
+        let found = reports
+            .iter()
+            .filter(|r| {
+                r["returns"].as_array().unwrap().iter().any(|x| (x["range_m"].as_f64().unwrap() - range_m - 0.3).abs() < 0.5)
+            })
+            .count();
+        assert!(found >= 285, "the {range_m} m target is reported in {found} of 300 frames");
+    }
+    // The truth: one frame row per frame, six returns each, events with their onset and peak.
+    let text = std::fs::read_to_string(&truth).unwrap();
+    let mut lines = text.lines();
+    assert_eq!(lines.next(), Some("sequence,kind,index,t_s,t_peak_s,peak_v,range_m,tof_s,flags"));
+    let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
+    let kind = |k: &str| rows.iter().filter(|r| r[1] == k).count();
+    assert_eq!(kind("frame"), 300);
+    assert_eq!(kind("return"), 6 * 300);
+    let events: Vec<&Vec<&str>> = rows.iter().filter(|r| r[1] == "event").collect();
+    let mut frames: Vec<&str> = events.iter().map(|r| r[0]).collect();
+    frames.dedup();
+    assert_eq!(frames.len(), events.len(), "at most one event per frame");
+    let p: f64 = 1.0 / 3.0;
+    let tol = 3.29 * (300.0 * p * (1.0 - p)).sqrt();
+    assert!((events.len() as f64 - 300.0 * p).abs() < tol, "{} of 300 frames hold an event", events.len());
+    for e in &events {
+        let (start, t_peak, peak): (f64, f64, f64) = (e[3].parse().unwrap(), e[4].parse().unwrap(), e[5].parse().unwrap());
+        assert!((-250e-9..2250e-9).contains(&start), "onset {start}");
+        assert!(t_peak > start && t_peak < start + 1e-6, "peak {t_peak} after onset {start}");
+        assert_eq!(peak, 0.35);
+    }
+    // The extension chooses the format: .csv is one file (one frame), a path
+    // without an extension a directory of CSVs; a .csv of many frames is refused.
+    let one = dir.path().join("one.csv");
+    let (code, _, err) = tofwave(&["simulate", "--frames", "1", "--out", one.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    assert!(one.is_file());
+    let many = dir.path().join("many.csv");
+    let (code, _, err) = tofwave(&["simulate", "--frames", "2", "--out", many.to_str().unwrap()]);
+    assert_ne!(code, 0);
+    assert!(err.contains("--frames 1") && !many.exists(), "{err}");
+    let frames_dir = dir.path().join("frames");
+    let (code, _, err) = tofwave(&["simulate", "--frames", "2", "--out", frames_dir.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    assert!(frames_dir.join("frame-00000001.csv").is_file());
+}

@@ -549,6 +549,55 @@ full_scale_high_v = 0.5
     assert!(strong * 10 >= flagged * 8, "{strong} of {flagged}");
 }
 
+/// The default scene's interference events are in the frames its truth
+/// lists, and nowhere else: against the same scene without them (the events
+/// draw from their own stream, so the noise is the same), frames without an
+/// event are identical, and a frame with one differs by the event: nothing
+/// before its onset, at most the configured 0.35 V peak anywhere, and the
+/// peak at the sample nearest the truth's peak instant (within 1.5 codes of
+/// 9.8 mV: one for quantisation, the rest for the half-sample offset). The event fraction is within the 99.9 % binomial interval of
+/// 1/3 over 600 frames (±3.29 sd, sd = sqrt(600 p (1 − p)) = 11.5).
+#[test]
+fn default_scene_events_are_where_the_truth_says() {
+    let with = Scene::default_scene();
+    let cfg = with.simulation.as_ref().unwrap().interference_events.clone().expect("the default scene has events");
+    let mut without = with.clone();
+    without.simulation.as_mut().unwrap().interference_events = None;
+    let (a, b) = (Simulator::new(&with).unwrap(), Simulator::new(&without).unwrap());
+    let lsb = a.quantiser().volts_per_code;
+    let frames = 600u64;
+    let mut with_event = 0;
+    for i in 0..frames {
+        let (f, t) = a.frame(5, i);
+        let (g, u) = b.frame(5, i);
+        assert_eq!(t.returns, u.returns);
+        assert!(t.events.len() <= 1);
+        let Some(e) = t.events.first() else {
+            assert_eq!(f, g, "frame {i} has no event");
+            continue;
+        };
+        with_event += 1;
+        assert_eq!(e.peak_v, cfg.peak_v);
+        let (x, y) = (stop_volts(&f), stop_volts(&g));
+        let time = |k: usize| f.first_sample_offset_s + k as f64 * f.sample_interval_s;
+        let diff: Vec<f64> = x.iter().zip(&y).map(|(p, q)| p - q).collect();
+        for (k, d) in diff.iter().enumerate() {
+            if time(k) < e.start_s {
+                assert_eq!(*d, 0.0, "frame {i}: before the onset at sample {k}");
+            }
+        }
+        let top = diff.iter().fold(f64::MIN, |m, d| m.max(*d));
+        assert!(top <= 0.35 + 1.01 * lsb, "frame {i}: largest difference {top} V");
+        if e.peak_in_frame {
+            let k = ((e.t_peak_s - f.first_sample_offset_s) / f.sample_interval_s).round() as usize;
+            assert!(diff[k] >= 0.35 - 1.5 * lsb, "frame {i}: {} V at the truth's peak", diff[k]);
+        }
+    }
+    let (n, p) = (frames as f64, cfg.probability_per_frame);
+    let sd = (n * p * (1.0 - p)).sqrt();
+    assert!((with_event as f64 - n * p).abs() < 3.29 * sd, "{with_event} of {frames} frames hold an event");
+}
+
 /// Near bright target: saturated, clipped at the digitiser's full scale.
 #[test]
 fn saturated_near_return_is_flagged_and_clipped() {
@@ -679,7 +728,9 @@ full_scale_high_v = 1.0
             .to_string()
             .contains("gian")
     );
-    let plain = Scene::default_scene();
+    // A scene of a real sensor has no [simulation] (the default scene has one: the prototype's).
+    let mut plain = Scene::default_scene();
+    plain.simulation = None;
     match Simulator::new(&plain) {
         Err(e @ SimulationError::MissingSection { .. }) => {
             assert!(e.to_string().contains("[simulation]"), "{e}")

@@ -34,6 +34,8 @@ pub const SUBSCRIBER_LAGGED: &str = "tofwave_subscriber_lagged_reports_total";
 pub const SUBSCRIBERS: &str = "tofwave_subscribers";
 /// Frames written to `--record` files, per sensor.
 pub const FRAMES_RECORDED: &str = "tofwave_frames_recorded_total";
+/// Recordings stopped by a write or sync error, per sensor.
+pub const RECORDING_FAILURES: &str = "tofwave_recording_failures_total";
 
 /// Histogram buckets for [`PROCESSING_SECONDS`]: 10 µs to 10 s, roughly x3 steps.
 const PROCESSING_BUCKETS_S: &[f64] = &[
@@ -115,6 +117,8 @@ pub struct SensorMetrics {
     queue_depth: OnceLock<Gauge>,
     /// [`FRAMES_RECORDED`].
     frames_recorded: OnceLock<Counter>,
+    /// [`RECORDING_FAILURES`].
+    recording_failures: OnceLock<Counter>,
 }
 
 impl SensorMetrics {
@@ -131,6 +135,7 @@ impl SensorMetrics {
             sequence_gaps: OnceLock::new(),
             queue_depth: OnceLock::new(),
             frames_recorded: OnceLock::new(),
+            recording_failures: OnceLock::new(),
         }
     }
 
@@ -187,6 +192,11 @@ impl SensorMetrics {
         self.queue_depth
             .get_or_init(|| metrics::gauge!(QUEUE_DEPTH, "sensor" => self.sensor.clone()))
             .set(depth as f64);
+    }
+
+    /// A recording stopped on a write or sync error.
+    pub fn recording_failed(&self) {
+        self.counter(&self.recording_failures, RECORDING_FAILURES).increment(1);
     }
 
     /// A frame was written to a recording.

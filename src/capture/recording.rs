@@ -66,6 +66,17 @@ impl<W: Write> RecordingWriter<W> {
         self.frames
     }
 
+    /// Flushes what is buffered to the destination (for a file: to the
+    /// operating system, so it survives the process being killed).
+    pub fn flush(&mut self) -> std::io::Result<()> {
+        self.w.flush()
+    }
+
+    /// The destination (e.g. to sync a file to its device).
+    pub fn get_ref(&self) -> &W {
+        &self.w
+    }
+
     /// Flushes and returns the destination.
     pub fn finish(mut self) -> std::io::Result<W> {
         self.w.flush()?;

@@ -49,8 +49,18 @@ pub struct ServeArgs {
     #[arg(long, value_name = "DIR")]
     pub state_dir: Option<PathBuf>,
     /// Record every accepted frame losslessly (tofwave recording format), one file per sensor.
+    /// An acknowledged frame is in its recording (see --record-sync).
     #[arg(long, value_name = "DIR")]
     pub record: Option<PathBuf>,
+    /// With --record, before frames are acknowledged: "flush" writes them to the operating
+    /// system (they survive the server being killed, kill -9), "fsync" also syncs them to the
+    /// storage device (they survive a power cut; one sync per acknowledged batch).
+    #[arg(long, value_enum, value_name = "POLICY", default_value = "flush")]
+    pub record_sync: super::session::RecordSync,
+    /// With --state-dir, save each sensor's noise model at most this often while frames arrive
+    /// (and at shutdown), seconds; written atomically (temporary file, sync, rename).
+    #[arg(long, value_name = "SECONDS", default_value_t = 10.0)]
+    pub persist_interval_s: f64,
     /// Largest gRPC message accepted, bytes; a bigger ingest message ends that stream with INVALID_ARGUMENT.
     #[arg(long, value_name = "BYTES", default_value_t = super::DEFAULT_MAX_MESSAGE_BYTES)]
     pub max_message_bytes: usize,
@@ -197,6 +207,11 @@ impl ServeArgs {
             record_dir: self.record.clone(),
             drain_timeout: std::time::Duration::try_from_secs_f64(self.drain_timeout_s)
                 .context("--drain-timeout-s: a number of seconds >= 0")?,
+            durability: super::session::Durability {
+                record_sync: self.record_sync,
+                persist_interval: std::time::Duration::try_from_secs_f64(self.persist_interval_s)
+                    .context("--persist-interval-s: a number of seconds >= 0")?,
+            },
         })
     }
 }

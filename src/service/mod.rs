@@ -86,6 +86,8 @@ pub struct ServerConfig {
     /// Longest wait, after shutdown begins, for clients to take their last
     /// acks and reports before `run` returns anyway.
     pub drain_timeout: std::time::Duration,
+    /// What an ack promises about the recording; how often noise models are saved.
+    pub durability: session::Durability,
 }
 
 /// TLS identity in PEM.
@@ -114,6 +116,7 @@ impl Default for ServerConfig {
             state_dir: None,
             record_dir: None,
             drain_timeout: std::time::Duration::from_secs(20),
+            durability: session::Durability::default(),
         }
     }
 }
@@ -202,6 +205,7 @@ pub async fn run(
         hub.clone(),
         state_dir,
         config.record_dir.clone(),
+        config.durability,
     )?;
     let shared = Arc::new(Shared {
         sessions,

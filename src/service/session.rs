@@ -206,8 +206,40 @@ pub struct Sessions {
     state: Option<StateDir>,
     /// Recording directory.
     record_dir: Option<PathBuf>,
+    /// Record sync policy and persistence period.
+    durability: Durability,
     /// Open ingest streams (shutdown waits for zero).
     ingest_streams: watch::Sender<usize>,
+}
+
+/// What an acknowledgement promises about the recording, and how often
+/// noise models are saved.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Durability {
+    /// When recording: what is done with the recorded frames before they are
+    /// acknowledged.
+    pub record_sync: RecordSync,
+    /// Noise models are saved to the state directory at most this often
+    /// while frames arrive (and at shutdown).
+    pub persist_interval: std::time::Duration,
+}
+
+impl Default for Durability {
+    fn default() -> Self {
+        Durability { record_sync: RecordSync::Flush, persist_interval: std::time::Duration::from_secs(10) }
+    }
+}
+
+/// Before a recorded frame is acknowledged, it is…
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+pub enum RecordSync {
+    /// …written to the operating system: an acknowledged frame survives the
+    /// server being killed (kill -9), not a power cut.
+    #[default]
+    Flush,
+    /// …written and synced to the storage device (fdatasync): it survives a
+    /// power cut as well, at the device's sync cost per acknowledged batch.
+    Fsync,
 }
 
 /// Counts an open ingest stream while alive.
@@ -228,6 +260,7 @@ impl Sessions {
         hub: Arc<Hub>,
         state: Option<StateDir>,
         record_dir: Option<PathBuf>,
+        durability: Durability,
     ) -> Result<Sessions, ServiceError> {
         if let Some(dir) = &record_dir {
             std::fs::create_dir_all(dir).map_err(|e| ServiceError::Record {
@@ -239,6 +272,9 @@ impl Sessions {
         let mut saved = Vec::new();
         if let Some(st) = &state {
             let loaded = st.load()?;
+            for w in &loaded.skipped {
+                tracing::warn!(warning = %w, "state directory: file skipped");
+            }
             if let Some(s) = loaded.default_scene {
                 // A default set at run time (SetScene with no sensor id) is the
                 // operator's latest word; it outlives the --scene of the start.
@@ -257,19 +293,20 @@ impl Sessions {
             hub,
             state,
             record_dir,
+            durability,
             ingest_streams: watch::Sender::new(0),
         };
         for s in saved {
-            let session = sessions
-                .start(
-                    &s.sensor,
-                    s.scene.unwrap_or_else(|| sessions.default_scene()),
-                    false,
-                )
-                .map_err(|e| ServiceError::Scene {
-                    sensor: s.sensor.clone(),
-                    message: e.to_string(),
-                })?;
+            // A saved sensor whose scene no longer builds is skipped with a
+            // warning: the server starts, and the sensor starts afresh on the
+            // default scene when its frames arrive.
+            let session = match sessions.start(&s.sensor, s.scene.unwrap_or_else(|| sessions.default_scene()), false) {
+                Ok(session) => session,
+                Err(e) => {
+                    tracing::warn!(sensor = %s.sensor, error = %e, "saved sensor state skipped");
+                    continue;
+                }
+            };
             *lock(&session.noise) = s.noise;
             tracing::info!(sensor = %s.sensor, "reloaded sensor state");
         }
@@ -350,6 +387,10 @@ impl Sessions {
             pipeline,
             hub: self.hub.clone(),
             recorder,
+            state: self.state.clone(),
+            durability: self.durability,
+            saved_at: std::time::Instant::now(),
+            unacked: Vec::new(),
         };
         let handle = std::thread::Builder::new()
             .name(thread_name(sensor))
@@ -436,7 +477,20 @@ struct Worker {
     hub: Arc<Hub>,
     /// Lossless copy of every accepted frame, when recording.
     recorder: Option<RecordingWriter<std::io::BufWriter<std::fs::File>>>,
+    /// Where the noise model is saved periodically.
+    state: Option<StateDir>,
+    /// Record sync policy and persistence period.
+    durability: Durability,
+    /// When the noise model was last saved.
+    saved_at: std::time::Instant,
+    /// Verdicts of recorded frames held until the recording is flushed:
+    /// an acknowledgement means the frame is in the recording.
+    unacked: Vec<(oneshot::Sender<Verdict>, Verdict)>,
 }
+
+/// Recorded frames held for one flush at most: under load the queue never
+/// empties, and a flush per this many frames bounds the wait for an ack.
+const ACKS_PER_FLUSH: usize = 256;
 
 impl Worker {
     fn run(mut self, mut rx: mpsc::Receiver<Job>) {
@@ -454,6 +508,7 @@ impl Worker {
                             Ok(()) => self.session.metrics.frame_recorded(),
                             Err(e) => {
                                 tracing::error!(sensor = %sensor, error = %e, "recording stopped");
+                                self.session.metrics.recording_failed();
                                 self.recorder = None;
                             }
                         }
@@ -486,9 +541,19 @@ impl Worker {
                     }
                     self.publish(&mut reports);
                     self.session.metrics.queue_depth(rx.len());
-                    let _ = done.send(verdict);
+                    // Saved before the ack, so an ack after the period means a saved model.
+                    self.persist_noise(false);
+                    if self.recorder.is_some() {
+                        self.unacked.push((done, verdict));
+                        if rx.is_empty() || self.unacked.len() >= ACKS_PER_FLUSH {
+                            self.flush_and_ack();
+                        }
+                    } else {
+                        let _ = done.send(verdict);
+                    }
                 }
                 Job::SetScene { scene, done } => {
+                    self.flush_and_ack();
                     let result = build_pipeline(&scene, &sensor).map(|p| {
                         self.pipeline.flush(&mut reports);
                         self.publish(&mut reports);
@@ -499,6 +564,7 @@ impl Worker {
                 }
             }
         }
+        self.flush_and_ack();
         self.pipeline.flush(&mut reports);
         self.publish(&mut reports);
         if let Some(w) = self.recorder.take()
@@ -507,6 +573,46 @@ impl Worker {
             tracing::error!(sensor = %sensor, error = %e, "recording not finished");
         }
         tracing::info!(sensor = %sensor, "session drained");
+    }
+
+    /// Writes the recording through (and syncs it, by policy), then sends
+    /// the verdicts held for it.
+    fn flush_and_ack(&mut self) {
+        if self.unacked.is_empty() {
+            return;
+        }
+        if let Some(w) = &mut self.recorder {
+            let synced = w.flush().and_then(|()| match self.durability.record_sync {
+                RecordSync::Flush => Ok(()),
+                RecordSync::Fsync => w.get_ref().get_ref().sync_data(),
+            });
+            if let Err(e) = synced {
+                // The frames were processed and reported; the recording is
+                // what failed. Logged and counted; acknowledgements from here
+                // on no longer imply a recording for this sensor.
+                tracing::error!(sensor = %self.session.sensor, error = %e, "recording stopped");
+                self.session.metrics.recording_failed();
+                self.recorder = None;
+            }
+        }
+        for (done, verdict) in self.unacked.drain(..) {
+            let _ = done.send(verdict);
+        }
+    }
+
+    /// Saves the noise model when the persistence period has passed (or
+    /// `now`), atomically (see [`StateDir`]).
+    fn persist_noise(&mut self, now: bool) {
+        let Some(st) = &self.state else { return };
+        if !now && self.saved_at.elapsed() < self.durability.persist_interval {
+            return;
+        }
+        self.saved_at = std::time::Instant::now();
+        if let Some(n) = self.session.noise()
+            && let Err(e) = st.save_noise(&self.session.sensor, &n)
+        {
+            tracing::warn!(sensor = %self.session.sensor, error = %e, "noise model not saved");
+        }
     }
 
     /// Runs one frame; a panic in the pipeline costs this frame and the

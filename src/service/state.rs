@@ -1,5 +1,7 @@
-//! State directory: per-sensor scenes (TOML) and noise models, saved when they
-//! change or at shutdown and reloaded at start.
+//! State directory: per-sensor scenes (TOML) and noise models; scenes saved
+//! when they change, noise models periodically while frames arrive
+//! (`--persist-interval-s`) and at shutdown; reloaded at start, a file that
+//! does not parse skipped with a warning.
 //!
 //! Layout: `default.toml` (scene for new sensors), `scenes/<sensor>.toml`,
 //! `noise/<sensor>.pb` (a `tofwave.v1.NoiseModel` message). Sensor ids are
@@ -24,8 +26,8 @@ pub enum StateError {
         /// Cause.
         source: std::io::Error,
     },
-    /// A saved file does not parse (the server refuses to start rather than
-    /// silently running a sensor on another scene).
+    /// A saved file does not parse ([`StateDir::load`] skips it with a
+    /// warning: the server starts, and that sensor starts on the default scene).
     #[error("{path}: {message}")]
     Corrupt {
         /// File.
@@ -59,6 +61,10 @@ pub struct Loaded {
     pub default_scene: Option<Scene>,
     /// Sensors, sorted by id.
     pub sensors: Vec<SavedSensor>,
+    /// Files that could not be read or parsed (e.g. truncated by a crash
+    /// of an older version, or edited by hand), with why: skipped, so the
+    /// server still starts.
+    pub skipped: Vec<String>,
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> StateError + '_ {
@@ -108,12 +114,25 @@ impl StateDir {
         StateDir { root }
     }
 
+    /// Writes `bytes` to `path` atomically: a temporary file, synced, then
+    /// renamed over `path` and the directory synced, so `path` holds either
+    /// the old or the new contents after a crash or a power cut.
     fn write(&self, path: &Path, bytes: &[u8]) -> Result<(), StateError> {
+        use std::io::Write;
         let dir = path.parent().unwrap_or(&self.root);
         std::fs::create_dir_all(dir).map_err(io(dir))?;
         let tmp = path.with_extension("tmp");
-        std::fs::write(&tmp, bytes).map_err(io(&tmp))?;
-        std::fs::rename(&tmp, path).map_err(io(path))
+        let mut f = std::fs::File::create(&tmp).map_err(io(&tmp))?;
+        f.write_all(bytes).map_err(io(&tmp))?;
+        f.sync_all().map_err(io(&tmp))?;
+        drop(f);
+        std::fs::rename(&tmp, path).map_err(io(path))?;
+        // The rename is durable once the directory is synced (POSIX); where a
+        // directory cannot be opened for syncing, the rename stands unsynced.
+        if let Ok(d) = std::fs::File::open(dir) {
+            let _ = d.sync_all();
+        }
+        Ok(())
     }
 
     /// Saves a sensor's scene, or the default scene when `sensor` is `None`.
@@ -137,12 +156,17 @@ impl StateDir {
         self.write(&path, &noise_to_proto(noise).encode_to_vec())
     }
 
-    /// Reads everything saved (an absent directory is an empty state).
+    /// Reads everything saved (an absent directory is an empty state). A
+    /// file that does not read or parse is skipped and named in
+    /// [`Loaded::skipped`]; only a directory that cannot be listed is an error.
     pub fn load(&self) -> Result<Loaded, StateError> {
         let mut loaded = Loaded::default();
         let default = self.root.join("default.toml");
         if default.exists() {
-            loaded.default_scene = Some(read_scene(&default)?);
+            match read_scene(&default) {
+                Ok(s) => loaded.default_scene = Some(s),
+                Err(e) => loaded.skipped.push(e.to_string()),
+            }
         }
         let mut sensors: BTreeMap<String, SavedSensor> = BTreeMap::new();
         for (sub, ext) in [("scenes", "toml"), ("noise", "pb")] {
@@ -170,16 +194,18 @@ impl StateDir {
                         noise: None,
                     });
                 if ext == "toml" {
-                    e.scene = Some(read_scene(&path)?);
+                    match read_scene(&path) {
+                        Ok(s) => e.scene = Some(s),
+                        Err(err) => loaded.skipped.push(err.to_string()),
+                    }
                 } else {
-                    let bytes = std::fs::read(&path).map_err(io(&path))?;
-                    let msg = proto::NoiseModel::decode(bytes.as_slice()).map_err(|err| {
-                        StateError::Corrupt {
-                            path: path.display().to_string(),
-                            message: err.to_string(),
-                        }
-                    })?;
-                    e.noise = Some(noise_from_proto(&msg));
+                    let msg = std::fs::read(&path).map_err(|err| err.to_string()).and_then(|bytes| {
+                        proto::NoiseModel::decode(bytes.as_slice()).map_err(|err| err.to_string())
+                    });
+                    match msg {
+                        Ok(msg) => e.noise = Some(noise_from_proto(&msg)),
+                        Err(err) => loaded.skipped.push(format!("{}: {err}", path.display())),
+                    }
                 }
             }
         }
@@ -228,5 +254,33 @@ mod tests {
         assert_eq!(l.sensors[0].sensor, "s/1");
         assert_eq!(l.sensors[0].scene.as_ref(), Some(&scene));
         assert_eq!(l.sensors[0].noise, Some(noise));
+    }
+
+    /// Truncated files (a crash mid-write of an older version, a full disk,
+    /// a hand edit) are skipped and named; the rest loads.
+    #[test]
+    fn truncated_files_are_skipped_not_fatal() {
+        let dir = tempfile::tempdir().unwrap();
+        let st = StateDir::new(dir.path().to_path_buf());
+        let scene = Scene::default_scene();
+        let noise = NoiseSummary { sigma_v: 0.25, samples: 99, ..Default::default() };
+        st.save_scene(Some("good"), &scene).unwrap();
+        st.save_noise("good", &noise).unwrap();
+        st.save_scene(Some("bad"), &scene).unwrap();
+        st.save_noise("bad", &noise).unwrap();
+        for (sub, file) in [("scenes", "bad.toml"), ("noise", "bad.pb")] {
+            let path = dir.path().join(sub).join(file);
+            let bytes = std::fs::read(&path).unwrap();
+            std::fs::write(&path, &bytes[..bytes.len() / 3]).unwrap();
+        }
+        // A temporary file left by a crash between write and rename is ignored.
+        std::fs::write(dir.path().join("noise").join("good.tmp"), b"partial").unwrap();
+        let l = st.load().unwrap();
+        assert_eq!(l.skipped.len(), 2, "{:?}", l.skipped);
+        assert!(l.skipped.iter().any(|w| w.contains("bad.toml")) && l.skipped.iter().any(|w| w.contains("bad.pb")), "{:?}", l.skipped);
+        let good = l.sensors.iter().find(|s| s.sensor == "good").unwrap();
+        assert_eq!((good.scene.as_ref(), good.noise.as_ref()), (Some(&scene), Some(&noise)));
+        let bad = l.sensors.iter().find(|s| s.sensor == "bad").unwrap();
+        assert_eq!((bad.scene.as_ref(), bad.noise.as_ref()), (None, None));
     }
 }

@@ -56,7 +56,10 @@ fn check_frames(frames: &[Frame]) {
             f.trigger_time_s,
             f.first_sample_offset_s
         );
-        assert!(!f.channels.is_empty(), "reader returned a frame without channels");
+        assert!(
+            !f.channels.is_empty(),
+            "reader returned a frame without channels"
+        );
         for c in &f.channels {
             assert!(
                 c.volts_per_code.is_finite() && c.offset_v.is_finite(),
@@ -71,7 +74,11 @@ fn check_frames(frames: &[Frame]) {
                 Samples::F64(v) => v.iter().all(|x| x.is_finite()),
                 _ => true,
             };
-            assert!(finite, "reader returned non-finite samples in channel {:?}", c.name);
+            assert!(
+                finite,
+                "reader returned non-finite samples in channel {:?}",
+                c.name
+            );
         }
     }
 }
@@ -149,8 +156,9 @@ pub fn scene_toml(data: &[u8]) {
     };
     if let Ok(scene) = Scene::from_toml_str(text, INPUT) {
         let again = scene.to_toml();
-        let back = Scene::from_toml_str(&again, "printed scene")
-            .unwrap_or_else(|e| panic!("a valid scene prints as TOML that does not load: {e}\n{again}"));
+        let back = Scene::from_toml_str(&again, "printed scene").unwrap_or_else(|e| {
+            panic!("a valid scene prints as TOML that does not load: {e}\n{again}")
+        });
         assert_eq!(back.to_toml(), again, "printed scene does not round-trip");
     }
 }

@@ -107,10 +107,19 @@ fn seeds() {
     let f16 = frame(Samples::I16(codes.clone()), 0.01, true);
     let f8 = frame(Samples::I8(i8s), 0.02, false);
     let ff = frame(Samples::F64(volts.clone()), 1.0, true);
-    let f32s = frame(Samples::F32(volts.iter().map(|&v| v as f32).collect()), 1.0, false);
+    let f32s = frame(
+        Samples::F32(volts.iter().map(|&v| v as f32).collect()),
+        1.0,
+        false,
+    );
 
     write_trc(&dir("capture_trc").join("i16.trc"), &[f16.clone()], "CH2").unwrap();
-    write_trc(&dir("capture_trc").join("i8-seq.trc"), &[f8.clone(), f8.clone()], "CH2").unwrap();
+    write_trc(
+        &dir("capture_trc").join("i8-seq.trc"),
+        &[f8.clone(), f8.clone()],
+        "CH2",
+    )
+    .unwrap();
     write_isf(&dir("capture_isf").join("i16.isf"), &f16, "CH2").unwrap();
     write_isf(&dir("capture_isf").join("i8.isf"), &f8, "CH2").unwrap();
     write_keysight_bin(&dir("capture_keysight_bin").join("f32.bin"), &f32s).unwrap();
@@ -135,7 +144,13 @@ fn seeds() {
         std::fs::write(dir("wire_frame").join(format!("{name}.pb")), bytes).unwrap();
     }
     // Detection sees every format.
-    for t in ["capture_trc", "capture_isf", "capture_keysight_bin", "capture_csv", "capture_recording"] {
+    for t in [
+        "capture_trc",
+        "capture_isf",
+        "capture_keysight_bin",
+        "capture_csv",
+        "capture_recording",
+    ] {
         for p in files(&out.join(t)) {
             std::fs::copy(&p, dir("capture_auto").join(p.file_name().unwrap())).unwrap();
         }

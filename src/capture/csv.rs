@@ -267,7 +267,17 @@ impl Ctx<'_> {
                 }
             };
             for (k, (col, name, scale)) in layout.chans.iter().enumerate() {
-                values[k].push(self.number(&cells, *col, *line, name, decimal_comma)? * scale);
+                let x = self.number(&cells, *col, *line, name, decimal_comma)? * scale;
+                // A finite reading can overflow when scaled to volts (1e308 kV).
+                if !x.is_finite() {
+                    return Err(self.err(
+                        *line,
+                        Some(col + 1),
+                        format!("a value for {name} that is finite in volts (x {scale})"),
+                        format!("{:?}", cells[*col]),
+                    ));
+                }
+                values[k].push(x);
             }
             times.push(t);
             row_lines.push(*line);
@@ -332,7 +342,16 @@ impl Ctx<'_> {
                         ));
                     }
                 }
-                (start + times[0] * increment, increment)
+                let first = start + times[0] * increment;
+                if !first.is_finite() {
+                    return Err(self.err(
+                        row_lines[0],
+                        Some(1),
+                        "a first sample index whose time (Start + index x Increment) is finite",
+                        format!("index {} x {increment:e} s + {start:e} s", times[0]),
+                    ));
+                }
+                (first, increment)
             }
         };
         Ok(Frame {

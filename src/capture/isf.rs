@@ -229,18 +229,37 @@ pub(crate) fn read(path: &Path, data: &[u8]) -> Result<Vec<Frame>, CaptureError>
         })
         .filter(|s| !s.is_empty())
         .unwrap_or_else(|| "unnamed".to_string());
+    // Finite header numbers can still combine to infinity (XINCR 1e300 x PT_OFF 1e300).
+    let first_sample_offset_s = xzero - xincr * pt_off;
+    if !first_sample_offset_s.is_finite() {
+        let o = header.get("PT_OFF").map_or(hash, |x| x.1);
+        return Err(v.malformed(
+            o,
+            "XZERO - XINCR x PT_OFF finite (the time of sample 0)",
+            format!("{xzero:e} - {xincr:e} x {pt_off:e}"),
+        ));
+    }
+    let offset_v = yzero - ymult * yoff;
+    if !offset_v.is_finite() {
+        let o = header.get("YOFF").map_or(hash, |x| x.1);
+        return Err(v.malformed(
+            o,
+            "YZERO - YMULT x YOFF finite (the volts of code 0)",
+            format!("{yzero:e} - {ymult:e} x {yoff:e}"),
+        ));
+    }
     Ok(vec![Frame {
         sensor_id: String::new(),
         sequence: 0,
         trigger_time_s: 0.0,
         sample_interval_s: xincr,
-        first_sample_offset_s: xzero - xincr * pt_off,
+        first_sample_offset_s,
         channels: vec![Channel {
             name,
             role: ChannelRole::Unspecified,
             samples: decode_codes(raw, width, signed, order),
             volts_per_code: ymult,
-            offset_v: yzero - ymult * yoff,
+            offset_v,
         }],
         laser_off: false,
     }])

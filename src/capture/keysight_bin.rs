@@ -213,9 +213,12 @@ pub(crate) fn read(path: &Path, data: &[u8]) -> Result<Vec<Frame>, CaptureError>
         ));
     }
     // Group by segment index, in order of first appearance.
+    // (A map from segment to frame: a linear search per waveform is quadratic
+    // in the waveform count, which the file controls.)
     let mut frames: Vec<(u32, Frame)> = Vec::new();
+    let mut by_segment: std::collections::HashMap<u32, usize> = std::collections::HashMap::new();
     for w in waves {
-        match frames.iter_mut().find(|(s, _)| *s == w.segment) {
+        match by_segment.get(&w.segment).map(|&i| &mut frames[i]) {
             Some((_, f)) => {
                 if w.channel.samples.len() != f.len() || w.dt != f.sample_interval_s {
                     return Err(v.malformed(
@@ -230,18 +233,21 @@ pub(crate) fn read(path: &Path, data: &[u8]) -> Result<Vec<Frame>, CaptureError>
                 }
                 f.channels.push(w.channel);
             }
-            None => frames.push((
-                w.segment,
-                Frame {
-                    sensor_id: String::new(),
-                    sequence: 0,
-                    trigger_time_s: w.time_tag,
-                    sample_interval_s: w.dt,
-                    first_sample_offset_s: w.x_origin,
-                    channels: vec![w.channel],
-                    laser_off: false,
-                },
-            )),
+            None => {
+                by_segment.insert(w.segment, frames.len());
+                frames.push((
+                    w.segment,
+                    Frame {
+                        sensor_id: String::new(),
+                        sequence: 0,
+                        trigger_time_s: w.time_tag,
+                        sample_interval_s: w.dt,
+                        first_sample_offset_s: w.x_origin,
+                        channels: vec![w.channel],
+                        laser_off: false,
+                    },
+                ));
+            }
         }
     }
     Ok(frames.into_iter().map(|(_, f)| f).collect())

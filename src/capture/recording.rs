@@ -236,9 +236,15 @@ impl<R: Read> RecordingReader<R> {
                 }
             });
         }
-        self.buf.resize(len as usize, 0);
-        let got = read_full(&mut self.r, &mut self.buf).map_err(|e| io(&self.path, at, e))?;
-        if got < self.buf.len() {
+        // Grow the buffer with the bytes actually read, not with the length
+        // the prefix claims: a stream of unknown size (limit u64::MAX) could
+        // otherwise ask for a 1 GiB buffer with a few bytes.
+        self.buf.clear();
+        let got = (&mut self.r)
+            .take(len)
+            .read_to_end(&mut self.buf)
+            .map_err(|e| io(&self.path, at, e))?;
+        if (got as u64) < len {
             return Err(CaptureError::Truncated {
                 path: self.path.clone(),
                 offset: at,

@@ -804,6 +804,67 @@ fn wrong_magic_and_length_mismatches_are_named() {
     );
 }
 
+/// A stream of unknown size whose length prefix claims almost 1 GiB but
+/// holds 3 bytes: truncation is reported from the bytes actually read, with
+/// no buffer sized by the claim (found by fuzzing, `fuzz/README.md`).
+#[test]
+fn streamed_recording_with_a_huge_length_prefix_is_truncated_not_allocated() {
+    let mut rec = RecordingWriter::new(Vec::new()).unwrap().finish().unwrap();
+    // varint (1 << 30) - 1, then 3 bytes of "message".
+    rec.extend_from_slice(&[0xff, 0xff, 0xff, 0xff, 0x03, 1, 2, 3]);
+    let e = RecordingReader::new(rec.as_slice(), Path::new("pipe.twr"))
+        .unwrap()
+        .next()
+        .unwrap()
+        .unwrap_err();
+    match &e {
+        CaptureError::Truncated {
+            offset,
+            needed,
+            available,
+            ..
+        } => assert_eq!((*offset, *needed, *available), (21, (1 << 30) - 1, 3), "{e}"),
+        other => panic!("expected truncation, got {other}"),
+    }
+    assert!(e.to_string().starts_with("pipe.twr: byte 21: expected frame 0"), "{e}");
+}
+
+/// Finite header numbers or readings that overflow once combined (a kV
+/// reading of 1e308, ISF `XINCR x PT_OFF`, Rigol `Start + index x
+/// Increment`) are refused with the line or byte and the field, never
+/// returned as infinite times or volts (found by fuzzing, `fuzz/artifacts/`).
+#[test]
+fn overflowing_scales_and_offsets_are_refused() {
+    let art = Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/artifacts");
+    let cases: &[(&str, Format, &str)] = &[
+        (
+            "capture_csv/kv-overflow-to-inf.csv",
+            Format::GenericCsv,
+            "line 2, column 2: expected a value for CH1 that is finite in volts",
+        ),
+        (
+            "capture_csv/rigol-start-overflow.csv",
+            Format::RigolCsv,
+            "line 3, column 1: expected a first sample index whose time",
+        ),
+        (
+            "capture_isf/pt-off-overflow.isf",
+            Format::TekIsf,
+            "expected XZERO - XINCR x PT_OFF finite",
+        ),
+        (
+            "capture_isf/yoff-overflow.isf",
+            Format::TekIsf,
+            "expected YZERO - YMULT x YOFF finite",
+        ),
+    ];
+    for (name, format, want) in cases {
+        let data = std::fs::read(art.join(name)).unwrap();
+        let e = read_bytes(Path::new(name), &data, *format).unwrap_err().to_string();
+        assert!(e.starts_with(name) && e.contains(want), "{e}");
+    }
+}
+
 #[test]
 fn csv_errors_name_line_and_column() {
     let cases: &[(&str, &str)] = &[

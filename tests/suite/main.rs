@@ -22,6 +22,7 @@ mod events;
 mod false_alarm;
 mod false_alarm_coloured;
 mod forgetting;
+mod fuzz_corpus;
 mod golden;
 mod layering;
 mod math_oracle;

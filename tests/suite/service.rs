@@ -1355,15 +1355,17 @@ async fn acknowledged_frames_survive_kill_9() {
     // in a new file, and the recordings of both runs read back.
     let server = ServeProcess::start(&args);
     // The reload is logged as the server starts, after it printed its address.
-    let reloaded = |log: &[String]| log.iter().filter(|l| l.contains("reloaded sensor state")).count();
+    // ("one" has state only if its single frame came after a persistence
+    // period: not asserted.)
+    let reloaded = |log: &[String]| log.iter().any(|l| l.contains("reloaded sensor state") && l.contains("sensor=many"));
     for _ in 0..100 {
-        if reloaded(&server.log.lock().unwrap()) >= 2 {
+        if reloaded(&server.log.lock().unwrap()) {
             break;
         }
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
     let log = server.log.lock().unwrap().clone();
-    assert_eq!(reloaded(&log), 2, "{log:?}");
+    assert!(reloaded(&log), "{log:?}");
     let mut c = client::connect(&server.url, &ClientOptions::default()).await.unwrap();
     let more = frames("many", 41..45, 3);
     let acks = push_batches(&mut c, vec![batch(&more)]).await.unwrap();

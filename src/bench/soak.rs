@@ -102,14 +102,17 @@ impl SoakConfig {
 }
 
 /// Per-frame state bits.
-const ACKED: u8 = 1;
-const REJECTED: u8 = 2;
-const UNACKED_AT_KILL: u8 = 4;
-const SEEN_RELIABLE: u8 = 8;
-const SEEN_CHAOTIC: u8 = 16;
-const RECORDED: u8 = 32;
+type Bits = u16;
+const ACKED: Bits = 1;
+const REJECTED: Bits = 2;
+const UNACKED_AT_KILL: Bits = 4;
+const SEEN_RELIABLE: Bits = 8;
+const SEEN_CHAOTIC: Bits = 16;
+const RECORDED: Bits = 32;
 /// The verdict came from the first server (before the kill).
-const VERDICT_BEFORE_KILL: u8 = 64;
+const VERDICT_BEFORE_KILL: Bits = 64;
+/// A subscriber saw its report from the first server (before the kill).
+const SEEN_BEFORE_KILL: Bits = 128;
 
 /// Kinds of bad frame, in rotation.
 const BAD_KINDS: [&str; 3] = [
@@ -231,7 +234,7 @@ struct Shared {
     cfg: SoakConfig,
     templates: Templates,
     /// Per sensor: one byte of state bits per sequence number.
-    flags: Vec<Mutex<Vec<u8>>>,
+    flags: Vec<Mutex<Vec<Bits>>>,
     /// Frames with a verdict (acked or rejected).
     verdicts: AtomicU64,
     /// Frames handed to Push streams, re-pushes included.
@@ -273,7 +276,7 @@ struct ChaoticCounters {
 }
 
 impl Shared {
-    fn mark(&self, k: usize, seq: u64, bit: u8) -> Option<u8> {
+    fn mark(&self, k: usize, seq: u64, bit: Bits) -> Option<Bits> {
         let mut f = lock(&self.flags[k]);
         let slot = f.get_mut(seq as usize)?;
         let old = *slot;
@@ -671,13 +674,14 @@ async fn pusher(shared: Arc<Shared>, k: usize, mut target: watch::Receiver<Targe
 }
 
 /// Marks the sequence numbers of a report; returns false for a report this run never pushed.
-fn mark_report(shared: &Shared, r: &proto::Report, bit: u8) -> bool {
+fn mark_report(shared: &Shared, r: &proto::Report, bit: Bits, life: u8) -> bool {
     let Some(k) = sensor_index(&r.sensor).filter(|&k| k < shared.cfg.sensors) else {
         return false;
     };
     let mut ok = true;
+    let bits = bit | if life == 0 { SEEN_BEFORE_KILL } else { 0 };
     for seq in r.seq_first..=r.seq_last {
-        match shared.mark(k, seq, bit) {
+        match shared.mark(k, seq, bits) {
             Some(old) if old & bit != 0 && bit == SEEN_RELIABLE => {
                 shared.duplicate_reports.fetch_add(1, Ordering::Relaxed);
             }
@@ -716,7 +720,7 @@ async fn reliable(shared: Arc<Shared>, mut target: watch::Receiver<Target>, read
             match stream.message().await {
                 Ok(Some(ev)) => match ev.event {
                     Some(Event::Report(r)) => {
-                        if !mark_report(&shared, &r, SEEN_RELIABLE) {
+                        if !mark_report(&shared, &r, SEEN_RELIABLE, life) {
                             shared.foreign_reports.fetch_add(1, Ordering::Relaxed);
                         }
                     }
@@ -741,6 +745,8 @@ struct ChaoticState {
     last: Option<u64>,
     /// The next report is the first after a resume.
     first_after_resume: bool,
+    /// Life of the server subscribed to.
+    life: u8,
 }
 
 /// Reads until `until`; false when the stream ended (the server went away).
@@ -772,7 +778,7 @@ async fn read_until(
                         .fetch_add(r.seq_first - l - 1, Ordering::Relaxed);
                 }
                 st.last = Some(st.last.map_or(r.seq_last, |l| l.max(r.seq_last)));
-                if !mark_report(shared, &r, SEEN_CHAOTIC) {
+                if !mark_report(shared, &r, SEEN_CHAOTIC, st.life) {
                     shared.foreign_reports.fetch_add(1, Ordering::Relaxed);
                 }
             }
@@ -792,13 +798,14 @@ async fn chaotic(shared: Arc<Shared>, k: usize, target: watch::Receiver<Target>)
     let mut st = ChaoticState {
         last: None,
         first_after_resume: false,
+        life: 0,
     };
     let read = shared.cfg.read_phase;
     // Stagger the sensors' cycles.
     tokio::time::sleep(read.mul_f64(k as f64 / shared.cfg.sensors as f64)).await;
     while !shared.stop.load(Ordering::Relaxed) {
         let current = target.borrow().clone();
-        let Some((url, _)) = current else {
+        let Some((url, life)) = current else {
             tokio::time::sleep(Duration::from_millis(50)).await;
             continue;
         };
@@ -817,6 +824,7 @@ async fn chaotic(shared: Arc<Shared>, k: usize, target: watch::Receiver<Target>)
             continue;
         };
         st.first_after_resume = resume.is_some();
+        st.life = life;
         // Read ...
         if !read_until(&shared, &mut stream, Instant::now() + read, &mut st).await {
             continue; // the server went away
@@ -887,7 +895,7 @@ async fn soak(cfg: &SoakConfig, work: &Path, command: &str) -> Result<SoakReport
         cfg: cfg.clone(),
         templates: Templates::new(cfg.samples.max(16)),
         flags: (0..sensors)
-            .map(|k| Mutex::new(vec![0u8; share(cfg.frames, sensors, k) as usize]))
+            .map(|k| Mutex::new(vec![0; share(cfg.frames, sensors, k) as usize]))
             .collect(),
         verdicts: AtomicU64::new(0),
         handed: AtomicU64::new(0),
@@ -1219,8 +1227,8 @@ struct Tally {
 }
 
 impl Tally {
-    fn add(&mut self, f: u8, bad: bool) {
-        let has = |b: u8| f & b != 0;
+    fn add(&mut self, f: Bits, bad: bool) {
+        let has = |b: Bits| f & b != 0;
         let seen = has(SEEN_RELIABLE) || has(SEEN_CHAOTIC);
         let before = has(VERDICT_BEFORE_KILL);
         self.frames += 1;
@@ -1229,7 +1237,7 @@ impl Tally {
         self.verdict_before_kill += u64::from(before);
         if has(UNACKED_AT_KILL) {
             self.unacked_at_kill += 1;
-            self.unacked_but_reported += u64::from(seen);
+            self.unacked_but_reported += u64::from(has(SEEN_BEFORE_KILL));
         }
         match (has(ACKED), has(REJECTED)) {
             (true, _) => {

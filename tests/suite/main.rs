@@ -31,6 +31,7 @@ mod pipeline;
 mod roundtrip;
 mod seedgen_check;
 mod service;
+mod soak;
 mod stability;
 mod walk;
 mod whiten;

@@ -719,11 +719,10 @@ async fn reliable(shared: Arc<Shared>, mut target: watch::Receiver<Target>, read
         loop {
             match stream.message().await {
                 Ok(Some(ev)) => match ev.event {
-                    Some(Event::Report(r)) => {
-                        if !mark_report(&shared, &r, SEEN_RELIABLE, life) {
-                            shared.foreign_reports.fetch_add(1, Ordering::Relaxed);
-                        }
+                    Some(Event::Report(r)) if !mark_report(&shared, &r, SEEN_RELIABLE, life) => {
+                        shared.foreign_reports.fetch_add(1, Ordering::Relaxed);
                     }
+                    Some(Event::Report(_)) => {}
                     Some(Event::Lagged(l)) => {
                         shared.reliable_lagged.fetch_add(l.skipped, Ordering::Relaxed);
                     }

@@ -82,6 +82,33 @@ struct BenchArgs {
     /// Random seed of the simulated frames (the same seed gives the same frames).
     #[arg(long, value_name = "S")]
     seed: Option<u64>,
+    /// Instead of the report: the soak run. Starts `tofwave serve` (this binary) as a child on
+    /// 127.0.0.1 with --state-dir and --record in a scratch directory, pushes frames from every
+    /// sensor concurrently with bad frames interleaved, runs stalling and reconnecting subscribers,
+    /// kills the server with SIGKILL half way and restarts it, samples its RSS every second, and
+    /// reconciles every frame (pushed = acked + rejected, acked = reported, acked <= recorded).
+    /// Writes soak.json and soak.md to --out; exits 1 when a check fails.
+    #[arg(long)]
+    soak: bool,
+    /// Soak: frames pushed in all, over all sensors (frames).
+    #[arg(long, value_name = "N", default_value_t = 10_000_000, requires = "soak")]
+    soak_frames: u64,
+    /// Soak: sensors pushing concurrently, one stream each (sensors).
+    #[arg(long, value_name = "N", default_value_t = 8, requires = "soak")]
+    soak_sensors: usize,
+    /// Soak: one frame in N is bad (refused with INVALID_ARGUMENT at the edge); 0: none (frames).
+    #[arg(long, value_name = "N", default_value_t = 1000, requires = "soak")]
+    soak_bad_every: u64,
+    /// Soak: the fraction of frames with a verdict at which the server is killed (SIGKILL) and
+    /// restarted, in (0, 1); 1 or more: never killed.
+    #[arg(long, value_name = "FRACTION", default_value_t = 0.5, requires = "soak")]
+    soak_kill_at: f64,
+    /// Soak: RSS samples this long after each server start are warm-up, not judged for flatness (seconds).
+    #[arg(long, value_name = "SECONDS", default_value_t = 10.0, requires = "soak")]
+    soak_warmup_s: f64,
+    /// Soak: keep the scratch directory (recordings, state, server log) instead of deleting it.
+    #[arg(long, requires = "soak")]
+    soak_keep: bool,
 }
 
 #[derive(Args, Debug)]
@@ -260,6 +287,9 @@ fn main() {
 
 fn bench(a: BenchArgs) -> Result<i32> {
     use tofwave::bench::{self, BenchConfig, RunOptions};
+    if a.soak {
+        return soak(&a);
+    }
     let scene = match &a.scene {
         Some(p) => Scene::load(p)?,
         None => bench::bench_scene(),
@@ -301,6 +331,34 @@ fn bench(a: BenchArgs) -> Result<i32> {
         a.out.join("report.md").display()
     );
     Ok(0)
+}
+
+fn soak(a: &BenchArgs) -> Result<i32> {
+    use tofwave::bench::{run_soak, SoakConfig};
+    if !(a.soak_warmup_s.is_finite() && a.soak_warmup_s >= 0.0) {
+        bail!("--soak-warmup-s: a number of seconds >= 0");
+    }
+    if !(a.soak_kill_at.is_finite() && a.soak_kill_at > 0.0) {
+        bail!("--soak-kill-at: a fraction > 0");
+    }
+    let exe = std::env::current_exe().context("cannot find this executable to start the server")?;
+    let mut cfg = SoakConfig::new(exe);
+    cfg.frames = a.soak_frames;
+    cfg.sensors = a.soak_sensors;
+    cfg.bad_every = a.soak_bad_every;
+    cfg.kill_at = a.soak_kill_at;
+    cfg.rss_warmup = std::time::Duration::from_secs_f64(a.soak_warmup_s);
+    cfg.keep_files = a.soak_keep;
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let report = run_soak(&cfg, &format!("tofwave {}", args.join(" ")))?;
+    report.write(&a.out)?;
+    println!("{}", report.markdown());
+    eprintln!("tofwave bench --soak: -> {}", a.out.join("soak.md").display());
+    let ok = report.check_pushed_eq_acked_plus_rejected
+        && report.check_reported_eq_acked
+        && report.check_acked_le_recorded
+        && report.check_rss_flat != Some(false);
+    Ok(if ok { 0 } else { 1 })
 }
 
 fn block_on(f: impl std::future::Future<Output = Result<()>>) -> Result<i32> {

@@ -1,7 +1,8 @@
 //! The work-precision report: range error and detection statistics against
 //! run time, per timing method and averaging depth, on simulated frames with
 //! ground truth; the numpy/scipy peer side by side; service throughput; and
-//! the memory-bandwidth yardstick for averaging.
+//! the memory-bandwidth yardstick for averaging; and the soak run
+//! (`tofwave bench --soak`) against a real server process killed midway.
 //!
 //! Everything here is driven by [`run`] (what `tofwave bench` calls); the
 //! pieces are public so that tests can run a tiny grid.
@@ -12,6 +13,7 @@ mod output;
 mod peer;
 mod plot;
 mod service;
+mod soak;
 
 pub use grid::{
     BenchConfig, CellStats, RocPoint, SnrSetting, Variant, analytic_crlb_range_m, bench_scene,
@@ -21,6 +23,7 @@ pub use membw::{Bandwidth, measure_bandwidth};
 pub use output::{CSV_COLUMNS, ROC_COLUMNS, write_csv, write_roc_csv};
 pub use peer::{PeerComparison, PeerOutcome, run_peer};
 pub use service::{ServiceThroughput, measure_service};
+pub use soak::{ChaoticSummary, RssLife, SoakConfig, SoakReport, run_soak};
 
 use std::path::{Path, PathBuf};
 

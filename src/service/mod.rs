@@ -260,6 +260,22 @@ pub async fn run(
     });
     // Make sure the recorder exists even without an endpoint, so counters count.
     let _ = crate::telemetry::prometheus_handle();
+    // Histogram samples wait in the recorder until a render or an upkeep
+    // drains them into buckets: with no /metrics scrape they piled up, about
+    // 8 bytes per frame without bound (found by `tofwave bench --soak`).
+    {
+        let handle = crate::telemetry::prometheus_handle();
+        let stop = shutdown_begun.clone();
+        tasks.spawn(async move {
+            let mut tick = tokio::time::interval(std::time::Duration::from_secs(5));
+            loop {
+                tokio::select! {
+                    _ = tick.tick() => handle.run_upkeep(),
+                    _ = stop.cancelled() => return,
+                }
+            }
+        });
+    }
 
     let mut builder = Server::builder()
         .max_concurrent_streams(config.max_streams_per_connection)

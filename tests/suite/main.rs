@@ -32,6 +32,7 @@ mod pipeline;
 mod roundtrip;
 mod seedgen_check;
 mod service;
+mod soak;
 mod stability;
 mod walk;
 mod whiten;

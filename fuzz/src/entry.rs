@@ -14,8 +14,11 @@ use tofwave::frame::{Frame, Samples};
 use tofwave::scene::Scene;
 use tofwave::wire::{self, proto};
 
+/// A fuzz target: its name and its entry point.
+pub type Target = (&'static str, fn(&[u8]));
+
 /// The fuzz targets, by name (= the directory names under `fuzz/corpus/`).
-pub const TARGETS: &[(&str, fn(&[u8]))] = &[
+pub const TARGETS: &[Target] = &[
     ("capture_auto", capture_auto),
     ("capture_trc", capture_trc),
     ("capture_isf", capture_isf),

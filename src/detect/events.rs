@@ -498,6 +498,10 @@ impl Basis {
     /// The pulse at `c` projected off the span: (qᵀ(x − μ), qᵀRq) with R
     /// the Toeplitz noise correlation in `rho` (white when empty). The dense
     /// q goes to `q` (window length).
+    // The window (band, length, samples, first index), the pulse and its
+    // place, and the noise colour are all needed; a struct for one private
+    // call would only rename them.
+    #[allow(clippy::too_many_arguments)]
     fn off_span(&mut self, band: &[f64], len: usize, xw: &[f64], pulse: &Shape, c: f64, first: usize, rho: &[f64], q: &mut Vec<f64>) -> (f64, f64) {
         q.clear();
         q.resize(len, 0.0);

@@ -31,7 +31,7 @@ fn files(dir: &Path) -> Vec<PathBuf> {
     };
     let mut v: Vec<PathBuf> = rd
         .map(|e| e.expect("list directory").path())
-        .filter(|p| p.is_file() && !p.file_name().is_some_and(|n| n == "README.md"))
+        .filter(|p| p.is_file() && p.file_name().is_none_or(|n| n != "README.md"))
         .collect();
     v.sort();
     v
@@ -113,7 +113,7 @@ fn seeds() {
         false,
     );
 
-    write_trc(&dir("capture_trc").join("i16.trc"), &[f16.clone()], "CH2").unwrap();
+    write_trc(&dir("capture_trc").join("i16.trc"), std::slice::from_ref(&f16), "CH2").unwrap();
     write_trc(
         &dir("capture_trc").join("i8-seq.trc"),
         &[f8.clone(), f8.clone()],

@@ -585,8 +585,18 @@ async fn pusher(shared: Arc<Shared>, k: usize, mut target: watch::Receiver<Targe
         let generator = {
             let (shared, cursor, inflight, sensor) =
                 (shared.clone(), cursor.clone(), inflight.clone(), sensor.clone());
+            // Before the kill, hand over at most half of the frames left past
+            // the kill point and then wait for the kill: however fast the
+            // pushers are, the kill falls with frames still to push to the
+            // restarted server.
+            let kill_after = (shared.cfg.kill_at * shared.cfg.frames as f64) as u64;
+            let hold_at = kill_after + shared.cfg.frames.saturating_sub(kill_after) / 2;
+            let hold = life == 0 && shared.cfg.kill_at < 1.0;
             tokio::spawn(async move {
                 loop {
+                    while hold && shared.handed.load(Ordering::Relaxed) >= hold_at {
+                        tokio::time::sleep(Duration::from_millis(2)).await;
+                    }
                     let seqs = lock(&cursor).take(shared.cfg.batch_frames);
                     if seqs.is_empty() {
                         return;

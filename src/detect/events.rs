@@ -13,14 +13,15 @@
 //!
 //! 1. **Return model.** Fit a pulse and its slope (amplitude and sub-sample
 //!    shift, linearised) at every detection whose pulse reaches the window,
-//!    by least squares. The residual on the *flanks* (window samples outside
-//!    every detection's support) is noise if the detections are returns:
-//!    S = Σ r²/σ² is then a quadratic form in correlated Gaussian samples,
-//!    taken as g·χ²(n_f/g) (mean n_f, variance 2 n_f g, g = 1 + 2Σρ(k)²).
-//!    S below its upper `fit_alpha` quantile (Wilson–Hilferty): a return,
-//!    untouched — a clean return loses nothing but the probability
-//!    `fit_alpha` of going on to step 2. A shape mismatch of the return
-//!    itself stays inside its support and does not fail this test.
+//!    by least squares, then add the band-limited subspace below (step 2):
+//!    the energy it explains beyond the pulses, S (in σ²), is what a return
+//!    leaves to noise. Its null distribution is learned from the noise gates
+//!    ([`EventTest::learn_null`]: band energy of whole gate windows, a scaled
+//!    χ² fitted to their quartiles, so a minority of windows holding events
+//!    does not move it), or taken from the noise colour until enough windows
+//!    are in. S below its upper `fit_alpha` quantile: a return, untouched — a
+//!    clean return loses nothing but the probability `fit_alpha` of going on
+//!    to step 2.
 //! 2. **Return with an event** (matched subspace detector; Scharf &
 //!    Friedlander 1994). The event is modelled in the window as anything in
 //!    the band-limited subspace spanned by cos/sin(2π f t), f = 0, Δf, …,
@@ -31,8 +32,13 @@
 //!    (R: the noise correlation). z above the detector's threshold (in the
 //!    same noise units): a return that an event overlaps; else an event.
 //!
+//! Both steps hold the model's columns by their inner products (an
+//! incremental Cholesky factor of their Gram matrix, pulse columns over their
+//! support only), so a judgement costs the pulses' supports, not passes over
+//! the window per column.
+//!
 //! The price of step 2 is the pulse energy inside the event subspace (the
-//! pulse is 26 ns wide, the subspace reaches 10 MHz): [`EventTest::overlap_loss`]
+//! pulse is 26 ns wide, the subspace reaches 10 MHz): [`EventTest::overlap_loss_db`]
 //! gives it for a shape (about 5 dB for the prototype's return); it is paid
 //! only where the flanks show something that is not noise.
 
@@ -160,7 +166,7 @@ impl EventTest {
         let reaches = |p: f64| p + hi >= first as f64 && p + lo <= last as f64;
         self.xw.clear();
         self.xw.extend(x[window.clone()].iter().map(|v| v - noise.mean_v));
-        self.load_band(first, len, cfg.max_frequency);
+        self.load_band(len, cfg.max_frequency);
         let band = &self.band.as_ref().expect("loaded").1;
         let bands = band.len() / len;
         // Step 1: what the event subspace explains of x beyond the pulses
@@ -206,7 +212,7 @@ impl EventTest {
     pub fn reserve(&mut self, pulse: &Shape) {
         let len = self.window_len(pulse);
         let band = (2.0 * self.cfg().max_frequency * len as f64).ceil() as usize * 2 + 2;
-        self.q.reserve((band + 32) * len);
+        self.q.reserve(band * len);
         self.basis.vals.reserve(2 * MAX_PULSE_COLS * len);
         self.basis.cols.reserve(CAP_COLS);
         self.basis.y.reserve(CAP_COLS);
@@ -216,7 +222,7 @@ impl EventTest {
         self.col.reserve(len);
         self.xw.reserve(len);
         let f_max = self.cfg().max_frequency;
-        self.load_band(0, len, f_max);
+        self.load_band(len, f_max);
     }
 
     /// Window length of a detection's test, samples (away from the frame's edges).
@@ -246,14 +252,15 @@ impl EventTest {
                 ..EmpiricalNull::default()
             };
         }
-        self.load_band(0, len, cfg.max_frequency);
+        self.load_band(len, cfg.max_frequency);
+        let band = &self.band.as_ref().expect("loaded").1;
         let null = &mut self.null;
         for r in runs {
             let mut start = r.start;
             while start + len <= r.end {
                 self.xw.clear();
                 self.xw.extend(x[start..start + len].iter().map(|v| v - noise.mean_v));
-                let v = energy(&self.q, len, &self.xw) / (noise.sigma_v * noise.sigma_v);
+                let v = energy(band, len, &self.xw) / (noise.sigma_v * noise.sigma_v);
                 if null.values.len() < NULL_CAP {
                     null.values.push(v);
                 } else {
@@ -287,7 +294,7 @@ impl EventTest {
         let c = -lo.floor() + cfg.flank as f64;
         let len = ((c + hi).ceil() + cfg.flank as f64) as usize + 1;
         self.q.clear();
-        self.push_band(0, len, cfg.max_frequency);
+        self.push_band(len, cfg.max_frequency);
         self.col.clear();
         self.col.extend((0..len).map(|i| pulse.value_and_slope(i as f64 - c).0));
         let e0: f64 = self.col.iter().map(|v| v * v).sum();
@@ -296,16 +303,14 @@ impl EventTest {
         10.0 * (e1 / e0).log10()
     }
 
-    /// Sets `q` to the orthonormal band columns of a window of `len`
-    /// (cached for the last length: they depend on nothing else).
-    fn load_band(&mut self, first: usize, len: usize, f_max: f64) {
+    /// Makes the band cache hold the orthonormal band columns of a window of
+    /// `len` (they depend on nothing else; built in `q` when the length changes).
+    fn load_band(&mut self, len: usize, f_max: f64) {
         if self.band.as_ref().is_some_and(|b| b.0 == len) {
-            self.q.clear();
-            self.q.extend_from_slice(&self.band.as_ref().expect("checked").1);
             return;
         }
         self.q.clear();
-        self.push_band(first, len, f_max);
+        self.push_band(len, f_max);
         match &mut self.band {
             Some((l, b)) => {
                 *l = len;
@@ -317,20 +322,21 @@ impl EventTest {
     }
 
     /// Appends cos and sin columns at f = 0, Δf, … ≤ `f_max` (cycles per
-    /// sample), Δf = 1/(2·len): the band-limited subspace over the window.
-    fn push_band(&mut self, first: usize, len: usize, f_max: f64) {
+    /// sample), Δf = 1/(2·len), about the window's middle: the band-limited
+    /// subspace over the window.
+    fn push_band(&mut self, len: usize, f_max: f64) {
         let df = 0.5 / len as f64;
+        let mid = 0.5 * (len as f64 - 1.0);
         let mut k = 0usize;
         while k as f64 * df <= f_max * (1.0 + 1e-12) {
             let w = 2.0 * std::f64::consts::PI * k as f64 * df;
-            let mid = first as f64 + 0.5 * (len as f64 - 1.0);
             for trig in 0..2 {
                 if k == 0 && trig == 1 {
                     continue;
                 }
                 self.col.clear();
                 self.col.extend((0..len).map(|i| {
-                    let a = w * ((first + i) as f64 - mid);
+                    let a = w * (i as f64 - mid);
                     if trig == 0 { a.cos() } else { a.sin() }
                 }));
                 self.push_col();

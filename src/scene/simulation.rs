@@ -506,22 +506,7 @@ impl InterferenceConfig {
                 "[0, 1/rate_hz - duration_s) s (bursts must not overlap)",
             ));
         }
-        if self.frequencies_hz.is_empty() || self.frequencies_hz.len() > 32 {
-            return Err(FieldError::new(
-                "simulation.interference.frequencies_hz",
-                format!("{} modes", self.frequencies_hz.len()),
-                "1 to 32 modes",
-            ));
-        }
-        for (k, f) in self.frequencies_hz.iter().enumerate() {
-            check(&[(
-                &format!("simulation.interference.frequencies_hz[{k}]"),
-                (*f).into(),
-                Range::positive_max(1e10),
-                "(0, 1e10] Hz",
-            )])?;
-        }
-        Ok(())
+        check_modes("simulation.interference.frequencies_hz", &self.frequencies_hz, 32, "1 to 32 modes")
     }
 }
 
@@ -562,23 +547,20 @@ impl InterferenceEventsConfig {
                 "[0, 1]",
             ),
         ])?;
-        if self.frequencies_hz.is_empty() || self.frequencies_hz.len() > 16 {
-            return Err(FieldError::new(
-                "simulation.interference_events.frequencies_hz",
-                format!("{} modes", self.frequencies_hz.len()),
-                "1 to 16 modes",
-            ));
-        }
-        for (k, f) in self.frequencies_hz.iter().enumerate() {
-            check(&[(
-                &format!("simulation.interference_events.frequencies_hz[{k}]"),
-                (*f).into(),
-                Range::positive_max(1e10),
-                "(0, 1e10] Hz",
-            )])?;
-        }
-        Ok(())
+        check_modes("simulation.interference_events.frequencies_hz", &self.frequencies_hz, 16, "1 to 16 modes")
     }
+}
+
+/// Checks a list of mode frequencies: 1 to `max_modes` of them (`allowed`
+/// says so), each in (0, 1e10] Hz.
+fn check_modes(field: &str, frequencies_hz: &[f64], max_modes: usize, allowed: &'static str) -> Result<(), FieldError> {
+    if frequencies_hz.is_empty() || frequencies_hz.len() > max_modes {
+        return Err(FieldError::new(field, format!("{} modes", frequencies_hz.len()), allowed));
+    }
+    for (k, f) in frequencies_hz.iter().enumerate() {
+        check(&[(&format!("{field}[{k}]"), (*f).into(), Range::positive_max(1e10), "(0, 1e10] Hz")])?;
+    }
+    Ok(())
 }
 
 fn default_wander() -> f64 {

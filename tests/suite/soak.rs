@@ -6,7 +6,15 @@
 use std::time::Duration;
 use tofwave::bench::{SoakConfig, SoakReport, run_soak};
 
-fn small_soak() -> SoakReport {
+/// One soak run shared by the tests of this file: two servers soaking at
+/// once on two cores starved each other (a subscriber found no server in
+/// 30 s), and one run answers both questions.
+fn small_soak() -> &'static SoakReport {
+    static REPORT: std::sync::OnceLock<SoakReport> = std::sync::OnceLock::new();
+    REPORT.get_or_init(run_small_soak)
+}
+
+fn run_small_soak() -> SoakReport {
     let mut cfg = SoakConfig::new(env!("CARGO_BIN_EXE_tofwave").into());
     cfg.frames = 2000;
     cfg.sensors = 8;

@@ -16,7 +16,8 @@ pub const FRAMES_RECEIVED: &str = "tofwave_frames_received_total";
 /// Frames the pipeline processed without error, per sensor.
 pub const FRAMES_PROCESSED: &str = "tofwave_frames_processed_total";
 /// Frames refused, per sensor and `reason` (`invalid_frame`, `sample_rate`,
-/// `samples_per_frame`, `missing_stop`, `pipeline`, `panic`, `oversize`, `sensor_limit`, `shutdown`).
+/// `samples_per_frame`, `missing_stop`, `pipeline`, `panic`, `oversize`, `sensor_limit`, `shutdown`,
+/// `recording`, `fault`).
 pub const FRAMES_REJECTED: &str = "tofwave_frames_rejected_total";
 /// Reports produced, per sensor.
 pub const REPORTS: &str = "tofwave_reports_total";
@@ -36,6 +37,10 @@ pub const SUBSCRIBERS: &str = "tofwave_subscribers";
 pub const FRAMES_RECORDED: &str = "tofwave_frames_recorded_total";
 /// Recordings stopped by a write or sync error, per sensor.
 pub const RECORDING_FAILURES: &str = "tofwave_recording_failures_total";
+/// 1 for a sensor whose frames are refused because it is faulted (its
+/// recording failed or its worker stopped); absent otherwise. Any faulted
+/// sensor makes the gRPC health of `tofwave.v1.Ingest` NOT_SERVING.
+pub const SENSOR_FAULTED: &str = "tofwave_sensor_faulted";
 
 /// Histogram buckets for [`PROCESSING_SECONDS`]: 10 µs to 10 s, roughly x3 steps.
 const PROCESSING_BUCKETS_S: &[f64] = &[
@@ -79,7 +84,7 @@ pub fn prometheus_handle() -> PrometheusHandle {
 }
 
 /// Values of the `reason` label of [`FRAMES_REJECTED`].
-pub const REJECT_REASONS: [&str; 9] = [
+pub const REJECT_REASONS: [&str; 11] = [
     "invalid_frame",
     "sample_rate",
     "samples_per_frame",
@@ -89,6 +94,8 @@ pub const REJECT_REASONS: [&str; 9] = [
     "oversize",
     "sensor_limit",
     "shutdown",
+    "recording",
+    "fault",
 ];
 
 /// One sensor's metric handles, kept by its session. Building a labelled
@@ -233,6 +240,11 @@ pub fn frame_received(sensor: &str) {
 pub fn frames_rejected(sensor: &str, reason: &'static str, count: u64) {
     metrics::counter!(FRAMES_REJECTED, "sensor" => sensor_label(sensor), "reason" => reason)
         .increment(count);
+}
+
+/// `sensor` became faulted (see [`SENSOR_FAULTED`]).
+pub fn sensor_faulted(sensor: &str) {
+    metrics::gauge!(SENSOR_FAULTED, "sensor" => sensor_label(sensor)).set(1.0);
 }
 
 /// A subscriber fell behind and `skipped` reports were dropped for it.

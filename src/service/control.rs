@@ -41,6 +41,7 @@ pub fn status_of(s: &Session) -> proto::SensorStatus {
         last_sequence: st.last_sequence.load(Ordering::Relaxed),
         sequence_gaps: st.sequence_gaps.load(Ordering::Relaxed),
         noise: s.noise().as_ref().map(noise_to_proto),
+        fault: s.fault().unwrap_or_default(),
     }
 }
 

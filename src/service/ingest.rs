@@ -9,7 +9,7 @@
 //! its queue in order.
 
 use super::grpc;
-use super::session::{Session, StartError, Verdict};
+use super::session::{QueueError, Session, StartError, Verdict};
 use super::{Shared, status};
 use crate::frame::{ChannelRole, Frame, channel_key, limits};
 use crate::scene::Scene;
@@ -338,16 +338,20 @@ async fn start_batch(shared: &Shared, batch: proto::FrameBatch) -> PendingBatch 
                 verdict,
             }),
             Err(e) => {
+                let (reason, code) = match &e {
+                    QueueError::Closed => ("shutdown", "UNAVAILABLE"),
+                    QueueError::Faulted(_) => ("fault", "FAILED_PRECONDITION"),
+                };
                 reject(
                     EdgeRejection {
-                        reason: "shutdown",
+                        reason,
                         field: "sensor_id".into(),
                         message: e.to_string(),
                     },
                     Some(&session),
                 );
                 if let Some(r) = ack.rejections.last_mut() {
-                    r.code = "UNAVAILABLE".into();
+                    r.code = code.into();
                 }
             }
         }
@@ -377,6 +381,12 @@ async fn finish_batch(batch: PendingBatch, totals: &mut StreamTotals) -> proto::
                 "frames[{}]: the pipeline failed on this frame ({m}); it was rebuilt",
                 p.index
             ))),
+            Ok(Verdict::Unrecorded(m)) => ack.rejections.push(proto::Rejection {
+                sensor_id: p.sensor.clone(),
+                sequence: p.sequence,
+                code: "FAILED_PRECONDITION".into(),
+                message: format!("frames[{}]: {m}", p.index),
+            }),
             // The worker is gone (it cannot answer): not processed.
             Err(_) => {
                 p.session.metrics.frames_rejected("pipeline", 1);

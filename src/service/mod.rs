@@ -243,6 +243,38 @@ pub async fn run(
     health
         .set_serving::<grpc::control_server::ControlServer<control::ControlService>>()
         .await;
+    // A faulted sensor (its recording failed: acks could no longer mean
+    // "recorded"; or its worker stopped) makes the server unfit to take
+    // frames: Ingest and the server as a whole ("") go NOT_SERVING until a
+    // restart, so probes and load balancers act. Reports and Control stay
+    // SERVING (subscribers keep reading; operators can inspect GetStatus).
+    {
+        let health = health.clone();
+        let mut signal = shared.sessions.fault_signal();
+        let shared = shared.clone();
+        let stop = shutdown_begun.clone();
+        tasks.spawn(async move {
+            loop {
+                tokio::select! {
+                    changed = signal.changed() => if changed.is_err() { return },
+                    _ = stop.cancelled() => return,
+                }
+                let faulted = shared.sessions.faulted();
+                if faulted.is_empty() {
+                    continue;
+                }
+                for (sensor, reason) in &faulted {
+                    tracing::error!(%sensor, %reason, "health: NOT_SERVING (restart the server once the cause is fixed)");
+                }
+                health
+                    .set_not_serving::<grpc::ingest_server::IngestServer<ingest::IngestService>>()
+                    .await;
+                health
+                    .set_service_status("", tonic_health::ServingStatus::NotServing)
+                    .await;
+            }
+        });
+    }
     // v1 for current grpcurl/grpcui, v1alpha for older tools.
     let reflection = || {
         tonic_reflection::server::Builder::configure()

@@ -57,6 +57,10 @@ pub enum Verdict {
     /// The pipeline panicked on it (a bug); the sensor's pipeline was rebuilt
     /// from its scene, losing its running state (averages, noise history).
     Panicked(String),
+    /// Not acknowledged: the sensor's recording failed, so an ack could no
+    /// longer mean "recorded". The reason names the file and the error; a
+    /// frame processed before the failure was reported but is still refused.
+    Unrecorded(String),
 }
 
 /// Counters of one sensor (monotonic; read by `GetStatus`).
@@ -97,6 +101,9 @@ pub struct Session {
     last_seq: Mutex<Option<u64>>,
     /// The worker thread, joined at close.
     worker: Mutex<Option<std::thread::JoinHandle<()>>>,
+    /// Why the sensor's frames are refused (recording failed, worker
+    /// stopped); `None` while healthy. Set once, cleared only by a restart.
+    fault: Mutex<Option<String>>,
 }
 
 /// Why a session could not be started.
@@ -116,6 +123,9 @@ pub enum QueueError {
     /// The server is shutting down.
     #[error("server is shutting down")]
     Closed,
+    /// The sensor is faulted (its worker stopped): the reason.
+    #[error("{0}")]
+    Faulted(String),
 }
 
 impl Session {
@@ -154,8 +164,37 @@ impl Session {
         gap
     }
 
+    /// Why the sensor's frames are refused, if they are.
+    pub fn fault(&self) -> Option<String> {
+        lock(&self.fault).clone()
+    }
+
+    /// Marks the sensor faulted (the first reason stays) and wakes the
+    /// health watcher.
+    fn set_fault(&self, reason: String, signal: &watch::Sender<u64>) {
+        {
+            let mut f = lock(&self.fault);
+            if f.is_some() {
+                return;
+            }
+            tracing::error!(sensor = %self.sensor, reason = %reason, "sensor faulted: its frames are refused");
+            *f = Some(reason);
+        }
+        telemetry::sensor_faulted(&self.sensor);
+        signal.send_modify(|g| *g += 1);
+    }
+
     fn sender(&self) -> Result<mpsc::Sender<Job>, QueueError> {
         lock(&self.tx).clone().ok_or(QueueError::Closed)
+    }
+
+    /// The error for a queue that refused a job: the fault when the worker
+    /// stopped, else shutdown.
+    fn closed(&self) -> QueueError {
+        match self.fault() {
+            Some(reason) => QueueError::Faulted(reason),
+            None => QueueError::Closed,
+        }
     }
 
     /// Queues a frame, waiting while the queue is full (backpressure). The
@@ -169,7 +208,7 @@ impl Session {
             done,
         })
         .await
-        .map_err(|_| QueueError::Closed)?;
+        .map_err(|_| self.closed())?;
         self.metrics.queue_depth(tx.max_capacity() - tx.capacity());
         Ok(rx)
     }
@@ -183,8 +222,8 @@ impl Session {
             done,
         })
         .await
-        .map_err(|_| QueueError::Closed.to_string())?;
-        rx.await.map_err(|_| QueueError::Closed.to_string())??;
+        .map_err(|_| self.closed().to_string())?;
+        rx.await.map_err(|_| self.closed().to_string())??;
         *lock(&self.scene) = Arc::new(scene);
         Ok(())
     }
@@ -210,6 +249,8 @@ pub struct Sessions {
     durability: Durability,
     /// Open ingest streams (shutdown waits for zero).
     ingest_streams: watch::Sender<usize>,
+    /// Bumped whenever a sensor becomes faulted (`service::run` sets health).
+    faults: Arc<watch::Sender<u64>>,
 }
 
 /// What an acknowledgement promises about the recording, and how often
@@ -295,6 +336,7 @@ impl Sessions {
             record_dir,
             durability,
             ingest_streams: watch::Sender::new(0),
+            faults: Arc::new(watch::Sender::new(0)),
         };
         for s in saved {
             // A saved sensor whose scene no longer builds is skipped with a
@@ -330,6 +372,19 @@ impl Sessions {
     /// Existing session of `sensor`.
     pub fn get(&self, sensor: &str) -> Option<Arc<Session>> {
         lock(&self.map).get(sensor).cloned()
+    }
+
+    /// Changes whenever a sensor becomes faulted.
+    pub fn fault_signal(&self) -> watch::Receiver<u64> {
+        self.faults.subscribe()
+    }
+
+    /// Faulted sensors and why, sorted by sensor id.
+    pub fn faulted(&self) -> Vec<(String, String)> {
+        self.all()
+            .into_iter()
+            .filter_map(|s| s.fault().map(|f| (s.sensor.clone(), f)))
+            .collect()
     }
 
     /// All sessions, sorted by sensor id.
@@ -371,6 +426,8 @@ impl Sessions {
             Some(dir) => Some(open_recording(dir, sensor).map_err(StartError::Build)?),
             None => None,
         };
+        let record_path = recorder.as_ref().map(|(_, p)| p.clone());
+        let recorder = recorder.map(|(w, _)| w);
         let (tx, rx) = mpsc::channel(self.queue_frames);
         let session = Arc::new(Session {
             sensor: sensor.to_string(),
@@ -381,20 +438,36 @@ impl Sessions {
             noise: Mutex::new(None),
             last_seq: Mutex::new(None),
             worker: Mutex::new(None),
+            fault: Mutex::new(None),
         });
         let worker = Worker {
             session: session.clone(),
             pipeline,
             hub: self.hub.clone(),
             recorder,
+            record_path,
+            recording_failed: None,
+            faults: self.faults.clone(),
             state: self.state.clone(),
             durability: self.durability,
             saved_at: std::time::Instant::now(),
             unacked: Vec::new(),
         };
+        let watched = session.clone();
+        let faults = self.faults.clone();
         let handle = std::thread::Builder::new()
             .name(thread_name(sensor))
-            .spawn(move || worker.run(rx))
+            .spawn(move || {
+                // Pipeline panics are caught per frame (`Worker::process`); one
+                // anywhere else ends the worker. The sensor is then faulted, not
+                // silently dead: its frames get a named refusal and health
+                // says NOT_SERVING.
+                let run = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| worker.run(rx)));
+                if let Err(panic) = run {
+                    let reason = format!("the sensor's worker stopped: {}", panic_message(panic.as_ref()));
+                    watched.set_fault(reason, &faults);
+                }
+            })
             .map_err(|e| StartError::Build(format!("cannot start worker thread: {e}")))?;
         *lock(&session.worker) = Some(handle);
         map.insert(sensor.to_string(), session.clone());
@@ -453,18 +526,27 @@ fn thread_name(sensor: &str) -> String {
     format!("tofwave-{id}")
 }
 
-fn open_recording(
-    dir: &std::path::Path,
-    sensor: &str,
-) -> Result<RecordingWriter<std::io::BufWriter<std::fs::File>>, String> {
+/// A panic's message, when it carries one.
+fn panic_message(panic: &(dyn std::any::Any + Send)) -> String {
+    panic
+        .downcast_ref::<&str>()
+        .map(|s| s.to_string())
+        .or_else(|| panic.downcast_ref::<String>().cloned())
+        .unwrap_or_else(|| "unknown panic".into())
+}
+
+type Recorder = RecordingWriter<std::io::BufWriter<std::fs::File>>;
+
+fn open_recording(dir: &std::path::Path, sensor: &str) -> Result<(Recorder, PathBuf), String> {
     let stamp = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map_or(0, |d| d.as_millis());
     let path = dir.join(format!("{}-{stamp}.twr", super::state::file_stem(sensor)));
     let file = std::fs::File::create(&path)
         .map_err(|e| format!("cannot create recording {}: {e}", path.display()))?;
-    RecordingWriter::new(std::io::BufWriter::new(file))
-        .map_err(|e| format!("cannot start recording {}: {e}", path.display()))
+    let writer = RecordingWriter::new(std::io::BufWriter::new(file))
+        .map_err(|e| format!("cannot start recording {}: {e}", path.display()))?;
+    Ok((writer, path))
 }
 
 /// The blocking side of a session.
@@ -476,7 +558,14 @@ struct Worker {
     /// Where reports go.
     hub: Arc<Hub>,
     /// Lossless copy of every accepted frame, when recording.
-    recorder: Option<RecordingWriter<std::io::BufWriter<std::fs::File>>>,
+    recorder: Option<Recorder>,
+    /// The recording's path (for messages).
+    record_path: Option<PathBuf>,
+    /// Why the recording failed, once it has: every frame from then on is
+    /// refused ([`Verdict::Unrecorded`]).
+    recording_failed: Option<String>,
+    /// Wakes the health watcher when this sensor becomes faulted.
+    faults: Arc<watch::Sender<u64>>,
     /// Where the noise model is saved periodically.
     state: Option<StateDir>,
     /// Record sync policy and persistence period.
@@ -503,15 +592,21 @@ impl Worker {
                     enqueued,
                     done,
                 } => {
-                    if let Some(w) = &mut self.recorder {
-                        match w.write_frame(&frame) {
-                            Ok(()) => self.session.metrics.frame_recorded(),
-                            Err(e) => {
-                                tracing::error!(sensor = %sensor, error = %e, "recording stopped");
-                                self.session.metrics.recording_failed();
-                                self.recorder = None;
-                            }
-                        }
+                    if let Some(w) = &mut self.recorder
+                        && let Err(e) = w.write_frame(&frame)
+                    {
+                        self.fail_recording(&e);
+                    } else if self.recorder.is_some() {
+                        self.session.metrics.frame_recorded();
+                    }
+                    if let Some(reason) = &self.recording_failed {
+                        self.session
+                            .stats
+                            .frames_rejected
+                            .fetch_add(1, Ordering::Relaxed);
+                        self.session.metrics.frames_rejected("recording", 1);
+                        let _ = done.send(Verdict::Unrecorded(reason.clone()));
+                        continue;
                     }
                     let verdict = self.process(frame, &mut reports);
                     match &verdict {
@@ -538,6 +633,8 @@ impl Worker {
                             self.session.metrics.frames_rejected("panic", 1);
                             tracing::error!(sensor = %sensor, message = %m, "pipeline panicked; rebuilt");
                         }
+                        // Only the recorder refuses this way (above).
+                        Verdict::Unrecorded(_) => {}
                     }
                     self.publish(&mut reports);
                     self.session.metrics.queue_depth(rx.len());
@@ -587,17 +684,40 @@ impl Worker {
                 RecordSync::Fsync => w.get_ref().get_ref().sync_data(),
             });
             if let Err(e) = synced {
-                // The frames were processed and reported; the recording is
-                // what failed. Logged and counted; acknowledgements from here
-                // on no longer imply a recording for this sensor.
-                tracing::error!(sensor = %self.session.sensor, error = %e, "recording stopped");
-                self.session.metrics.recording_failed();
-                self.recorder = None;
+                // The held frames were processed and reported, but they are
+                // not (all) in the recording: they are refused, not acked.
+                self.fail_recording(&e);
+                return;
             }
         }
         for (done, verdict) in self.unacked.drain(..) {
             let _ = done.send(verdict);
         }
+    }
+
+    /// The recording failed (a full disk, a file-size limit, an I/O error):
+    /// an ack could no longer mean "recorded", so the held frames and every
+    /// later one are refused with the reason, the sensor is faulted and
+    /// health goes NOT_SERVING. The file keeps what reached it.
+    fn fail_recording(&mut self, e: &dyn std::fmt::Display) {
+        let path = self
+            .record_path
+            .as_ref()
+            .map_or_else(String::new, |p| format!(" {}", p.display()));
+        let reason = format!(
+            "recording{path} failed ({e}): frames of this sensor are not acknowledged until the server is restarted"
+        );
+        self.session.metrics.recording_failed();
+        self.recorder = None;
+        for (done, verdict) in self.unacked.drain(..) {
+            let verdict = match verdict {
+                Verdict::Processed => Verdict::Unrecorded(format!("processed and reported, but {reason}")),
+                other => other,
+            };
+            let _ = done.send(verdict);
+        }
+        self.session.set_fault(reason.clone(), &self.faults);
+        self.recording_failed = Some(reason);
     }
 
     /// Saves the noise model when the persistence period has passed (or
@@ -628,11 +748,7 @@ impl Worker {
             Ok(Err(e)) => Verdict::Refused(e),
             Err(panic) => {
                 reports.clear();
-                let message = panic
-                    .downcast_ref::<&str>()
-                    .map(|s| s.to_string())
-                    .or_else(|| panic.downcast_ref::<String>().cloned())
-                    .unwrap_or_else(|| "unknown panic".into());
+                let message = panic_message(panic.as_ref());
                 let scene = self.pipeline.scene().clone();
                 match build_pipeline(&scene, &self.session.sensor) {
                     Ok(p) => self.pipeline = p,

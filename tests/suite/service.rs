@@ -1244,8 +1244,21 @@ struct ServeProcess {
 
 impl ServeProcess {
     fn start(args: &[&str]) -> ServeProcess {
+        Self::spawn(std::process::Command::new(env!("CARGO_BIN_EXE_tofwave")), args)
+    }
+
+    /// With every file it writes limited to `blocks` × 512 bytes
+    /// (`ulimit -f`, SIGXFSZ ignored): a write past the limit fails with
+    /// EFBIG, as one on a full disk fails with ENOSPC.
+    fn start_with_file_limit(args: &[&str], blocks: u64) -> ServeProcess {
+        let mut cmd = std::process::Command::new("sh");
+        cmd.args(["-c", &format!("trap '' XFSZ; ulimit -f {blocks}; exec \"$0\" \"$@\""), env!("CARGO_BIN_EXE_tofwave")]);
+        Self::spawn(cmd, args)
+    }
+
+    fn spawn(mut cmd: std::process::Command, args: &[&str]) -> ServeProcess {
         use std::io::BufRead;
-        let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_tofwave"))
+        let mut child = cmd
             .args(["serve", "--listen", "127.0.0.1:0"])
             .args(args)
             .env("NO_COLOR", "1")
@@ -1373,4 +1386,99 @@ async fn acknowledged_frames_survive_kill_9() {
     drop(c);
     server.kill_9();
     assert_eq!(recorded_frames(&rec, "many"), (0..45).collect::<Vec<u64>>());
+}
+
+/// A recording that fails (here at a file-size limit, as it would on a full
+/// disk) faults its sensor: its frames are refused with FAILED_PRECONDITION
+/// naming the file, every acknowledged frame is in that file, health goes
+/// NOT_SERVING for Ingest and for the server as a whole (Reports stays
+/// SERVING), `GetStatus` says why, and the other sensors carry on.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn failed_recording_faults_its_sensor_and_health_goes_not_serving() {
+    use tonic_health::pb::{HealthCheckRequest, health_check_response::ServingStatus, health_client::HealthClient};
+    let dir = tempfile::tempdir().unwrap();
+    let rec = dir.path().join("rec");
+    // 200 blocks = 100 kB per file: about nine 10 kB frames.
+    let server = ServeProcess::start_with_file_limit(&["--record", rec.to_str().unwrap()], 200);
+    let channel = tonic::transport::Endpoint::from_shared(server.url.clone()).unwrap().connect().await.unwrap();
+    let mut health = HealthClient::new(channel);
+    let status_of = |h: &mut HealthClient<tonic::transport::Channel>, service: &'static str| {
+        let mut h = h.clone();
+        async move {
+            h.check(HealthCheckRequest { service: service.into() }).await.unwrap().into_inner().status
+        }
+    };
+    assert_eq!(status_of(&mut health, "tofwave.v1.Ingest").await, ServingStatus::Serving as i32);
+    let mut c = client::connect(&server.url, &ClientOptions::default()).await.unwrap();
+    let small = frames("small", 0..4, 1);
+    let acks = push_batches(&mut c, vec![batch(&small[..2])]).await.unwrap();
+    assert_eq!(acks.iter().map(|a| a.accepted).sum::<u64>(), 2);
+
+    let big = frames("big", 0..40, 2);
+    // One batch at a time, so each is flushed (and acked) before the next.
+    let mut acks = Vec::new();
+    for chunk in big.chunks(2) {
+        acks.extend(push_batches(&mut c, vec![batch(chunk)]).await.unwrap());
+    }
+    let accepted: u64 = acks.iter().map(|a| a.accepted).sum();
+    let rejections: Vec<&proto::Rejection> = acks.iter().flat_map(|a| &a.rejections).collect();
+    assert_eq!(accepted + rejections.len() as u64, 40);
+    assert!((1..40).contains(&accepted), "accepted {accepted} of 40 frames");
+    // The refused frames are exactly those after the last acknowledged one.
+    let mut refused: Vec<u64> = rejections.iter().map(|r| r.sequence).collect();
+    refused.sort_unstable();
+    assert_eq!(refused, (accepted..40).collect::<Vec<u64>>());
+    for r in &rejections {
+        assert_eq!(r.code, "FAILED_PRECONDITION", "{r:?}");
+        assert!(r.message.contains("recording") && r.message.contains("big-") && r.message.contains("not acknowledged"), "{}", r.message);
+    }
+    assert!(rejections.iter().any(|r| r.message.contains("File too large")), "{:?}", rejections[0].message);
+
+    // Health follows within a moment.
+    let mut ingest = ServingStatus::Serving as i32;
+    for _ in 0..50 {
+        ingest = status_of(&mut health, "tofwave.v1.Ingest").await;
+        if ingest == ServingStatus::NotServing as i32 {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    assert_eq!(ingest, ServingStatus::NotServing as i32);
+    assert_eq!(status_of(&mut health, "").await, ServingStatus::NotServing as i32);
+    assert_eq!(status_of(&mut health, "tofwave.v1.Reports").await, ServingStatus::Serving as i32);
+    let fault = |sensor: &str| {
+        let mut control = c.control.clone();
+        let sensor = sensor.to_string();
+        async move {
+            control.get_status(proto::SensorRequest { sensor_id: sensor }).await.unwrap().into_inner().fault
+        }
+    };
+    let big_fault = fault("big").await;
+    assert!(big_fault.contains("recording") && big_fault.contains("File too large"), "{big_fault}");
+    assert_eq!(fault("small").await, "");
+
+    // The other sensor carries on; the faulted one stays refused.
+    let acks = push_batches(&mut c, vec![batch(&small[2..])]).await.unwrap();
+    assert_eq!(acks.iter().map(|a| a.accepted).sum::<u64>(), 2);
+    let more = frames("big", 40..41, 3);
+    let acks = push_batches(&mut c, vec![batch(&more)]).await.unwrap();
+    assert_eq!(acks[0].rejections.len(), 1);
+    assert_eq!(acks[0].rejections[0].code, "FAILED_PRECONDITION");
+    drop(c);
+    server.kill_9();
+
+    // Every acknowledged frame is in the recording (a partial frame may follow).
+    let mut recorded = Vec::new();
+    for entry in std::fs::read_dir(&rec).unwrap() {
+        let path = entry.unwrap().path();
+        if !path.file_name().unwrap().to_string_lossy().starts_with("big-") {
+            continue;
+        }
+        let file = std::fs::File::open(&path).unwrap();
+        let reader = tofwave::capture::RecordingReader::new(std::io::BufReader::new(file), &path).unwrap();
+        recorded.extend(reader.map_while(Result::ok).map(|f| f.sequence));
+    }
+    assert!(recorded.len() as u64 >= accepted, "recorded {recorded:?}, acked 0..{accepted}");
+    assert_eq!(&recorded[..accepted as usize], &(0..accepted).collect::<Vec<u64>>()[..]);
+    assert_eq!(recorded_frames(&rec, "small"), vec![0, 1, 2, 3]);
 }

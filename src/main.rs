@@ -355,7 +355,7 @@ fn soak(a: &BenchArgs) -> Result<i32> {
     println!("{}", report.markdown());
     eprintln!("tofwave bench --soak: -> {}", a.out.join("soak.md").display());
     let ok = report.check_pushed_eq_acked_plus_rejected
-        && report.check_reported_eq_acked
+        && report.check_reported_eq_acked_with_lag
         && report.check_acked_le_recorded
         && report.check_rss_flat != Some(false);
     Ok(if ok { 0 } else { 1 })

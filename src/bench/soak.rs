@@ -251,8 +251,12 @@ struct Shared {
     duplicate_reports: AtomicU64,
     /// Reports of sensors or sequence numbers this run never pushed.
     foreign_reports: AtomicU64,
-    /// Lag markers' skipped counts, reliable subscriber (must stay 0).
+    /// Lag markers' skipped counts, reliable subscriber.
     reliable_lagged: AtomicU64,
+    /// Reports the reliable subscriber received, per server life.
+    reliable_reports_by_life: [AtomicU64; 2],
+    /// Lag markers' skipped counts, reliable subscriber, per server life.
+    reliable_lagged_by_life: [AtomicU64; 2],
     chaotic: ChaoticCounters,
     /// Set when the pushers are done: chaotic subscribers stop.
     stop: AtomicBool,
@@ -385,8 +389,15 @@ pub struct SoakReport {
     pub duplicate_reports: u64,
     /// Reports or recorded frames of sensors or sequences this run never pushed (must be 0).
     pub foreign_reports: u64,
-    /// Reports the reliable subscriber was told it missed (must be 0).
+    /// Reports the reliable subscriber was told it missed (lag markers'
+    /// skipped counts; 0 when it kept up).
     pub reliable_lagged: u64,
+    /// Reports the reliable subscriber received from the first server.
+    pub reliable_reports_before_kill: u64,
+    /// ... and from the restarted server.
+    pub reliable_reports_after_restart: u64,
+    /// Reports the restarted server told the reliable subscriber it skipped.
+    pub reliable_lagged_after_restart: u64,
     /// Restarted server's `GetStatus`, summed over sensors: frames processed.
     pub status_processed_after_restart: u64,
     /// ... reports published.
@@ -429,7 +440,15 @@ pub struct SoakReport {
     /// pushed = acked + rejected, every bad frame rejected, every good one acked, one verdict each.
     pub check_pushed_eq_acked_plus_rejected: bool,
     /// Every acked frame reported except reports in the dying server's buffers; nothing reported unacked.
+    /// Holds only when the reliable subscriber kept up (no lag markers).
     pub check_reported_eq_acked: bool,
+    /// acked = reported with the fan-out's lag-and-tell counted: every report
+    /// the restarted server published (= its acks) reached the reliable
+    /// subscriber or was announced to it as skipped (received + skipped =
+    /// published, exactly); every acked frame whose report nobody saw is
+    /// covered by those announcements or was in the dying server's buffers;
+    /// nothing unacked was reported.
+    pub check_reported_eq_acked_with_lag: bool,
     /// Every acked frame is in a recording (needs the recorder to flush before acking).
     pub check_acked_le_recorded: bool,
     /// RSS flat (±10 %) after warm-up in every judged server life.
@@ -729,12 +748,15 @@ async fn reliable(shared: Arc<Shared>, mut target: watch::Receiver<Target>, read
         loop {
             match stream.message().await {
                 Ok(Some(ev)) => match ev.event {
-                    Some(Event::Report(r)) if !mark_report(&shared, &r, SEEN_RELIABLE, life) => {
-                        shared.foreign_reports.fetch_add(1, Ordering::Relaxed);
+                    Some(Event::Report(r)) => {
+                        shared.reliable_reports_by_life[usize::from(life.min(1))].fetch_add(1, Ordering::Relaxed);
+                        if !mark_report(&shared, &r, SEEN_RELIABLE, life) {
+                            shared.foreign_reports.fetch_add(1, Ordering::Relaxed);
+                        }
                     }
-                    Some(Event::Report(_)) => {}
                     Some(Event::Lagged(l)) => {
                         shared.reliable_lagged.fetch_add(l.skipped, Ordering::Relaxed);
+                        shared.reliable_lagged_by_life[usize::from(life.min(1))].fetch_add(l.skipped, Ordering::Relaxed);
                     }
                     None => {}
                 },
@@ -915,6 +937,8 @@ async fn soak(cfg: &SoakConfig, work: &Path, command: &str) -> Result<SoakReport
         duplicate_reports: AtomicU64::new(0),
         foreign_reports: AtomicU64::new(0),
         reliable_lagged: AtomicU64::new(0),
+        reliable_reports_by_life: Default::default(),
+        reliable_lagged_by_life: Default::default(),
         chaotic: ChaoticCounters::default(),
         stop: AtomicBool::new(false),
         server_pid: AtomicU32::new(0),
@@ -1170,6 +1194,9 @@ async fn soak(cfg: &SoakConfig, work: &Path, command: &str) -> Result<SoakReport
         duplicate_reports: get(&shared.duplicate_reports),
         foreign_reports: get(&shared.foreign_reports) + foreign_recorded,
         reliable_lagged: get(&shared.reliable_lagged),
+        reliable_reports_before_kill: get(&shared.reliable_reports_by_life[0]),
+        reliable_reports_after_restart: get(&shared.reliable_reports_by_life[1]),
+        reliable_lagged_after_restart: get(&shared.reliable_lagged_by_life[1]),
         status_processed_after_restart: status.1,
         status_reports_after_restart: status.3,
         status_received_after_restart: status.0,
@@ -1205,6 +1232,12 @@ async fn soak(cfg: &SoakConfig, work: &Path, command: &str) -> Result<SoakReport
             && n.reported_not_acked == 0
             && status.1 == n.acked_after
             && status.3 == status.1,
+        check_reported_eq_acked_with_lag: n.reported + n.report_lost_before + n.report_lost_after == n.acked
+            && n.reported_not_acked == 0
+            && status.1 == n.acked_after
+            && status.3 == status.1
+            && get(&shared.reliable_reports_by_life[1]) + get(&shared.reliable_lagged_by_life[1]) == status.3
+            && n.report_lost_after <= get(&shared.reliable_lagged_by_life[1]),
         check_acked_le_recorded: n.acked_not_recorded == 0,
         check_rss_flat,
     };
@@ -1326,6 +1359,7 @@ impl SoakReport {
              | reported but never acked | {rna} |\n\
              | reports seen twice (re-pushed frames processed twice) | {dup} |\n\
              | reliable subscriber lagged (reports skipped) | {rlag} |\n\
+             | reliable subscriber, restarted server: reports received + announced skipped = published | {rr1} + {rl1} = {rsum} (server: {srep}) |\n\
              | restarted server GetStatus: received / processed / rejected / reports | {sr} / {sp} / {srj} / {srep} |\n\
              | client acks / rejections from the restarted server | {aa} / {ra} |\n\
              | recorded (distinct, {files} files, {trunc} cut short) | {recorded} |\n\
@@ -1334,7 +1368,8 @@ impl SoakReport {
              | of which acked by the killed server | {anrb} |\n\n\
              | check | holds |\n|---|---|\n\
              | pushed = acked + rejected (one verdict each; bad frames exactly the rejected ones) | {c1} |\n\
-             | acked = reported (+ reports lost in the dying server's buffers) | {c2} |\n\
+             | acked = reported (+ reports lost in the dying server's buffers), no lag | {c2} |\n\
+             | acked = reported, lag-and-tell counted (received + announced skipped = published) | {c2l} |\n\
              | acked <= recorded | {c3} |\n\
              | RSS flat (±10 %) after warm-up | {c4} |\n\n\
              ## Subscribers\n\n\
@@ -1371,6 +1406,9 @@ impl SoakReport {
             rna = self.reported_not_acked,
             dup = self.duplicate_reports,
             rlag = self.reliable_lagged,
+            rr1 = self.reliable_reports_after_restart,
+            rl1 = self.reliable_lagged_after_restart,
+            rsum = self.reliable_reports_after_restart + self.reliable_lagged_after_restart,
             sr = self.status_received_after_restart,
             sp = self.status_processed_after_restart,
             srj = self.status_rejected_after_restart,
@@ -1385,6 +1423,7 @@ impl SoakReport {
             anrb = self.acked_not_recorded_before_kill,
             c1 = yes(self.check_pushed_eq_acked_plus_rejected),
             c2 = yes(self.check_reported_eq_acked),
+            c2l = yes(self.check_reported_eq_acked_with_lag),
             c3 = yes(self.check_acked_le_recorded),
             c4 = match self.check_rss_flat {
                 Some(b) => yes(b).to_string(),

@@ -66,6 +66,13 @@ fn kill_nine_midway_reconciles_exactly() {
         r.acked_after_restart + r.rejected_after_restart
     );
     assert!(r.check_pushed_eq_acked_plus_rejected && r.check_reported_eq_acked);
+    // Subscriber side, lag-and-tell counted: every report the restarted server
+    // published reached the reliable subscriber or was announced as skipped.
+    assert_eq!(
+        r.reliable_reports_after_restart + r.reliable_lagged_after_restart,
+        r.status_reports_after_restart
+    );
+    assert!(r.check_reported_eq_acked_with_lag);
     // Recordings: one file per sensor and server life (a sensor done before the
     // kill has none after it); frames recorded twice are re-pushes.
     assert!(r.recording_files >= r.sensors, "{} files", r.recording_files);

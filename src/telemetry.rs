@@ -32,6 +32,8 @@ pub const QUEUE_DEPTH: &str = "tofwave_queue_depth";
 pub const SUBSCRIBER_LAGGED: &str = "tofwave_subscriber_lagged_reports_total";
 /// Open report subscriptions.
 pub const SUBSCRIBERS: &str = "tofwave_subscribers";
+/// Open dashboard event streams (`serve --dashboard`).
+pub const DASHBOARD_CLIENTS: &str = "tofwave_dashboard_clients";
 /// Frames written to `--record` files, per sensor.
 pub const FRAMES_RECORDED: &str = "tofwave_frames_recorded_total";
 /// Recordings stopped by a write or sync error, per sensor.
@@ -238,6 +240,11 @@ pub fn frames_rejected(sensor: &str, reason: &'static str, count: u64) {
 /// A subscriber fell behind and `skipped` reports were dropped for it.
 pub fn subscriber_lagged(skipped: u64) {
     metrics::counter!(SUBSCRIBER_LAGGED).increment(skipped);
+}
+
+/// A dashboard event stream opened (`+1`) or closed (`-1`).
+pub fn dashboard_clients_changed(delta: f64) {
+    metrics::gauge!(DASHBOARD_CLIENTS).increment(delta);
 }
 
 /// A subscription opened (`+1`) or closed (`-1`).

@@ -7,6 +7,7 @@ const WINDOW_S = 60;            // strip chart span, seconds
 const MAX_RETURNS = 20000;      // returns kept per sensor for the strip chart
 const SNR_MIN_DB = 0, SNR_MAX_DB = 40;
 const IDLE_S = 5;               // no frame for this long: idle
+const INFO_FLAGS = ['no_start_channel']; // report flags that describe the set-up, not a fault
 
 const params = new URLSearchParams(location.search);
 const token = params.get('token');
@@ -129,8 +130,10 @@ function health(s) {
   const r = s.report;
   if (r && r.false_alarm.excess) why.push('false alarms above design');
   if (r && !r.noise.gaussian) why.push('noise not Gaussian');
-  if (r && r.flags.length) why.push('flags: ' + r.flags.join(', '));
-  return why.length ? ['warn', why.join('; ')] : ['ok', 'frames arriving, none rejected'];
+  const flags = r ? r.flags.filter((f) => !INFO_FLAGS.includes(f)) : [];
+  if (flags.length) why.push('flags: ' + flags.join(', '));
+  const info = r ? r.flags.filter((f) => INFO_FLAGS.includes(f)) : [];
+  return why.length ? ['warn', why.join('; ')] : ['ok', 'frames arriving, none rejected' + (info.length ? ` (${info.join(', ')})` : '')];
 }
 
 // ---------------------------------------------------------------- text
@@ -175,6 +178,7 @@ function renderText() {
   const s = state.sensors.get(state.selected);
   if (!s) return;
   root.dataset.sensor = s.id;
+  root.dataset.health = s.health;
   $('title').firstChild.textContent = s.id;
   $('title-health').textContent = `${s.health}: ${s.why}`;
   $('health-why').textContent = '';
@@ -260,14 +264,20 @@ function fmtTick(v) { const a = Math.abs(v); return a >= 1000 || (a < 0.01 && a 
 function drawStrip(s) {
   const [g, W, H] = setup($('strip'));
   const box = { x: 56, y: 10, w: W - 56 - 70, h: H - 44 };
-  const now = serverNow(), t0 = now - WINDOW_S * 1000;
+  // The window ends now; when the newest return is older than the window
+  // (the stream stopped), it ends at that return instead, so the last
+  // returns stay on screen.
+  const now = serverNow(), newest = s && s.returns.length ? s.returns[s.returns.length - 1].t : now;
+  const paused = newest < now - WINDOW_S * 1000;
+  const tEnd = paused ? newest + 1000 : now, t0 = tEnd - WINDOW_S * 1000;
+  const RIGHT_S = 2; // the axis runs on past "now", so the newest points are not cut in half
   const vis = s ? s.returns.filter((p) => p.t >= t0) : [];
   let lo = Infinity, hi = -Infinity;
   for (const p of vis) { lo = Math.min(lo, p.r - (p.sig || 0)); hi = Math.max(hi, p.r + (p.sig || 0)); }
   if (!Number.isFinite(lo)) { lo = 0; hi = 10; }
   const pad = Math.max((hi - lo) * 0.08, 0.05); lo -= pad; hi += pad;
-  axes(g, box, -WINDOW_S, 0, lo, hi, 'time, s (0 = now)', 'range, m');
-  const px = (t) => box.x + (t - t0) / (WINDOW_S * 1000) * box.w;
+  axes(g, box, -WINDOW_S, RIGHT_S, lo, hi, paused ? `time, s (0 = ${fmt((now - tEnd) / 1000, 0)} s ago: no returns since)` : 'time, s (0 = now)', 'range, m');
+  const px = (t) => box.x + (t - t0) / ((WINDOW_S + RIGHT_S) * 1000) * box.w;
   const py = (r) => box.y + box.h - (r - lo) / (hi - lo) * box.h;
   let plotted = 0;
   for (const p of vis) {

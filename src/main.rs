@@ -82,7 +82,7 @@ struct BenchArgs {
     #[arg(long, value_name = "N", default_value_t = 8000, requires = "dashboard_only")]
     dashboard_frames: usize,
     /// With --dashboard-only: trials per arm (with and without the dashboard).
-    #[arg(long, value_name = "N", default_value_t = 3, requires = "dashboard_only")]
+    #[arg(long, value_name = "N", default_value_t = 5, requires = "dashboard_only")]
     dashboard_trials: usize,
     /// Skip the copy-loop and averaging bandwidth measurement (a 20 MB stream).
     #[arg(long)]

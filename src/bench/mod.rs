@@ -177,7 +177,7 @@ pub fn run(
     let dashboard = if opts.service {
         progress.set_message("dashboard cost");
         Some(
-            measure_dashboard_cost(&reference, cfg.reference_snr_db, 2 * cfg.service_frames, 3)
+            measure_dashboard_cost(&reference, cfg.reference_snr_db, 2 * cfg.service_frames, 5)
                 .map_err(|e| e.to_string()),
         )
     } else {

@@ -197,6 +197,12 @@ pub struct DashboardCost {
     pub without_frames_per_s: Vec<f64>,
     /// The same with a dashboard client reading `/events` for every sensor.
     pub with_frames_per_s: Vec<f64>,
+    /// CPU time of this process (server, load generator and the dashboard
+    /// client together) per frame in each trial without a dashboard, µs;
+    /// empty where the platform does not say (`/proc/self/stat`).
+    pub without_cpu_us_per_frame: Vec<f64>,
+    /// The same with the dashboard open.
+    pub with_cpu_us_per_frame: Vec<f64>,
     /// Waveform snapshots the dashboard client received, all "with" trials.
     pub waveforms: u64,
     /// Report events the dashboard client received, all "with" trials.
@@ -230,6 +236,23 @@ impl DashboardCost {
     pub fn ratio(&self) -> f64 {
         self.with() / self.without()
     }
+    /// Median CPU time per frame with over without (NaN when not measured):
+    /// unlike throughput, it does not move with other processes' load.
+    pub fn cpu_ratio(&self) -> f64 {
+        median(&self.with_cpu_us_per_frame) / median(&self.without_cpu_us_per_frame)
+    }
+}
+
+/// CPU time (user + system) this process has used, s; `None` off Linux.
+fn process_cpu_s() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // Fields after the command name (which may hold spaces) and its ')'.
+    let rest = &stat[stat.rfind(')')? + 2..];
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    // utime and stime are fields 14 and 15 of the line, 12 and 13 after ')'.
+    let ticks: f64 = f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?;
+    // USER_HZ is 100 on every Linux architecture tofwave builds for.
+    Some(ticks / 100.0)
 }
 
 /// A dashboard client reading `/events` (every sensor) and counting what it gets.
@@ -380,6 +403,8 @@ pub fn measure_dashboard_cost(
             samples_per_frame,
             without_frames_per_s: Vec::new(),
             with_frames_per_s: Vec::new(),
+            without_cpu_us_per_frame: Vec::new(),
+            with_cpu_us_per_frame: Vec::new(),
             waveforms: 0,
             reports: 0,
             event_bytes: 0,
@@ -401,6 +426,7 @@ pub fn measure_dashboard_cost(
                 None
             };
             let t0 = Instant::now();
+            let cpu0 = process_cpu_s();
             let pushes: Vec<_> = work
                 .into_iter()
                 .zip(ingest.iter().cloned())
@@ -420,9 +446,15 @@ pub fn measure_dashboard_cost(
             }
             let secs = t0.elapsed().as_secs_f64();
             let fps = accepted as f64 / secs;
+            let cpu_us = match (cpu0, process_cpu_s()) {
+                (Some(a), Some(b)) if accepted > 0 => Some((b - a) * 1e6 / accepted as f64),
+                _ => None,
+            };
             if trial == 0 {
                 continue;
             }
+            let cpu_list = if client.is_some() { &mut out.with_cpu_us_per_frame } else { &mut out.without_cpu_us_per_frame };
+            cpu_list.extend(cpu_us);
             match client {
                 Some(c) => {
                     let (w, r, b) = c.close();
@@ -474,7 +506,11 @@ impl DashboardCost {
              | without a dashboard | {:.0} | {} |\n\
              | with the dashboard open on {} sensors | {:.0} | {} |\n\n\
              Ratio with / without: **{:.3}**. The dashboard client received {} waveform snapshots \
-             ({:.1} per sensor per second), {} report events and {:.1} MB of events.\n",
+             ({:.1} per sensor per second, counting the latest snapshot each connection starts with), \
+             {} report events and {:.1} MB of events.\n\n\
+             CPU time of the process (server, load generator and dashboard client) per frame, which \
+             other processes' load does not move: {} µs without, {} µs with (per trial); ratio of the \
+             medians with / without: **{:.3}**.\n",
             self.sensors,
             self.frames_per_trial,
             self.samples_per_frame,
@@ -487,7 +523,10 @@ impl DashboardCost {
             self.waveforms,
             if per_sensor_s > 0.0 { self.waveforms as f64 / per_sensor_s } else { 0.0 },
             self.reports,
-            self.event_bytes as f64 / 1e6
+            self.event_bytes as f64 / 1e6,
+            list(&self.without_cpu_us_per_frame),
+            list(&self.with_cpu_us_per_frame),
+            self.cpu_ratio()
         )
     }
 }

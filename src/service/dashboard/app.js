@@ -259,7 +259,7 @@ function axes(g, box, xlo, xhi, ylo, yhi, xlabel, ylabel) {
   g.textAlign = 'right'; g.fillText(xlabel, x + w, y + h + 28);
   g.save(); g.translate(12, y + h / 2); g.rotate(-Math.PI / 2); g.textAlign = 'center'; g.fillText(ylabel, 0, 0); g.restore();
 }
-function fmtTick(v) { const a = Math.abs(v); return a >= 1000 || (a < 0.01 && a > 0) ? v.toPrecision(2) : String(+v.toFixed(3)); }
+function fmtTick(v) { const a = Math.abs(v); return Number.isInteger(v) ? String(v) : a >= 1000 || (a < 0.01 && a > 0) ? v.toPrecision(2) : String(+v.toFixed(3)); }
 
 function drawStrip(s) {
   const [g, W, H] = setup($('strip'));
@@ -381,7 +381,8 @@ function drawWave(s) {
     g.strokeStyle = c; g.beginPath(); g.moveTo(x, top.y); g.lineTo(x, top.y + top.h); g.stroke();
     const y = yTop(w.mean_v + r.amplitude_v);
     g.fillStyle = c; g.beginPath(); g.moveTo(x, y - 2); g.lineTo(x - 6, y - 12); g.lineTo(x + 6, y - 12); g.closePath(); g.fill();
-    g.textAlign = 'left'; g.fillText(`${fmt(r.range_m, 3)} m ± ${fmt(r.range_sigma_m * 100, 1)} cm, ${fmt(r.snr_db, 1)} dB`, x + 8, Math.max(top.y + 24, y - 4));
+    // Labels step down one line per return, so neighbouring returns stay legible.
+    g.textAlign = 'left'; g.fillText(`${fmt(r.range_m, 3)} m ± ${fmt(r.range_sigma_m * 100, 1)} cm, ${fmt(r.snr_db, 1)} dB`, x + 8, top.y + 24 + 14 * (marked % 8));
     marked++;
   }
   // bottom: detector output in units of its noise sigma

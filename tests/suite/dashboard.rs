@@ -28,7 +28,13 @@ impl Drop for Killed {
 /// `tofwave serve` on free ports: (process, gRPC URL, dashboard URL).
 fn serve(extra: &[&str]) -> (Killed, String, String) {
     let mut child = Command::new(env!("CARGO_BIN_EXE_tofwave"))
-        .args(["serve", "--listen", "127.0.0.1:0", "--dashboard", "127.0.0.1:0"])
+        .args([
+            "serve",
+            "--listen",
+            "127.0.0.1:0",
+            "--dashboard",
+            "127.0.0.1:0",
+        ])
         .args(extra)
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
@@ -56,7 +62,13 @@ fn serve(extra: &[&str]) -> (Killed, String, String) {
 }
 
 /// One HTTP/1.1 exchange on a fresh connection: (status, body).
-fn http(addr: &str, method: &str, path: &str, body: Option<&Value>, headers: &[&str]) -> (u16, String) {
+fn http(
+    addr: &str,
+    method: &str,
+    path: &str,
+    body: Option<&Value>,
+    headers: &[&str],
+) -> (u16, String) {
     let mut s = TcpStream::connect(addr).unwrap_or_else(|e| panic!("connect {addr}: {e}"));
     s.set_read_timeout(Some(Duration::from_secs(60))).unwrap();
     let body = body.map(|b| b.to_string()).unwrap_or_default();
@@ -111,7 +123,10 @@ fn http(addr: &str, method: &str, path: &str, body: Option<&Value>, headers: &[&
 fn dechunk(mut b: &[u8]) -> Vec<u8> {
     let mut out = Vec::new();
     loop {
-        let eol = b.windows(2).position(|w| w == b"\r\n").expect("chunk size line");
+        let eol = b
+            .windows(2)
+            .position(|w| w == b"\r\n")
+            .expect("chunk size line");
         let size_hex = String::from_utf8_lossy(&b[..eol]);
         let size = usize::from_str_radix(size_hex.split(';').next().unwrap().trim(), 16).unwrap();
         if size == 0 {
@@ -131,11 +146,17 @@ fn base64_decode(s: &str) -> Vec<u8> {
         b'/' => 63,
         _ => panic!("not base64: {c}"),
     };
-    let bytes: Vec<u8> = s.bytes().filter(|c| !c.is_ascii_whitespace() && *c != b'=').collect();
+    let bytes: Vec<u8> = s
+        .bytes()
+        .filter(|c| !c.is_ascii_whitespace() && *c != b'=')
+        .collect();
     let mut out = Vec::with_capacity(bytes.len() * 3 / 4);
     for q in bytes.chunks(4) {
         let v: Vec<u32> = q.iter().map(|&c| val(c) as u32).collect();
-        let n = v.iter().enumerate().fold(0u32, |acc, (i, x)| acc | (x << (18 - 6 * i)));
+        let n = v
+            .iter()
+            .enumerate()
+            .fold(0u32, |acc, (i, x)| acc | (x << (18 - 6 * i)));
         out.extend_from_slice(&n.to_be_bytes()[1..q.len()]);
     }
     out
@@ -171,7 +192,11 @@ impl Browser {
     fn start() -> Browser {
         let chromium = require("chromium");
         let chromedriver = require("chromedriver");
-        let port = TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+        let port = TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port();
         let process = Killed(
             Command::new(chromedriver)
                 .arg(format!("--port={port}"))
@@ -183,7 +208,10 @@ impl Browser {
         let driver = format!("127.0.0.1:{port}");
         let t0 = Instant::now();
         while TcpStream::connect(&driver).is_err() {
-            assert!(t0.elapsed() < Duration::from_secs(20), "chromedriver did not listen on {driver}");
+            assert!(
+                t0.elapsed() < Duration::from_secs(20),
+                "chromedriver did not listen on {driver}"
+            );
             std::thread::sleep(Duration::from_millis(50));
         }
         let caps = json!({"capabilities": {"alwaysMatch": {
@@ -194,7 +222,10 @@ impl Browser {
         let (status, body) = http(&driver, "POST", "/session", Some(&caps), &[]);
         assert_eq!(status, 200, "new WebDriver session: {body}");
         let v: Value = serde_json::from_str(&body).unwrap();
-        let session = v["value"]["sessionId"].as_str().expect("session id").to_string();
+        let session = v["value"]["sessionId"]
+            .as_str()
+            .expect("session id")
+            .to_string();
         Browser {
             driver,
             session,
@@ -210,7 +241,11 @@ impl Browser {
     }
 
     fn script(&self, js: &str) -> Value {
-        self.call("POST", "execute/sync", Some(json!({"script": js, "args": []})))
+        self.call(
+            "POST",
+            "execute/sync",
+            Some(json!({"script": js, "args": []})),
+        )
     }
 
     /// `#dash`'s data attributes.
@@ -226,7 +261,10 @@ impl Browser {
             if done(&d) {
                 return d;
             }
-            assert!(t0.elapsed() < limit, "{what} within {limit:?}; the page shows {d}");
+            assert!(
+                t0.elapsed() < limit,
+                "{what} within {limit:?}; the page shows {d}"
+            );
             std::thread::sleep(Duration::from_millis(100));
         }
     }
@@ -234,12 +272,21 @@ impl Browser {
 
 impl Drop for Browser {
     fn drop(&mut self) {
-        let _ = http(&self.driver, "DELETE", &format!("/session/{}", self.session), None, &[]);
+        let _ = http(
+            &self.driver,
+            "DELETE",
+            &format!("/session/{}", self.session),
+            None,
+            &[],
+        );
     }
 }
 
 fn num(v: &Value, key: &str) -> f64 {
-    v[key].as_str().and_then(|s| s.parse().ok()).unwrap_or(f64::NAN)
+    v[key]
+        .as_str()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(f64::NAN)
 }
 
 fn artefacts() -> std::path::PathBuf {
@@ -258,26 +305,46 @@ fn browser_draws_replayed_returns_and_waveform() {
     // What the pipeline reports for this capture, offline: the page must show the same.
     let (rc, expected, err) = tofwave(&["process", "--input", capture]);
     assert_eq!(rc, 0, "{err}");
-    let expected_returns: usize = expected.iter().map(|r| r["returns"].as_array().unwrap().len()).sum();
+    let expected_returns: usize = expected
+        .iter()
+        .map(|r| r["returns"].as_array().unwrap().len())
+        .sum();
     assert!(expected_returns > 0, "the capture has returns to draw");
 
     let (_server, grpc, dash_url) = serve(&[]);
     let browser = Browser::start();
     browser.call("POST", "url", Some(json!({"url": dash_url})));
-    browser.wait_for(Duration::from_secs(15), "the page connects to /events", |d| d["connected"] == "1");
+    browser.wait_for(
+        Duration::from_secs(15),
+        "the page connects to /events",
+        |d| d["connected"] == "1",
+    );
 
     let out = Command::new(env!("CARGO_BIN_EXE_tofwave"))
-        .args(["replay", "--to", &grpc, "--input", capture, "--rate", "max", "--sensor", "lidar-a", "--quiet"])
+        .args([
+            "replay", "--to", &grpc, "--input", capture, "--rate", "max", "--sensor", "lidar-a",
+            "--quiet",
+        ])
         .output()
         .unwrap();
-    assert!(out.status.success(), "replay: {}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "replay: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
 
-    let d = browser.wait_for(Duration::from_secs(10), "every report, its returns and a waveform drawn", |d| {
-        num(d, "reports") == expected.len() as f64
-            && num(d, "returnsPlotted") == expected_returns as f64
-            && d["waveformSeq"].as_str().is_some_and(|s| !s.is_empty())
-            && d["health"].as_str().is_some_and(|h| h == "ok" || h == "warn")
-    });
+    let d = browser.wait_for(
+        Duration::from_secs(10),
+        "every report, its returns and a waveform drawn",
+        |d| {
+            num(d, "reports") == expected.len() as f64
+                && num(d, "returnsPlotted") == expected_returns as f64
+                && d["waveformSeq"].as_str().is_some_and(|s| !s.is_empty())
+                && d["health"]
+                    .as_str()
+                    .is_some_and(|h| h == "ok" || h == "warn")
+        },
+    );
     assert_eq!(d["sensor"], "lidar-a");
     // The waveform is one of the replayed reports, with its returns marked.
     let seq: u64 = d["waveformSeq"].as_str().unwrap().parse().unwrap();
@@ -291,10 +358,16 @@ fn browser_draws_replayed_returns_and_waveform() {
         "returns marked on the waveform of report {seq}"
     );
     let points = num(&d, "waveformPoints");
-    assert!(points > 100.0 && points <= 2.0 * 1000.0, "{points} waveform points (≤ 1000 per trace)");
+    assert!(
+        points > 100.0 && points <= 2.0 * 1000.0,
+        "{points} waveform points (≤ 1000 per trace)"
+    );
     // Returns reach the screen within 1 s of their reports (same clock: one machine).
     let delay = num(&d, "maxDelayMs");
-    assert!((0.0..1000.0).contains(&delay), "report-to-screen delay {delay} ms");
+    assert!(
+        (0.0..1000.0).contains(&delay),
+        "report-to-screen delay {delay} ms"
+    );
     let png = base64_decode(browser.call("GET", "screenshot", None).as_str().unwrap());
     assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n", "screenshot is a PNG");
     let path = artefacts().join("dashboard.png");
@@ -328,18 +401,33 @@ fn dashboard_data_needs_the_read_token() {
     assert_eq!(http(addr, "GET", "/app.js", None, &[]).0, 200);
     let (status, body) = http(addr, "GET", "/api/sensors", None, &[]);
     assert_eq!(status, 401);
-    assert!(body.contains("?token="), "the refusal says how to pass the token: {body}");
-    assert_eq!(http(addr, "GET", "/api/sensors?token=r3a", None, &[]).0, 401);
+    assert!(
+        body.contains("?token="),
+        "the refusal says how to pass the token: {body}"
+    );
+    assert_eq!(
+        http(addr, "GET", "/api/sensors?token=r3a", None, &[]).0,
+        401
+    );
     assert_eq!(http(addr, "GET", "/events?token=nope", None, &[]).0, 401);
     for ok in [
         http(addr, "GET", "/api/sensors?token=r3ad", None, &[]),
         http(addr, "GET", "/api/sensors?token=wr1te", None, &[]),
-        http(addr, "GET", "/api/sensors", None, &["Authorization: Bearer r3ad"]),
+        http(
+            addr,
+            "GET",
+            "/api/sensors",
+            None,
+            &["Authorization: Bearer r3ad"],
+        ),
     ] {
         assert_eq!(ok.0, 200, "{}", ok.1);
         let v: Value = serde_json::from_str(&ok.1).unwrap();
         assert!(v["sensors"].is_array());
     }
     assert_eq!(http(addr, "GET", "/nothing", None, &[]).0, 404);
-    assert_eq!(http(addr, "POST", "/events?token=r3ad", Some(&json!({})), &[]).0, 405);
+    assert_eq!(
+        http(addr, "POST", "/events?token=r3ad", Some(&json!({})), &[]).0,
+        405
+    );
 }

@@ -65,7 +65,11 @@ pub(crate) struct Dashboard {
 }
 
 /// Serves the dashboard on `listener` until `shutdown`; each connection on its own task.
-pub(crate) async fn serve(listener: TcpListener, dash: Arc<Dashboard>, shutdown: CancellationToken) {
+pub(crate) async fn serve(
+    listener: TcpListener,
+    dash: Arc<Dashboard>,
+    shutdown: CancellationToken,
+) {
     tracing::info!(addr = ?listener.local_addr().ok(), "dashboard endpoint");
     loop {
         let conn = tokio::select! {
@@ -119,7 +123,9 @@ fn parse_request(head: &[u8]) -> Option<Request> {
         .find(|(k, _)| k.trim().eq_ignore_ascii_case("authorization"))
         .and_then(|(_, v)| {
             let v = v.trim();
-            v.strip_prefix("Bearer ").or_else(|| v.strip_prefix("bearer ")).map(|t| t.trim().to_string())
+            v.strip_prefix("Bearer ")
+                .or_else(|| v.strip_prefix("bearer "))
+                .map(|t| t.trim().to_string())
         });
     Some(Request {
         method,
@@ -154,12 +160,22 @@ fn percent_decode(s: &str) -> String {
     String::from_utf8_lossy(&out).into_owned()
 }
 
-async fn respond(mut stream: TcpStream, dash: &Dashboard, shutdown: CancellationToken) -> std::io::Result<()> {
+async fn respond(
+    mut stream: TcpStream,
+    dash: &Dashboard,
+    shutdown: CancellationToken,
+) -> std::io::Result<()> {
     let mut buf = Vec::with_capacity(1024);
     let mut chunk = [0u8; 1024];
     while !buf.windows(4).any(|w| w == b"\r\n\r\n") {
         if buf.len() >= MAX_REQUEST_BYTES {
-            return reply(&mut stream, "431 Request Header Fields Too Large", "text/plain", "request head over 8 KiB\n").await;
+            return reply(
+                &mut stream,
+                "431 Request Header Fields Too Large",
+                "text/plain",
+                "request head over 8 KiB\n",
+            )
+            .await;
         }
         let n = stream.read(&mut chunk).await?;
         if n == 0 {
@@ -168,14 +184,42 @@ async fn respond(mut stream: TcpStream, dash: &Dashboard, shutdown: Cancellation
         buf.extend_from_slice(&chunk[..n]);
     }
     let Some(req) = parse_request(&buf) else {
-        return reply(&mut stream, "400 Bad Request", "text/plain", "malformed request line\n").await;
+        return reply(
+            &mut stream,
+            "400 Bad Request",
+            "text/plain",
+            "malformed request line\n",
+        )
+        .await;
     };
     if req.method != "GET" {
-        return reply(&mut stream, "405 Method Not Allowed", "text/plain", "only GET is served\n").await;
+        return reply(
+            &mut stream,
+            "405 Method Not Allowed",
+            "text/plain",
+            "only GET is served\n",
+        )
+        .await;
     }
     match req.path.as_str() {
-        "/" | "/index.html" => reply(&mut stream, "200 OK", "text/html; charset=utf-8", INDEX_HTML).await,
-        "/app.js" => reply(&mut stream, "200 OK", "text/javascript; charset=utf-8", APP_JS).await,
+        "/" | "/index.html" => {
+            reply(
+                &mut stream,
+                "200 OK",
+                "text/html; charset=utf-8",
+                INDEX_HTML,
+            )
+            .await
+        }
+        "/app.js" => {
+            reply(
+                &mut stream,
+                "200 OK",
+                "text/javascript; charset=utf-8",
+                APP_JS,
+            )
+            .await
+        }
         "/events" | "/api/sensors" => {
             let token = req
                 .query
@@ -203,11 +247,24 @@ async fn respond(mut stream: TcpStream, dash: &Dashboard, shutdown: Cancellation
                 reply(&mut stream, "200 OK", "application/json", &body).await
             }
         }
-        _ => reply(&mut stream, "404 Not Found", "text/plain", "served: /, /app.js, /events, /api/sensors\n").await,
+        _ => {
+            reply(
+                &mut stream,
+                "404 Not Found",
+                "text/plain",
+                "served: /, /app.js, /events, /api/sensors\n",
+            )
+            .await
+        }
     }
 }
 
-async fn reply(stream: &mut TcpStream, status: &str, ctype: &str, body: &str) -> std::io::Result<()> {
+async fn reply(
+    stream: &mut TcpStream,
+    status: &str,
+    ctype: &str,
+    body: &str,
+) -> std::io::Result<()> {
     let head = format!(
         "HTTP/1.1 {status}\r\nContent-Type: {ctype}\r\nContent-Length: {}\r\nCache-Control: no-store\r\nConnection: close\r\n\r\n",
         body.len()
@@ -238,7 +295,11 @@ struct Seen {
 }
 
 /// The sensor list with health counters (the `sensors` event and `/api/sensors`).
-fn sensors_json(dash: &Dashboard, wanted: &HashSet<String>, seen: &mut HashMap<String, Seen>) -> String {
+fn sensors_json(
+    dash: &Dashboard,
+    wanted: &HashSet<String>,
+    seen: &mut HashMap<String, Seen>,
+) -> String {
     let now = Instant::now();
     let now_ms = unix_ms();
     let list: Vec<serde_json::Value> = dash
@@ -309,7 +370,13 @@ async fn events(
     let wanted = |s: &str| sensors.is_empty() || sensors.contains(s);
     let Some(sub) = dash.shared.hub.subscribe(Some(0), wanted) else {
         let mut s = rd.reunite(wr).expect("halves of one stream");
-        return reply(&mut s, "503 Service Unavailable", "text/plain", "server is shutting down\n").await;
+        return reply(
+            &mut s,
+            "503 Service Unavailable",
+            "text/plain",
+            "server is shutting down\n",
+        )
+        .await;
     };
     let (mut watch, latest) = dash.snapshots.watch();
     let _counted = ClientGauge::new();
@@ -330,7 +397,11 @@ async fn events(
         })
         .to_string(),
     );
-    push_event(&mut buf, "sensors", &sensors_json(dash, &sensors, &mut seen));
+    push_event(
+        &mut buf,
+        "sensors",
+        &sensors_json(dash, &sensors, &mut seen),
+    );
     for p in trim_backlog(sub.backlog, BACKLOG_PER_SENSOR) {
         push_report(&mut buf, &p);
     }
@@ -338,7 +409,8 @@ async fn events(
         push_event(&mut buf, "waveform", &s.json);
     }
     let mut live = sub.live;
-    let mut tick = tokio::time::interval_at(tokio::time::Instant::now() + STATUS_PERIOD, STATUS_PERIOD);
+    let mut tick =
+        tokio::time::interval_at(tokio::time::Instant::now() + STATUS_PERIOD, STATUS_PERIOD);
     let mut skipped_total = 0u64;
     let mut scratch = [0u8; 256];
     loop {
@@ -452,6 +524,9 @@ mod tests {
             .iter()
             .map(|p| (p.report.sensor.clone(), p.report.seq_first))
             .collect();
-        assert_eq!(kept, vec![("a".into(), 1), ("a".into(), 2), ("b".into(), 0)]);
+        assert_eq!(
+            kept,
+            vec![("a".into(), 1), ("a".into(), 2), ("b".into(), 0)]
+        );
     }
 }

@@ -283,7 +283,9 @@ mod tests {
     /// Naive reference: bucket k's min and max by index arithmetic.
     #[test]
     fn decimation_keeps_every_extreme() {
-        let x: Vec<f64> = (0..10_007).map(|i| ((i * 7919) % 1013) as f64 - 500.0).collect();
+        let x: Vec<f64> = (0..10_007)
+            .map(|i| ((i * 7919) % 1013) as f64 - 500.0)
+            .collect();
         let d = decimate(&x, 2.0, 1000);
         let hi = d.hi.as_ref().unwrap();
         assert!(d.lo.len() + hi.len() <= 1000, "{} values", d.lo.len() * 2);

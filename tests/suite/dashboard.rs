@@ -431,3 +431,16 @@ fn dashboard_data_needs_the_read_token() {
         405
     );
 }
+
+/// `tofwave bench`'s dashboard-cost row runs end to end (tiny: one trial per arm).
+#[test]
+fn bench_measures_ingest_with_and_without_the_dashboard() {
+    let scene = tofwave::bench::reference_scene();
+    let c = tofwave::bench::measure_dashboard_cost(&scene, 20.0, 128, 1).unwrap();
+    assert_eq!(c.sensors, 4);
+    assert_eq!((c.without_frames_per_s.len(), c.with_frames_per_s.len()), (1, 1));
+    assert!(c.ratio().is_finite() && c.ratio() > 0.0, "{c:?}");
+    // The dashboard client saw data, so the "with" trial measured something.
+    assert!(c.waveforms > 0 && c.reports > 0, "{c:?}");
+    assert!(c.check_row().contains("dashboard open on 4 sensors"));
+}

@@ -32,7 +32,7 @@ pub mod pipeline;
 pub mod calibrate;
 /// Readers and writers of capture formats; replay source; a starting scene measured from a capture.
 pub mod capture;
-/// gRPC services (the only module that knows tonic), fan-out, sessions, shutdown.
+/// gRPC services (the only module that knows tonic), fan-out, sessions, shutdown; the browser dashboard (HTTP, server-sent events).
 pub mod service;
 /// Work-precision report, numpy/scipy peer, service throughput and bandwidth yardstick (`tofwave bench`).
 pub mod bench;

@@ -72,6 +72,18 @@ struct BenchArgs {
     /// Skip the loopback gRPC throughput test.
     #[arg(long)]
     no_service: bool,
+    /// Instead of the report: only the dashboard's cost to ingest. Four sensors push simulated
+    /// frames to a server on 127.0.0.1 (one connection each), in trials alternating without and
+    /// with a client reading the dashboard's /events for every sensor; prints the frames/s of each
+    /// trial and the ratio (Markdown) and writes dashboard.md to --out (tens of seconds).
+    #[arg(long, conflicts_with = "soak")]
+    dashboard_only: bool,
+    /// With --dashboard-only: frames per trial, all sensors together (frames).
+    #[arg(long, value_name = "N", default_value_t = 8000, requires = "dashboard_only")]
+    dashboard_frames: usize,
+    /// With --dashboard-only: trials per arm (with and without the dashboard).
+    #[arg(long, value_name = "N", default_value_t = 5, requires = "dashboard_only")]
+    dashboard_trials: usize,
     /// Skip the copy-loop and averaging bandwidth measurement (a 20 MB stream).
     #[arg(long)]
     no_bandwidth: bool,
@@ -290,6 +302,9 @@ fn bench(a: BenchArgs) -> Result<i32> {
     if a.soak {
         return soak(&a);
     }
+    if a.dashboard_only {
+        return dashboard_cost(&a);
+    }
     let scene = match &a.scene {
         Some(p) => Scene::load(p)?,
         None => bench::bench_scene(),
@@ -330,6 +345,34 @@ fn bench(a: BenchArgs) -> Result<i32> {
         res.roc.len(),
         a.out.join("report.md").display()
     );
+    Ok(0)
+}
+
+fn dashboard_cost(a: &BenchArgs) -> Result<i32> {
+    use tofwave::bench::{self, BenchConfig};
+    if a.dashboard_frames < tofwave::bench::DASHBOARD_SENSORS || a.dashboard_trials == 0 {
+        bail!(
+            "--dashboard-frames {} / --dashboard-trials {}: give at least {} frames and 1 trial",
+            a.dashboard_frames,
+            a.dashboard_trials,
+            tofwave::bench::DASHBOARD_SENSORS
+        );
+    }
+    eprintln!("tofwave bench: dashboard cost, {} trials per arm ...", a.dashboard_trials);
+    let reference = bench::reference_scene();
+    let snr_db = BenchConfig::default_run().reference_snr_db;
+    let cost = bench::measure_dashboard_cost(&reference, snr_db, a.dashboard_frames, a.dashboard_trials)?;
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let md = format!(
+        "# Dashboard cost to ingest\n\nCommand: `tofwave {}`; {} CPUs.\n\n{}\n{}\n",
+        args.join(" "),
+        std::thread::available_parallelism().map_or(0, |n| n.get()),
+        cost.markdown(),
+        cost.check_row()
+    );
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    std::fs::write(a.out.join("dashboard.md"), &md).with_context(|| format!("writing {}", a.out.join("dashboard.md").display()))?;
+    println!("{md}");
     Ok(0)
 }
 

@@ -33,6 +33,8 @@ pub const QUEUE_DEPTH: &str = "tofwave_queue_depth";
 pub const SUBSCRIBER_LAGGED: &str = "tofwave_subscriber_lagged_reports_total";
 /// Open report subscriptions.
 pub const SUBSCRIBERS: &str = "tofwave_subscribers";
+/// Open dashboard event streams (`serve --dashboard`).
+pub const DASHBOARD_CLIENTS: &str = "tofwave_dashboard_clients";
 /// Frames written to `--record` files, per sensor.
 pub const FRAMES_RECORDED: &str = "tofwave_frames_recorded_total";
 /// Recordings stopped by a write or sync error, per sensor.
@@ -250,6 +252,11 @@ pub fn sensor_faulted(sensor: &str) {
 /// A subscriber fell behind and `skipped` reports were dropped for it.
 pub fn subscriber_lagged(skipped: u64) {
     metrics::counter!(SUBSCRIBER_LAGGED).increment(skipped);
+}
+
+/// A dashboard event stream opened (`+1`) or closed (`-1`).
+pub fn dashboard_clients_changed(delta: f64) {
+    metrics::gauge!(DASHBOARD_CLIENTS).increment(delta);
 }
 
 /// A subscription opened (`+1`) or closed (`-1`).

@@ -22,7 +22,7 @@ pub use grid::{
 pub use membw::{Bandwidth, measure_bandwidth};
 pub use output::{CSV_COLUMNS, ROC_COLUMNS, write_csv, write_roc_csv};
 pub use peer::{PeerComparison, PeerOutcome, run_peer};
-pub use service::{ServiceThroughput, measure_service};
+pub use service::{DASHBOARD_SENSORS, DashboardCost, ServiceThroughput, measure_dashboard_cost, measure_service};
 pub use soak::{ChaoticSummary, RssLife, SoakConfig, SoakReport, run_soak};
 
 use std::path::{Path, PathBuf};
@@ -116,6 +116,8 @@ pub struct BenchResults {
     pub peer: Option<PeerOutcome>,
     /// Loopback service throughput.
     pub service: Option<Result<ServiceThroughput, String>>,
+    /// Ingest throughput with and without the dashboard open (runs with the service test).
+    pub dashboard: Option<Result<DashboardCost, String>>,
     /// Copy-loop and averaging bandwidth.
     pub bandwidth: Option<Bandwidth>,
     /// Single-core offline pipeline throughput on the reference configuration
@@ -172,9 +174,19 @@ pub fn run(
     } else {
         None
     };
+    let dashboard = if opts.service {
+        progress.set_message("dashboard cost");
+        Some(
+            measure_dashboard_cost(&reference, cfg.reference_snr_db, 2 * cfg.service_frames, 5)
+                .map_err(|e| e.to_string()),
+        )
+    } else {
+        None
+    };
     progress.finish_and_clear();
 
     let results = BenchResults {
+        dashboard,
         cells,
         roc: roc_points,
         peer,

@@ -230,6 +230,19 @@ pub fn markdown(res: &BenchResults, opts: &RunOptions) -> String {
         }
         None => {}
     }
+    match &res.dashboard {
+        Some(Ok(d)) => {
+            let _ = writeln!(md, "{}", d.check_row());
+        }
+        Some(Err(e)) => {
+            let _ = writeln!(
+                md,
+                "| ingest with the dashboard open ≥ 95 % of without | failed: {} | not measured |",
+                e.replace('|', "/")
+            );
+        }
+        None => {}
+    }
     md.push('\n');
 
     if let Some(peer) = &res.peer {
@@ -294,6 +307,10 @@ pub fn markdown(res: &BenchResults, opts: &RunOptions) -> String {
             s.latency_p50_s * 1e3,
             s.latency_p99_s * 1e3
         );
+    }
+
+    if let Some(Ok(d)) = &res.dashboard {
+        let _ = writeln!(md, "## Dashboard cost\n\n{}", d.markdown());
     }
 
     let _ = writeln!(md, "## RMSE / CRLB per method (N = 1)\n");

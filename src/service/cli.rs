@@ -45,6 +45,16 @@ pub struct ServeArgs {
     /// Serve Prometheus metrics on http://ADDR/metrics (host:port).
     #[arg(long, value_name = "ADDR")]
     pub metrics: Option<SocketAddr>,
+    /// Serve the live dashboard (a page for the browser: range strip chart, waveform with
+    /// gates, threshold and detections, noise model, false-alarm rate, sensor health) on
+    /// http://ADDR/ (host:port; port 0 picks a free one, printed at start). Fed by server-sent
+    /// events from the report stream; needs the read token (?token=) when one is set.
+    #[arg(long, value_name = "ADDR")]
+    pub dashboard: Option<SocketAddr>,
+    /// With --dashboard: waveform snapshots per sensor per second at most, taken only while a
+    /// dashboard page is open (0: none), snapshots/s.
+    #[arg(long, value_name = "PER_S", default_value_t = super::dashboard::DEFAULT_SNAPSHOTS_PER_S)]
+    pub dashboard_snapshots_per_s: f64,
     /// Persist per-sensor scenes and noise models here; reloaded at start.
     #[arg(long, value_name = "DIR")]
     pub state_dir: Option<PathBuf>,
@@ -180,6 +190,10 @@ impl ServeArgs {
                 anyhow::bail!("{flag}: the token is empty; give a non-empty token, or leave the option unset to serve without one");
             }
         }
+        let per_s = self.dashboard_snapshots_per_s;
+        if !(per_s.is_finite() && (0.0..=60.0).contains(&per_s)) {
+            anyhow::bail!("--dashboard-snapshots-per-s {per_s}: give a number of snapshots per second from 0 (none) to 60");
+        }
         let scene = match &self.scene {
             Some(p) => Scene::load(p)?,
             None => Scene::default_scene(),
@@ -203,6 +217,8 @@ impl ServeArgs {
             history_reports: self.history_reports,
             subscriber_buffer: self.subscriber_buffer,
             metrics_listener: None,
+            dashboard_listener: None,
+            dashboard_snapshots_per_s: per_s,
             state_dir: self.state_dir.clone(),
             record_dir: self.record.clone(),
             drain_timeout: std::time::Duration::try_from_secs_f64(self.drain_timeout_s)
@@ -225,6 +241,13 @@ pub async fn run_serve(args: ServeArgs) -> anyhow::Result<()> {
                 .await
                 .with_context(|| format!("binding metrics endpoint {addr}"))?,
         );
+    }
+    if let Some(addr) = args.dashboard {
+        let l = tokio::net::TcpListener::bind(addr)
+            .await
+            .with_context(|| format!("--dashboard {addr}: binding the dashboard endpoint"))?;
+        eprintln!("tofwave: dashboard on http://{}/", l.local_addr()?);
+        config.dashboard_listener = Some(l);
     }
     let listener = tokio::net::TcpListener::bind(args.listen)
         .await

@@ -20,6 +20,9 @@ pub struct Published {
     pub report: Report,
     /// `pipeline::report_json(&report)`.
     pub json: String,
+    /// When it was published (server clock), ms since the Unix epoch: the
+    /// dashboard measures how long a report takes to reach the screen.
+    pub published_unix_ms: u64,
 }
 
 impl Published {
@@ -81,7 +84,11 @@ impl Hub {
     /// Publishes a report to live subscribers and the history.
     pub fn publish(&self, report: Report) {
         let json = report_json(&report);
-        let p = Arc::new(Published { report, json });
+        let p = Arc::new(Published {
+            report,
+            json,
+            published_unix_ms: super::session::unix_ms(),
+        });
         let mut g = lock(&self.inner);
         let cap = g.history_cap;
         if cap > 0 {

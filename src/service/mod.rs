@@ -12,6 +12,8 @@
 //!   ([`subscribe`](crate::service::subscribe));
 //! - [`control`](crate::service::control) reads and changes sensor state;
 //! - [`auth`](crate::service::auth) checks bearer tokens;
+//! - [`dashboard`](crate::service::dashboard) serves the browser dashboard
+//!   (server-sent events from the same fan-out, waveform snapshots);
 //! - `status` is the one place that maps errors to gRPC `Status`;
 //! - [`state`](crate::service::state) persists scenes and noise models;
 //! - [`client`](crate::service::client) is the library side of `tofwave replay`
@@ -32,6 +34,7 @@ pub mod auth;
 pub mod cli;
 pub mod client;
 pub mod control;
+pub mod dashboard;
 pub mod fanout;
 pub mod ingest;
 mod metrics_http;
@@ -79,6 +82,11 @@ pub struct ServerConfig {
     pub subscriber_buffer: usize,
     /// Serve Prometheus text on `GET /metrics` here.
     pub metrics_listener: Option<TcpListener>,
+    /// Serve the browser dashboard (page + server-sent events) here.
+    pub dashboard_listener: Option<TcpListener>,
+    /// Waveform snapshots per sensor per second at most, while a dashboard
+    /// client is connected (0: none).
+    pub dashboard_snapshots_per_s: f64,
     /// Persist per-sensor scenes and noise models here and reload them at start.
     pub state_dir: Option<PathBuf>,
     /// Write every accepted frame losslessly to one recording per sensor here.
@@ -113,6 +121,8 @@ impl Default for ServerConfig {
             history_reports: 1024,
             subscriber_buffer: 1024,
             metrics_listener: None,
+            dashboard_listener: None,
+            dashboard_snapshots_per_s: dashboard::DEFAULT_SNAPSHOTS_PER_S,
             state_dir: None,
             record_dir: None,
             drain_timeout: std::time::Duration::from_secs(20),
@@ -198,6 +208,11 @@ pub async fn run(
         config.history_reports,
     ));
     let state_dir = config.state_dir.clone().map(state::StateDir::new);
+    // Snapshots exist only with a dashboard: without one, pipelines get no observer.
+    let snapshots = config
+        .dashboard_listener
+        .as_ref()
+        .map(|_| dashboard::Snapshots::new(config.dashboard_snapshots_per_s));
     let sessions = session::Sessions::new(
         config.scene.clone(),
         config.queue_frames,
@@ -206,6 +221,7 @@ pub async fn run(
         state_dir,
         config.record_dir.clone(),
         config.durability,
+        snapshots.clone(),
     )?;
     let shared = Arc::new(Shared {
         sessions,
@@ -286,6 +302,17 @@ pub async fn run(
         .build_v1alpha()
         .map_err(ServiceError::Reflection)?;
 
+    let dashboard_task = match (config.dashboard_listener, snapshots) {
+        (Some(l), Some(snapshots)) => {
+            let dash = Arc::new(dashboard::Dashboard {
+                shared: shared.clone(),
+                tokens: auth.clone(),
+                snapshots,
+            });
+            Some(tasks.spawn(dashboard::serve(l, dash, shutdown_begun.clone())))
+        }
+        _ => None,
+    };
     let metrics_task = config.metrics_listener.map(|l| {
         let handle = crate::telemetry::prometheus_handle();
         tasks.spawn(metrics_http::serve(l, handle, shutdown_begun.clone()))
@@ -387,6 +414,9 @@ pub async fn run(
     })
     .await;
     if let Some(t) = metrics_task {
+        t.abort();
+    }
+    if let Some(t) = dashboard_task {
         t.abort();
     }
     match finished {

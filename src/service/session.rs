@@ -8,6 +8,7 @@
 
 use super::{ServiceError, lock};
 use super::fanout::Hub;
+use super::dashboard::Snapshots;
 use super::state::StateDir;
 use crate::capture::RecordingWriter;
 use crate::frame::{Frame, NoiseSummary, Report};
@@ -80,6 +81,10 @@ pub struct Stats {
     pub last_sequence: AtomicU64,
     /// Missing sequence numbers detected.
     pub sequence_gaps: AtomicU64,
+    /// Queue-to-processed time of the latest frame, µs (the dashboard's latency).
+    pub last_latency_us: AtomicU64,
+    /// When the latest frame was processed, ms since the Unix epoch (0: none yet).
+    pub last_processed_unix_ms: AtomicU64,
 }
 
 /// One sensor's session.
@@ -251,6 +256,9 @@ pub struct Sessions {
     ingest_streams: watch::Sender<usize>,
     /// Bumped whenever a sensor becomes faulted (`service::run` sets health).
     faults: Arc<watch::Sender<u64>>,
+    /// Dashboard waveform snapshots (`serve --dashboard`): every pipeline gets
+    /// their observer; `None`: no dashboard, no observer.
+    snapshots: Option<Arc<Snapshots>>,
 }
 
 /// What an acknowledgement promises about the recording, and how often
@@ -302,6 +310,7 @@ impl Sessions {
         state: Option<StateDir>,
         record_dir: Option<PathBuf>,
         durability: Durability,
+        snapshots: Option<Arc<Snapshots>>,
     ) -> Result<Sessions, ServiceError> {
         if let Some(dir) = &record_dir {
             std::fs::create_dir_all(dir).map_err(|e| ServiceError::Record {
@@ -337,6 +346,7 @@ impl Sessions {
             durability,
             ingest_streams: watch::Sender::new(0),
             faults: Arc::new(watch::Sender::new(0)),
+            snapshots,
         };
         for s in saved {
             // A saved sensor whose scene no longer builds is skipped with a
@@ -421,7 +431,10 @@ impl Sessions {
         if limited && map.len() >= self.max_sensors {
             return Err(StartError::Limit(self.max_sensors));
         }
-        let pipeline = build_pipeline(&scene, sensor).map_err(StartError::Build)?;
+        let mut pipeline = build_pipeline(&scene, sensor).map_err(StartError::Build)?;
+        if let Some(s) = &self.snapshots {
+            pipeline.set_observer(s.observer());
+        }
         let recorder = match &self.record_dir {
             Some(dir) => Some(open_recording(dir, sensor).map_err(StartError::Build)?),
             None => None,
@@ -452,6 +465,7 @@ impl Sessions {
             durability: self.durability,
             saved_at: std::time::Instant::now(),
             unacked: Vec::new(),
+            snapshots: self.snapshots.clone(),
         };
         let watched = session.clone();
         let faults = self.faults.clone();
@@ -511,6 +525,13 @@ impl Sessions {
         }
         Ok(())
     }
+}
+
+/// Now, ms since the Unix epoch (0 before it).
+pub(crate) fn unix_ms() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64)
 }
 
 /// The worker thread's name: `tofwave-` and the sensor id reduced to ASCII
@@ -575,6 +596,8 @@ struct Worker {
     /// Verdicts of recorded frames held until the recording is flushed:
     /// an acknowledgement means the frame is in the recording.
     unacked: Vec<(oneshot::Sender<Verdict>, Verdict)>,
+    /// Dashboard snapshots: rebuilt pipelines get the observer again.
+    snapshots: Option<Arc<Snapshots>>,
 }
 
 /// Recorded frames held for one flush at most: under load the queue never
@@ -611,11 +634,12 @@ impl Worker {
                     let verdict = self.process(frame, &mut reports);
                     match &verdict {
                         Verdict::Processed => {
-                            self.session
-                                .stats
-                                .frames_processed
-                                .fetch_add(1, Ordering::Relaxed);
-                            self.session.metrics.frame_processed(enqueued.elapsed());
+                            let st = &self.session.stats;
+                            st.frames_processed.fetch_add(1, Ordering::Relaxed);
+                            let latency = enqueued.elapsed();
+                            st.last_latency_us.store(latency.as_micros() as u64, Ordering::Relaxed);
+                            st.last_processed_unix_ms.store(unix_ms(), Ordering::Relaxed);
+                            self.session.metrics.frame_processed(latency);
                         }
                         Verdict::Refused(e) => {
                             self.session
@@ -651,7 +675,7 @@ impl Worker {
                 }
                 Job::SetScene { scene, done } => {
                     self.flush_and_ack();
-                    let result = build_pipeline(&scene, &sensor).map(|p| {
+                    let result = self.build(&scene).map(|p| {
                         self.pipeline.flush(&mut reports);
                         self.publish(&mut reports);
                         self.pipeline = p;
@@ -670,6 +694,15 @@ impl Worker {
             tracing::error!(sensor = %sensor, error = %e, "recording not finished");
         }
         tracing::info!(sensor = %sensor, "session drained");
+    }
+
+    /// A pipeline for `scene`, observed by the dashboard when there is one.
+    fn build(&self, scene: &Scene) -> Result<Pipeline, String> {
+        let mut p = build_pipeline(scene, &self.session.sensor)?;
+        if let Some(s) = &self.snapshots {
+            p.set_observer(s.observer());
+        }
+        Ok(p)
     }
 
     /// Writes the recording through (and syncs it, by policy), then sends
@@ -750,7 +783,7 @@ impl Worker {
                 reports.clear();
                 let message = panic_message(panic.as_ref());
                 let scene = self.pipeline.scene().clone();
-                match build_pipeline(&scene, &self.session.sensor) {
+                match self.build(&scene) {
                     Ok(p) => self.pipeline = p,
                     Err(e) => {
                         tracing::error!(error = %e, "rebuilding the pipeline failed; keeping the old one")

@@ -226,7 +226,11 @@ struct SimulateArgs {
     /// Ground truth per frame (true times of flight, amplitudes, samples holding signal,
     /// interference events: onset, peak time, peak volts). `.csv`: CSV, one row per
     /// frame, return and event (columns sequence,kind,index,t_s,t_peak_s,peak_v,range_m,
-    /// tof_s,flags); any other name: one JSON line per frame.
+    /// tof_s,flags); any other name: one JSON line per frame. Times are seconds from the
+    /// trigger. `range_m` is the target's geometric range (m); `tof_s` is the stop pulse's 50 %
+    /// crossing minus the start pulse's (s) with the chain's system delay left in (the two
+    /// paths' rise times and electrical delays: what `tofwave calibrate` measures), so
+    /// `tof_s` exceeds 2·range_m/c by that delay (about 2.1 ns in the default scene).
     #[arg(long, value_name = "FILE")]
     truth: Option<PathBuf>,
 }
@@ -597,6 +601,8 @@ fn run(scene: &Scene, c: &SceneInput) -> Result<(Vec<Report>, usize)> {
     if frames.len() < 2000 {
         bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
     }
+    let plain = (frames.len() >= 2000)
+        .then(|| tofwave::service::cli::plain_progress(&bar, "process", std::time::Duration::from_secs(10)));
     let mut pipeline = Pipeline::new(scene, &c.sensor);
     let mut reports = Vec::new();
     let mut refused = 0;
@@ -608,6 +614,7 @@ fn run(scene: &Scene, c: &SceneInput) -> Result<(Vec<Report>, usize)> {
         bar.inc(1);
     }
     pipeline.flush(&mut reports);
+    drop(plain);
     bar.finish_and_clear();
     Ok((reports, refused))
 }

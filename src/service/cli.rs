@@ -443,10 +443,38 @@ pub async fn run_replay(args: ReplayArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// A warning for each requested sensor id the server has never seen (no
+/// frames, no scene set): a subscription to it waits silently, which looks
+/// like a hang when the id is mistyped or the sender uses another. Empty when
+/// every id is known, or when the token may not list sensors (read-only).
+pub async fn unseen_sensor_warnings(control: &mut client::ControlClient, wanted: &[String]) -> Vec<String> {
+    if wanted.is_empty() {
+        return Vec::new();
+    }
+    let Ok(list) = control.list_sensors(proto::ListSensorsRequest {}).await else {
+        return Vec::new();
+    };
+    let known: Vec<String> = list.into_inner().sensors.into_iter().map(|s| s.sensor_id).collect();
+    wanted
+        .iter()
+        .filter(|w| !known.contains(w))
+        .map(|w| {
+            format!(
+                "tofwave subscribe: warning: sensor {w:?} has sent no frames to this server yet (sensors seen: {}); \
+                 waiting for it. `tofwave replay` sends as --sensor ID, else as \"replay\" (or the id in a recording)",
+                if known.is_empty() { "none".to_string() } else { known.join(", ") }
+            )
+        })
+        .collect()
+}
+
 /// Prints reports as JSON lines (the `tofwave process` shape) until the server
 /// ends the stream or Ctrl-C; lag markers go to stderr.
 pub async fn run_subscribe(args: SubscribeArgs) -> anyhow::Result<()> {
     let mut clients = client::connect(&args.from, &options(&args.token, &args.connect)?).await?;
+    for w in unseen_sensor_warnings(&mut clients.control, &args.sensors).await {
+        eprintln!("{w}");
+    }
     let request = proto::SubscribeRequest {
         sensor_ids: args.sensors.clone(),
         min_snr_db: args.min_snr_db,

@@ -387,7 +387,7 @@ fn draw_trace<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, v: &FrameView, 
     };
     let caption = format!(
         "{}{frames}: {} returns; noise {:.2} mV ± {:.2} mV{}",
-        if rows == 1 || v.position == 0 { format!("{} — ", opts.title) } else { String::new() },
+        if rows == 1 || v.position == 0 { format!("{}, ", opts.title) } else { String::new() },
         r.returns.len(),
         r.noise.mean_v * 1e3,
         r.noise.sigma_v * 1e3,
@@ -478,7 +478,7 @@ fn draw_trace<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, v: &FrameView, 
         .map(|(k, ret)| {
             // Staggered downwards so neighbours' labels do not overlap.
             let y_at = y.end - (y.end - y.start) * (0.04 + 0.08 * (k % 4) as f64);
-            let x_at = ret.t_stop_s * 1e9 + (x.end - x.start) * 0.006;
+            let x_at = ret.t_stop_s.max(ret.t_peak_s) * 1e9 + (x.end - x.start) * 0.012;
             Text::new(return_label(ret), (x_at, y_at), ("sans-serif", 13).into_font().color(&red))
         })
         .collect();

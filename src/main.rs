@@ -558,16 +558,14 @@ fn note_skipped(source: &capture::FrameSource) {
 /// flag, a single-channel capture is the stop channel, timed from the trigger.)
 fn check_channel_flags(c: &SceneInput, frame: &tofwave::frame::Frame) -> Result<()> {
     for (flag, name) in [("--stop-channel", &c.stop_channel), ("--start-channel", &c.start_channel)] {
-        if let Some(name) = name {
-            if frame.channel(name).is_none() {
-                bail!(
-                    "{flag} {name}: the capture has no such channel (frame {} of {} has {}); \
-                     give one of those, or leave {flag} out to use the scene's channels",
-                    frame.sequence,
-                    c.input.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(", "),
-                    frame.channel_names().join(", ")
-                );
-            }
+        if let Some(name) = name.as_ref().filter(|n| frame.channel(n).is_none()) {
+            bail!(
+                "{flag} {name}: the capture has no such channel (frame {} of {} has {}); \
+                 give one of those, or leave {flag} out to use the scene's channels",
+                frame.sequence,
+                c.input.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(", "),
+                frame.channel_names().join(", ")
+            );
         }
     }
     Ok(())

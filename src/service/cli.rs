@@ -336,10 +336,13 @@ impl Drop for PlainProgress {
 /// 1 GiB (reading them twice costs little); `None` above that.
 fn count_frames(paths: &[PathBuf], opts: &capture::ReadOptions) -> Option<u64> {
     let source = capture::frames(paths, opts).ok()?;
+    let size = |p: &std::path::Path| std::fs::metadata(p).map(|m| m.len()).unwrap_or(0);
     let bytes: u64 = paths
         .iter()
-        .filter_map(|p| std::fs::metadata(p).ok())
-        .map(|m| if m.is_dir() { 0 } else { m.len() })
+        .map(|p| match std::fs::read_dir(p) {
+            Ok(entries) => entries.filter_map(Result::ok).map(|e| size(&e.path())).sum(),
+            Err(_) => size(p),
+        })
         .sum();
     if bytes > 1 << 30 {
         return None;

@@ -362,16 +362,16 @@ fn y_span<'a>(values: impl Iterator<Item = &'a f64>) -> Range<f64> {
 fn draw<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, views: &[FrameView], opts: &PlotOptions) -> Result<(), PlotError> {
     root.fill(&WHITE).map_err(draw_err)?;
     let rows = root.split_evenly((views.len(), 1));
-    for (row, v) in rows.iter().zip(views) {
+    for (k, (row, v)) in rows.iter().zip(views).enumerate() {
         let h = row.dim_in_pixel().1;
         let (upper, lower) = row.split_vertically((h as f64 * 0.62) as u32);
-        draw_trace(&upper, v, opts, views.len())?;
+        draw_trace(&upper, v, opts, k == 0)?;
         draw_detector(&lower, v)?;
     }
     Ok(())
 }
 
-fn draw_trace<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, v: &FrameView, opts: &PlotOptions, rows: usize) -> Result<(), PlotError> {
+fn draw_trace<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, v: &FrameView, opts: &PlotOptions, first: bool) -> Result<(), PlotError> {
     let n = v.stop_v.len();
     let x = v.t_ns(0.0)..v.t_ns(n.saturating_sub(1).max(1) as f64);
     let mut ys: Vec<f64> = v.stop_v.clone();
@@ -387,7 +387,7 @@ fn draw_trace<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, v: &FrameView, 
     };
     let caption = format!(
         "{}{frames}: {} returns; noise {:.2} mV ± {:.2} mV{}",
-        if rows == 1 || v.position == 0 { format!("{}, ", opts.title) } else { String::new() },
+        if first { format!("{}, ", opts.title) } else { String::new() },
         r.returns.len(),
         r.noise.mean_v * 1e3,
         r.noise.sigma_v * 1e3,
@@ -485,7 +485,7 @@ fn draw_trace<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, v: &FrameView, 
     chart.draw_series(labels).map_err(draw_err)?;
     chart
         .configure_series_labels()
-        .position(SeriesLabelPosition::LowerRight)
+        .position(SeriesLabelPosition::UpperLeft)
         .background_style(WHITE.mix(0.85))
         .border_style(BLACK.mix(0.3))
         .label_font(("sans-serif", 12))

@@ -32,6 +32,8 @@ pub mod pipeline;
 pub mod calibrate;
 /// Readers and writers of capture formats; replay source; a starting scene measured from a capture.
 pub mod capture;
+/// Static PNG/SVG plots of processed frames: trace, gates, threshold, detector output, returns.
+pub mod plot;
 /// gRPC services (the only module that knows tonic), fan-out, sessions, shutdown; the browser dashboard (HTTP, server-sent events).
 pub mod service;
 /// Work-precision report, numpy/scipy peer, service throughput and bandwidth yardstick (`tofwave bench`).

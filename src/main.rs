@@ -47,6 +47,36 @@ enum Command {
     /// against run time per timing method, averaging depth and SNR; the numpy/scipy peer side by
     /// side; loopback gRPC throughput; copy-loop vs averaging bandwidth. Writes report.md, CSV and SVG.
     Bench(BenchArgs),
+    /// Draw a capture's frame(s) as a PNG or SVG: the stop trace (and start channel), noise gates
+    /// shaded, noise mean, each detected return marked with its range and SNR, and below it the
+    /// detector output with the threshold. The frames run through the same pipeline as `process`.
+    Plot(PlotArgs),
+    /// Operate a running server over its Control service: list sensors, read status, get or set
+    /// a scene, read a noise model, get or set a calibration.
+    Ctl(tofwave::service::cli::CtlArgs),
+}
+
+#[derive(Args, Debug)]
+struct PlotArgs {
+    #[command(flatten)]
+    common: SceneInput,
+    /// Calibration file from `tofwave calibrate`: its delay (seconds) is subtracted from every time of flight.
+    #[arg(long, value_name = "FILE")]
+    calibration: Option<PathBuf>,
+    /// Frame to draw: its 0-based position in input order (segments of a sequence-mode file count
+    /// one each), or an inclusive range A..B drawn as stacked rows (at most 16). With --average N
+    /// the averaged group holding the frame is drawn.
+    #[arg(long, value_name = "K|A..B", default_value = "0")]
+    frame: tofwave::plot::FrameSelection,
+    /// Output image; the extension chooses the format: .png (8-bit RGB) or .svg.
+    #[arg(long, value_name = "FILE")]
+    out: PathBuf,
+    /// Image width, pixels (200..=8000).
+    #[arg(long, value_name = "PX", default_value_t = 1400)]
+    width: u32,
+    /// Image height, pixels (200..=8000) [default: 700 for one frame, 420 per row for several].
+    #[arg(long, value_name = "PX")]
+    height: Option<u32>,
 }
 
 #[derive(Args, Debug)]
@@ -208,7 +238,11 @@ struct SimulateArgs {
     /// Ground truth per frame (true times of flight, amplitudes, samples holding signal,
     /// interference events: onset, peak time, peak volts). `.csv`: CSV, one row per
     /// frame, return and event (columns sequence,kind,index,t_s,t_peak_s,peak_v,range_m,
-    /// tof_s,flags); any other name: one JSON line per frame.
+    /// tof_s,flags); any other name: one JSON line per frame. Times are seconds from the
+    /// trigger. `range_m` is the target's geometric range (m); `tof_s` is the stop pulse's 50 %
+    /// crossing minus the start pulse's (s) with the chain's system delay left in (the two
+    /// paths' rise times and electrical delays: what `tofwave calibrate` measures), so
+    /// `tof_s` exceeds 2·range_m/c by that delay (about 2.1 ns in the default scene).
     #[arg(long, value_name = "FILE")]
     truth: Option<PathBuf>,
 }
@@ -287,14 +321,34 @@ fn main() {
         Command::Scene(a) => scene(a),
         Command::Template(a) => template(a),
         Command::Bench(a) => bench(a),
+        Command::Plot(a) => plot(a),
+        Command::Ctl(a) => block_on(tofwave::service::cli::run_ctl(a)),
     };
     match result {
         Ok(code) => std::process::exit(code),
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", error_text(&e));
             std::process::exit(2);
         }
     }
+}
+
+/// An error and its causes on one line, each cause said once: a cause whose
+/// text the message already holds (a wrapper that prints its source) is not
+/// repeated.
+fn error_text(e: &anyhow::Error) -> String {
+    let mut text = String::new();
+    for cause in e.chain() {
+        let msg = cause.to_string();
+        if text.contains(&msg) {
+            continue;
+        }
+        if !text.is_empty() {
+            text.push_str(": ");
+        }
+        text.push_str(&msg);
+    }
+    text
 }
 
 fn bench(a: BenchArgs) -> Result<i32> {
@@ -335,7 +389,10 @@ fn bench(a: BenchArgs) -> Result<i32> {
         indicatif::ProgressStyle::with_template("{msg:28} {bar:40} {pos}/{len} frames {per_sec} eta {eta}")
             .expect("static template"),
     );
-    let res = bench::run(&scene, &opts, &a.out, &bar)?;
+    let plain = tofwave::service::cli::plain_progress(&bar, "bench", std::time::Duration::from_secs(10));
+    let res = bench::run(&scene, &opts, &a.out, &bar);
+    drop(plain);
+    let res = res?;
     if let Some(bench::PeerOutcome::Failed(why)) = &res.peer {
         eprintln!("tofwave bench: the numpy/scipy peer did not run: {why}");
     }
@@ -532,10 +589,49 @@ fn load_scene(c: &SceneInput) -> Result<Scene> {
     Ok(scene)
 }
 
+/// Notes the files of input directories that are not read.
+fn note_skipped(source: &capture::FrameSource) {
+    for s in source.skipped() {
+        eprintln!("note: {s}");
+    }
+}
+
+/// A channel named by --stop-channel or --start-channel must be in the
+/// capture: the flag is blamed, with the channels the frame has. (Without the
+/// flag, a single-channel capture is the stop channel, timed from the trigger.)
+fn check_channel_flags(c: &SceneInput, frame: &tofwave::frame::Frame) -> Result<()> {
+    for (flag, name) in [("--stop-channel", &c.stop_channel), ("--start-channel", &c.start_channel)] {
+        if let Some(name) = name.as_ref().filter(|n| frame.channel(n).is_none()) {
+            bail!(
+                "{flag} {name}: the capture has no such channel (frame {} of {} has {}); \
+                 give one of those, or leave {flag} out to use the scene's channels",
+                frame.sequence,
+                c.input.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(", "),
+                frame.channel_names().join(", ")
+            );
+        }
+    }
+    Ok(())
+}
+
+/// Reads every frame of the inputs (skipped directory entries noted, channel
+/// flags checked against each frame).
+fn read_inputs(c: &SceneInput) -> Result<Vec<tofwave::frame::Frame>> {
+    let opts = ReadOptions { format: c.format, sensor_id: c.sensor.clone() };
+    let source = capture::frames(&c.input, &opts)?;
+    note_skipped(&source);
+    let mut frames = Vec::new();
+    for f in source {
+        let f = f?;
+        check_channel_flags(c, &f)?;
+        frames.push(f);
+    }
+    Ok(frames)
+}
+
 /// Runs the pipeline over the inputs; returns the reports and the number of refused frames.
 fn run(scene: &Scene, c: &SceneInput) -> Result<(Vec<Report>, usize)> {
-    let opts = ReadOptions { format: c.format, sensor_id: c.sensor.clone() };
-    let frames = capture::read_paths(&c.input, &opts)?;
+    let frames = read_inputs(c)?;
     if frames.is_empty() {
         bail!("no frames in {}", c.input.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(", "));
     }
@@ -546,6 +642,8 @@ fn run(scene: &Scene, c: &SceneInput) -> Result<(Vec<Report>, usize)> {
     if frames.len() < 2000 {
         bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
     }
+    let plain = (frames.len() >= 2000)
+        .then(|| tofwave::service::cli::plain_progress(&bar, "process", std::time::Duration::from_secs(10)));
     let mut pipeline = Pipeline::new(scene, &c.sensor);
     let mut reports = Vec::new();
     let mut refused = 0;
@@ -557,6 +655,7 @@ fn run(scene: &Scene, c: &SceneInput) -> Result<(Vec<Report>, usize)> {
         bar.inc(1);
     }
     pipeline.flush(&mut reports);
+    drop(plain);
     bar.finish_and_clear();
     Ok((reports, refused))
 }
@@ -602,6 +701,20 @@ fn calibrate(a: CalibrateArgs) -> Result<i32> {
     }
     scene.calibration = tofwave::scene::CalibrationConfig::default();
     let (reports, refused) = run(&scene, &a.common)?;
+    let no_start = reports
+        .iter()
+        .filter(|r| r.flags.iter().any(|f| f.name() == "no_start_channel"))
+        .count();
+    if no_start > 0 {
+        eprintln!(
+            "tofwave calibrate: warning: {no_start} of {} reports have no start channel (the capture lacks {:?}): \
+             their time reference is the trigger plus channels.reference_offset_s, so the delay measured \
+             includes the trigger's latency and holds only for captures triggered the same way \
+             (give --start-channel NAME if the start pulse is on another channel)",
+            reports.len(),
+            scene.channels.start
+        );
+    }
     let Calibration { mut file, walk } = tofwave::calibrate::calibrate(&reports, r, &scene, a.walk)?;
     if let Some(fit) = &walk {
         eprintln!("tofwave calibrate: walk table, {} nodes (amplitude V -> extra delay ns):", fit.amplitude_v.len());
@@ -612,18 +725,23 @@ fn calibrate(a: CalibrateArgs) -> Result<i32> {
     file.measurement.inputs = a.common.input.iter().map(|p| p.display().to_string()).collect();
     let text = format!(
         "# tofwave calibration: the fixed start-to-stop delay of the system, seconds.\n\
-         # Apply with `tofwave process --calibration {}`.\n{}",
+         # Apply with `tofwave process --calibration {}`.\n{}{}",
         a.out.display(),
-        toml::to_string(&file)?
+        if no_start > 0 {
+            "# Measured without a start channel: the delay is from the trigger, not from the start pulse.\n"
+        } else {
+            ""
+        },
+        tofwave::scene::human_floats(&toml::to_string(&file)?)
     );
     std::fs::write(&a.out, text).with_context(|| format!("cannot write {}", a.out.display()))?;
     let m = &file.measurement;
     eprintln!(
-        "tofwave calibrate: delay {:.4} ns ± {:.4} ns (standard error; {} returns, std {:.4} ns, {} excluded) -> {}",
-        file.calibration.delay_s * 1e9,
-        m.delay_sem_s * 1e9,
+        "tofwave calibrate: delay {} ± {} (standard error; {} returns, std {}, {} excluded) -> {}",
+        tofwave::scene::si(file.calibration.delay_s, "s"),
+        tofwave::scene::si(m.delay_sem_s, "s"),
         m.returns,
-        m.delay_std_s * 1e9,
+        tofwave::scene::si(m.delay_std_s, "s"),
         m.excluded,
         a.out.display()
     );
@@ -636,8 +754,7 @@ fn template(a: TemplateArgs) -> Result<i32> {
         bail!("--oversample {}: allowed 1..=64 grid points per sample", a.oversample);
     }
     let scene = load_scene(&a.common)?;
-    let opts = ReadOptions { format: a.common.format, sensor_id: a.common.sensor.clone() };
-    let frames = capture::read_paths(&a.common.input, &opts)?;
+    let frames = read_inputs(&a.common)?;
     let learn = LearnOptions { oversample: a.oversample, min_snr_db: a.min_snr_db, passes: a.passes };
     let scene = learn_shapes(
         &scene,
@@ -756,5 +873,50 @@ fn scene_from_capture(input: &std::path::Path, out: Option<&std::path::Path>, fo
             input.display()
         );
     }
+    Ok(0)
+}
+
+fn plot(a: PlotArgs) -> Result<i32> {
+    use tofwave::plot::{self, PlotFormat, PlotOptions};
+    // Checked before any work: a wrong extension or size fails at once.
+    let format = PlotFormat::from_path(&a.out)?;
+    let mut scene = load_scene(&a.common)?;
+    if let Some(p) = &a.calibration {
+        CalibrationFile::load(p)?.apply(&mut scene, &p.display().to_string())?;
+    }
+    let opts = ReadOptions { format: a.common.format, sensor_id: a.common.sensor.clone() };
+    let source = capture::frames(&a.common.input, &opts)?;
+    note_skipped(&source);
+    let mut checked = false;
+    let frames = source.map(|f| {
+        let f = f?;
+        if !checked {
+            check_channel_flags(&a.common, &f)?;
+            checked = true;
+        }
+        Ok::<_, anyhow::Error>(f)
+    });
+    let processed = plot::process(&scene, &a.common.sensor, frames, &a.frame)?;
+    for e in &processed.refused {
+        eprintln!("refused: {e}");
+    }
+    plot::check_selection(&processed, &a.frame)?;
+    let rows = processed.views.len() as u32;
+    let title = a.common.input.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(", ");
+    let options = PlotOptions {
+        width_px: a.width,
+        height_px: a.height.unwrap_or(if rows == 1 { 700 } else { 420 * rows }).min(*plot::SIZE_PX.end()),
+        title,
+    };
+    plot::render(&processed.views, &a.out, format, &options)?;
+    let returns: usize = processed.views.iter().map(|v| v.report.returns.len()).sum();
+    eprintln!(
+        "tofwave plot: {} frame(s), {} returns marked -> {} ({}x{} px)",
+        rows,
+        returns,
+        a.out.display(),
+        options.width_px,
+        options.height_px
+    );
     Ok(0)
 }

@@ -44,17 +44,52 @@ pub const RECORDING_FAILURES: &str = "tofwave_recording_failures_total";
 /// sensor makes the gRPC health of `tofwave.v1.Ingest` NOT_SERVING.
 pub const SENSOR_FAULTED: &str = "tofwave_sensor_faulted";
 
+/// Observed false-alarm rate per noise-gate cell, cumulative over the
+/// sensor's frames (the latest report's `false_alarm.rate`), per sensor.
+pub const FALSE_ALARM_RATE: &str = "tofwave_false_alarm_rate";
+/// Design false-alarm probability per cell the threshold holds (the latest
+/// report's `detector.pfa_cell`): what [`FALSE_ALARM_RATE`] should match, per sensor.
+pub const FALSE_ALARM_DESIGN_RATE: &str = "tofwave_false_alarm_design_rate";
+/// Lower end of the observed rate's 95 % interval (`false_alarm.ci95[0]`), per sensor.
+pub const FALSE_ALARM_CI95_LOW: &str = "tofwave_false_alarm_rate_ci95_low";
+/// Upper end of the observed rate's 95 % interval (`false_alarm.ci95[1]`), per sensor.
+pub const FALSE_ALARM_CI95_HIGH: &str = "tofwave_false_alarm_rate_ci95_high";
+
+/// Every metric name above, for tests and dashboard checks. Histograms are
+/// exported as `<name>_bucket`, `<name>_sum` and `<name>_count`.
+pub const ALL_METRICS: [&str; 16] = [
+    FRAMES_RECEIVED,
+    FRAMES_PROCESSED,
+    FRAMES_REJECTED,
+    REPORTS,
+    RETURNS,
+    SEQUENCE_GAPS,
+    PROCESSING_SECONDS,
+    QUEUE_DEPTH,
+    SUBSCRIBER_LAGGED,
+    SUBSCRIBERS,
+    FRAMES_RECORDED,
+    RECORDING_FAILURES,
+    FALSE_ALARM_RATE,
+    FALSE_ALARM_DESIGN_RATE,
+    FALSE_ALARM_CI95_LOW,
+    FALSE_ALARM_CI95_HIGH,
+];
+
 /// Histogram buckets for [`PROCESSING_SECONDS`]: 10 µs to 10 s, roughly x3 steps.
 const PROCESSING_BUCKETS_S: &[f64] = &[
     1e-5, 3e-5, 1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0, 3.0, 10.0,
 ];
 
 /// Installs a `tracing` subscriber writing to stderr; `RUST_LOG` filters (default `warn`).
+/// Colours only on a terminal: a log file or journal gets plain text.
 pub fn init_tracing() {
+    use std::io::IsTerminal;
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn"));
     let _ = tracing_subscriber::fmt()
         .with_env_filter(filter)
+        .with_ansi(std::io::stderr().is_terminal())
         .with_writer(std::io::stderr)
         .try_init();
 }
@@ -128,6 +163,8 @@ pub struct SensorMetrics {
     frames_recorded: OnceLock<Counter>,
     /// [`RECORDING_FAILURES`].
     recording_failures: OnceLock<Counter>,
+    /// [`FALSE_ALARM_RATE`], [`FALSE_ALARM_DESIGN_RATE`], [`FALSE_ALARM_CI95_LOW`], [`FALSE_ALARM_CI95_HIGH`].
+    false_alarm: [OnceLock<Gauge>; 4],
 }
 
 impl SensorMetrics {
@@ -145,6 +182,7 @@ impl SensorMetrics {
             queue_depth: OnceLock::new(),
             frames_recorded: OnceLock::new(),
             recording_failures: OnceLock::new(),
+            false_alarm: Default::default(),
         }
     }
 
@@ -188,6 +226,17 @@ impl SensorMetrics {
         self.counter(&self.reports, REPORTS).increment(1);
         self.counter(&self.returns, RETURNS)
             .increment(returns as u64);
+    }
+
+    /// The false-alarm self-check of the latest report: observed rate per
+    /// cell, its 95 % interval, and the design rate per cell.
+    pub fn false_alarm(&self, observed: f64, ci95: [f64; 2], design: f64) {
+        const NAMES: [&str; 4] = [FALSE_ALARM_RATE, FALSE_ALARM_DESIGN_RATE, FALSE_ALARM_CI95_LOW, FALSE_ALARM_CI95_HIGH];
+        for ((cell, name), value) in self.false_alarm.iter().zip(NAMES).zip([observed, design, ci95[0], ci95[1]]) {
+            if value.is_finite() {
+                cell.get_or_init(|| metrics::gauge!(name, "sensor" => self.sensor.clone())).set(value);
+            }
+        }
     }
 
     /// `missing` sequence numbers were skipped.

@@ -267,6 +267,7 @@ fn sensor_metrics_record_without_allocating_after_first_use() {
         m.sequence_gap(1);
         m.queue_depth(2);
         m.frame_recorded();
+        m.false_alarm(1e-7, [0.0, 3e-6], 1.4e-8);
     };
     record(&m); // registers the handles
     COUNT.with(|c| c.set(0));

@@ -34,12 +34,12 @@ pub enum BenchError {
     #[error("scene: {0}")]
     Scene(String),
     /// Writing an output file failed.
-    #[error("{path}: {source}")]
+    #[error("{path}: {cause}")]
     Io {
         /// The file.
         path: PathBuf,
         /// Why.
-        source: std::io::Error,
+        cause: std::io::Error,
     },
     /// A plot could not be drawn.
     #[error("plot {path}: {message}")]
@@ -58,7 +58,7 @@ impl BenchError {
     fn io(path: &Path, source: std::io::Error) -> BenchError {
         BenchError::Io {
             path: path.to_path_buf(),
-            source,
+            cause: source,
         }
     }
 }

@@ -719,6 +719,6 @@ pub fn write_csv(path: &Path, frame: &Frame, dialect: Format) -> Result<(), Capt
         path: path.to_path_buf(),
         offset: 0,
         action: "write".into(),
-        source: e,
+        cause: e,
     })
 }

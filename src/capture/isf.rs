@@ -318,6 +318,6 @@ pub fn write_isf(path: &Path, frame: &Frame, channel: &str) -> Result<(), Captur
         path: path.to_path_buf(),
         offset: 0,
         action: "write".into(),
-        source: e,
+        cause: e,
     })
 }

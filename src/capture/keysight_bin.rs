@@ -320,6 +320,6 @@ pub fn write_keysight_bin(path: &Path, frame: &Frame) -> Result<(), CaptureError
         path: path.to_path_buf(),
         offset: 0,
         action: "write".into(),
-        source: e,
+        cause: e,
     })
 }

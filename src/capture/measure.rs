@@ -98,12 +98,12 @@ pub enum MeasureError {
     },
     /// The measured values do not make a valid scene (a bug, or a pulse
     /// shape no scene model describes).
-    #[error("{origin}: the measured scene is invalid: {source}")]
+    #[error("{origin}: the measured scene is invalid: {cause}")]
     Scene {
         /// The capture(s).
         origin: String,
         /// What the scene check said.
-        source: SceneError,
+        cause: SceneError,
     },
 }
 
@@ -1077,7 +1077,7 @@ impl CaptureMeasurement {
     /// The measured scene, parsed and validated.
     pub fn scene(&self) -> Result<Scene, MeasureError> {
         Scene::from_toml_str(&self.scene_toml(), &format!("scene measured from {}", self.origin))
-            .map_err(|source| MeasureError::Scene { origin: self.origin.clone(), source })
+            .map_err(|source| MeasureError::Scene { origin: self.origin.clone(), cause: source })
     }
 }
 

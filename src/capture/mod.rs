@@ -142,7 +142,7 @@ impl std::str::FromStr for Format {
 #[derive(Debug, thiserror::Error)]
 pub enum CaptureError {
     /// The operating system refused (missing file, permissions, disk full).
-    #[error("{}: byte {}: {} failed: {}", .path.display(), .offset, .action, .source)]
+    #[error("{}: byte {}: {} failed: {}", .path.display(), .offset, .action, .cause)]
     Io {
         /// The file or directory.
         path: PathBuf,
@@ -151,7 +151,7 @@ pub enum CaptureError {
         /// What was being done ("open", "read", "write", "list directory").
         action: String,
         /// The OS error.
-        source: std::io::Error,
+        cause: std::io::Error,
     },
     /// The file ends before a structure its header promised.
     #[error(
@@ -281,7 +281,7 @@ fn io_err(path: &Path, offset: u64, action: &str, source: std::io::Error) -> Cap
         path: path.to_path_buf(),
         offset,
         action: action.to_string(),
-        source,
+        cause: source,
     }
 }
 
@@ -394,9 +394,31 @@ fn check_bounds(path: &Path, frame: usize, f: &Frame) -> Result<(), CaptureError
     Ok(())
 }
 
+/// A file in an input directory that is not read: what it is and why.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Skipped {
+    /// The file.
+    pub path: PathBuf,
+    /// Why it is not a capture (for the note printed to the user).
+    pub why: String,
+}
+
+impl std::fmt::Display for Skipped {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}: skipped, {}", self.path.display(), self.why)
+    }
+}
+
 /// Expands directories (capture files in name order, hidden files skipped).
-fn expand(paths: &[PathBuf]) -> Result<Vec<PathBuf>, CaptureError> {
+///
+/// A file named on the command line is always read (and fails loudly when it
+/// is not a capture). In a directory, files without a capture extension, and
+/// (with `format` auto) text files whose first line is no capture header
+/// (a licence, a README, a manifest), are skipped and listed in the second
+/// vector so the caller can say so.
+fn expand(paths: &[PathBuf], format: Format) -> Result<(Vec<PathBuf>, Vec<Skipped>), CaptureError> {
     let mut out = Vec::new();
+    let mut skipped = Vec::new();
     for p in paths {
         let meta = std::fs::metadata(p).map_err(|e| io_err(p, 0, "open", e))?;
         if !meta.is_dir() {
@@ -412,21 +434,37 @@ fn expand(paths: &[PathBuf]) -> Result<Vec<PathBuf>, CaptureError> {
             if name.starts_with('.') || !path.is_file() {
                 continue;
             }
-            let known = path
-                .extension()
-                .and_then(|e| e.to_str())
-                .is_some_and(|e| CAPTURE_EXTENSIONS.contains(&e.to_ascii_lowercase().as_str()));
-            if known {
-                files.push(path);
+            let ext = path.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase());
+            let Some(ext) = ext.filter(|e| CAPTURE_EXTENSIONS.contains(&e.as_str())) else {
+                skipped.push(Skipped {
+                    path,
+                    why: format!("not a capture file extension (reads {})", CAPTURE_EXTENSIONS.join(", ")),
+                });
+                continue;
+            };
+            if format == Format::Auto && matches!(ext.as_str(), "csv" | "tsv" | "txt") {
+                let mut head = Vec::with_capacity(HEAD_LEN);
+                File::open(&path)
+                    .and_then(|f| f.take(HEAD_LEN as u64).read_to_end(&mut head))
+                    .map_err(|e| io_err(&path, 0, "read", e))?;
+                if csv::sniff(&head).is_none() {
+                    skipped.push(Skipped {
+                        path,
+                        why: "text without a capture header (a time column and channel columns, or a scope's header)".into(),
+                    });
+                    continue;
+                }
             }
+            files.push(path);
         }
         if files.is_empty() {
             return Err(CaptureError::NoCaptures { path: p.clone() });
         }
         files.sort_by(|a, b| a.file_name().cmp(&b.file_name()));
+        skipped.sort_by(|a, b| a.path.cmp(&b.path));
         out.extend(files);
     }
-    Ok(out)
+    Ok((out, skipped))
 }
 
 /// Frames of the file being read.
@@ -453,9 +491,17 @@ pub struct FrameSource {
     current: Current,
     /// An error was yielded: the source is finished.
     failed: bool,
+    /// Files in input directories that are not read.
+    skipped: Vec<Skipped>,
 }
 
 impl FrameSource {
+    /// Files in the input directories that are not captures and are not read
+    /// (a licence, a README): the caller notes them.
+    pub fn skipped(&self) -> &[Skipped] {
+        &self.skipped
+    }
+
     fn open_next(&mut self) -> Option<Result<(), CaptureError>> {
         let path = self.files.next()?;
         Some(self.open(&path))
@@ -544,8 +590,9 @@ impl Iterator for FrameSource {
 /// order and numbering as [`read_paths`]. Directories are listed now; files
 /// are opened as the iterator reaches them. After an error it yields nothing.
 pub fn frames(paths: &[PathBuf], opts: &ReadOptions) -> Result<FrameSource, CaptureError> {
-    let files = expand(paths)?;
+    let (files, skipped) = expand(paths, opts.format)?;
     Ok(FrameSource {
+        skipped,
         files: files.into_iter(),
         format: opts.format,
         sensor_id: opts.sensor_id.clone(),

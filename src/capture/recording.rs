@@ -90,7 +90,7 @@ pub fn write_recording(path: &Path, frames: &[Frame]) -> Result<(), CaptureError
         path: path.to_path_buf(),
         offset: 0,
         action: "write".into(),
-        source: e,
+        cause: e,
     };
     let file = std::fs::File::create(path).map_err(io)?;
     let mut w = RecordingWriter::new(std::io::BufWriter::new(file)).map_err(io)?;
@@ -292,7 +292,7 @@ fn io(path: &Path, offset: u64, source: std::io::Error) -> CaptureError {
         path: path.to_path_buf(),
         offset,
         action: "read".into(),
-        source,
+        cause: source,
     }
 }
 

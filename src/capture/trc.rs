@@ -299,7 +299,7 @@ pub fn write_trc(path: &Path, frames: &[Frame], channel: &str) -> Result<(), Cap
         path: path.to_path_buf(),
         offset: 0,
         action: "write".into(),
-        source: e,
+        cause: e,
     })
 }
 

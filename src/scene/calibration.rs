@@ -114,7 +114,7 @@ impl CalibrationFile {
         let origin = path.display().to_string();
         let text = std::fs::read_to_string(path).map_err(|source| SceneError::Io {
             path: origin.clone(),
-            source,
+            cause: source,
         })?;
         let f: CalibrationFile = toml::from_str(&text).map_err(|e| SceneError::Parse {
             origin: origin.clone(),

@@ -64,12 +64,12 @@ pub const C_VACUUM_M_PER_S: f64 = 299_792_458.0;
 #[derive(Debug, thiserror::Error)]
 pub enum SceneError {
     /// The file could not be read.
-    #[error("cannot read scene {path}: {source}")]
+    #[error("cannot read scene {path}: {cause}")]
     Io {
         /// File path.
         path: String,
         /// Cause.
-        source: std::io::Error,
+        cause: std::io::Error,
     },
     /// TOML syntax error, unknown key or wrong type.
     #[error("scene {origin}: {message}")]
@@ -88,12 +88,12 @@ pub enum SceneError {
         error: FieldError,
     },
     /// The `[simulation]` section is invalid (the message names the dotted field).
-    #[error("scene {origin}: {source}")]
+    #[error("scene {origin}: {cause}")]
     Simulation {
         /// File path or "embedded default".
         origin: String,
         /// The physics layer's error, naming the field and the allowed range.
-        source: simulation::SimulationError,
+        cause: simulation::SimulationError,
     },
 }
 
@@ -184,7 +184,7 @@ impl Scene {
     pub fn load(path: &Path) -> Result<Scene, SceneError> {
         let text = std::fs::read_to_string(path).map_err(|source| SceneError::Io {
             path: path.display().to_string(),
-            source,
+            cause: source,
         })?;
         Scene::from_toml_str(&text, &path.display().to_string())
     }
@@ -201,7 +201,7 @@ impl Scene {
 
     /// The scene as TOML (uncommented; see [`DEFAULT_SCENE_TOML`] for the commented default).
     pub fn to_toml(&self) -> String {
-        toml::to_string(self).expect("a scene always serialises")
+        human_floats(&toml::to_string(self).expect("a scene always serialises"))
     }
 
     /// Speed of light in the medium, m/s.
@@ -218,7 +218,7 @@ impl Scene {
         if let Some(sim) = &self.simulation {
             sim.validate().map_err(|source| SceneError::Simulation {
                 origin: origin.to_string(),
-                source,
+                cause: source,
             })?;
         }
         Ok(())
@@ -382,5 +382,103 @@ mod tests {
         let s = Scene::from_toml_str("name = \"m\"\n", "m").unwrap();
         assert_eq!(s.detector.kind, DetectorKind::MatchedFilter);
         assert_eq!(s.return_pulse.fwhm_s, 26.04e-9);
+    }
+}
+
+/// TOML text with its small and large floats written for people: the
+/// serialiser's `0.000000001986994021755361` becomes `1.986994021755361e-9`
+/// (the same f64, shortest round-trip digits) followed by a comment in SI
+/// units for keys that name one (`# 1.987 ns`). Only `key = value` lines with
+/// a float (or an array of floats) change; what the text parses to does not.
+pub fn human_floats(text: &str) -> String {
+    let mut out = String::with_capacity(text.len() + text.len() / 8);
+    for line in text.lines() {
+        out.push_str(&human_line(line));
+        out.push('\n');
+    }
+    out
+}
+
+fn human_line(line: &str) -> String {
+    let Some((key, value)) = line.split_once(" = ") else {
+        return line.to_string();
+    };
+    let v = value.trim();
+    let float = |t: &str| {
+        let t = t.trim();
+        (t.contains('.') || t.contains('e') || t.contains('E'))
+            .then(|| t.parse::<f64>().ok())
+            .flatten()
+            .filter(|x| x.is_finite())
+    };
+    let exp = |x: f64| {
+        if x != 0.0 && (x.abs() < 1e-3 || x.abs() >= 1e7) { format!("{x:e}") } else { format!("{x:?}") }
+    };
+    let unit = key.trim().rsplit('_').next().and_then(|u| match u {
+        "s" => Some("s"),
+        "m" => Some("m"),
+        "v" => Some("V"),
+        "a" => Some("A"),
+        "hz" => Some("Hz"),
+        _ => None,
+    });
+    if let Some(x) = float(v) {
+        let mut s = format!("{key} = {}", exp(x));
+        if let Some(u) = unit.filter(|_| x != 0.0 && (x.abs() < 1e-3 || x.abs() >= 1e7)) {
+            s.push_str(&format!("  # {}", si(x, u)));
+        }
+        return s;
+    }
+    if let Some(inner) = v.strip_prefix('[').and_then(|r| r.strip_suffix(']')) {
+        let items: Vec<&str> = inner.split(',').map(str::trim).filter(|t| !t.is_empty()).collect();
+        if !items.is_empty() && items.iter().all(|t| float(t).is_some()) {
+            let parts: Vec<String> = items.iter().map(|t| exp(float(t).expect("checked"))).collect();
+            return format!("{key} = [{}]", parts.join(", "));
+        }
+    }
+    line.to_string()
+}
+
+/// `x` with an SI prefix and four significant digits: `1.987e-9, "s"` -> `1.987 ns`.
+pub fn si(x: f64, unit: &str) -> String {
+    const PREFIXES: [(f64, &str); 9] = [
+        (1e9, "G"),
+        (1e6, "M"),
+        (1e3, "k"),
+        (1.0, ""),
+        (1e-3, "m"),
+        (1e-6, "µ"),
+        (1e-9, "n"),
+        (1e-12, "p"),
+        (1e-15, "f"),
+    ];
+    if x == 0.0 || !x.is_finite() {
+        return format!("{x} {unit}");
+    }
+    let (scale, prefix) = PREFIXES.iter().copied().find(|(s, _)| x.abs() >= *s * 0.99995).unwrap_or((1e-15, "f"));
+    let y = x / scale;
+    let decimals = if y.abs() >= 100.0 { 1 } else if y.abs() >= 10.0 { 2 } else { 3 };
+    format!("{y:.decimals$} {prefix}{unit}")
+}
+
+#[cfg(test)]
+mod human_tests {
+    use super::*;
+
+    #[test]
+    fn human_floats_keep_the_values_and_say_them_in_si_units() {
+        let text = "[calibration]\ndelay_s = 0.000000001986994021755361\nfraction = 0.5\nname = \"a = 0.000001\"\nwalk_delay_s = [0.000000001, 0.0000000025]\n";
+        let out = human_floats(text);
+        assert!(out.contains("delay_s = 1.986994021755361e-9  # 1.987 ns"), "{out}");
+        assert!(out.contains("fraction = 0.5\n"), "{out}");
+        assert!(out.contains("name = \"a = 0.000001\""), "{out}");
+        assert!(out.contains("walk_delay_s = [1e-9, 2.5e-9]"), "{out}");
+        let a: toml::Table = text.parse().unwrap();
+        let b: toml::Table = out.parse().unwrap();
+        assert_eq!(a, b);
+        assert_eq!(si(-1.9242250272808604e-8, "s"), "-19.24 ns");
+        assert_eq!(si(1.55e-6, "m"), "1.550 µm");
+        let scene = Scene::default_scene();
+        assert_eq!(Scene::from_toml_str(&scene.to_toml(), "round trip").unwrap().to_toml(), scene.to_toml());
     }
 }

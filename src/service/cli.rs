@@ -235,12 +235,13 @@ impl ServeArgs {
 /// Runs the server until Ctrl-C (or SIGTERM), then drains and returns.
 pub async fn run_serve(args: ServeArgs) -> anyhow::Result<()> {
     let mut config = args.config()?;
+    let mut metrics_addr = None;
     if let Some(addr) = args.metrics {
-        config.metrics_listener = Some(
-            tokio::net::TcpListener::bind(addr)
-                .await
-                .with_context(|| format!("binding metrics endpoint {addr}"))?,
-        );
+        let l = tokio::net::TcpListener::bind(addr)
+            .await
+            .with_context(|| format!("binding metrics endpoint {addr}"))?;
+        metrics_addr = Some(l.local_addr()?);
+        config.metrics_listener = Some(l);
     }
     if let Some(addr) = args.dashboard {
         let l = tokio::net::TcpListener::bind(addr)
@@ -253,7 +254,17 @@ pub async fn run_serve(args: ServeArgs) -> anyhow::Result<()> {
         .await
         .with_context(|| format!("binding {}", args.listen))?;
     eprintln!("tofwave: serving gRPC on {}", listener.local_addr()?);
-    super::run(listener, config, shutdown_signal()).await?;
+    match metrics_addr {
+        Some(a) => eprintln!("tofwave: serving Prometheus metrics on http://{a}/metrics"),
+        None => eprintln!("tofwave: no metrics endpoint (--metrics ADDR serves one)"),
+    }
+    let drain_s = args.drain_timeout_s;
+    let signal = async move {
+        shutdown_signal().await;
+        eprintln!("tofwave: shutting down: draining in-flight frames (at most {drain_s} s)");
+    };
+    super::run(listener, config, signal).await?;
+    eprintln!("tofwave: shut down");
     Ok(())
 }
 
@@ -293,8 +304,83 @@ fn options(token: &Option<String>, c: &ConnectArgs) -> anyhow::Result<ClientOpti
     })
 }
 
-/// Replays captures; prints a progress bar (frames/s) on stderr and the ack
-/// summary at the end. Fails when the server refused frames, so scripts notice.
+/// Prints `bar`'s state as a plain line every `every` while standard error
+/// is not a terminal (a log file, CI), where indicatif draws nothing; the
+/// lines stop when the returned guard is dropped.
+pub fn plain_progress(bar: &indicatif::ProgressBar, what: &'static str, every: std::time::Duration) -> PlainProgress {
+    use std::io::IsTerminal;
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    if std::io::stderr().is_terminal() {
+        return PlainProgress { stop, thread: None };
+    }
+    let (bar, flag) = (bar.clone(), stop.clone());
+    let start = std::time::Instant::now();
+    let thread = std::thread::spawn(move || {
+        let tick = std::time::Duration::from_millis(100);
+        let mut next = every;
+        while !flag.load(std::sync::atomic::Ordering::Relaxed) {
+            std::thread::sleep(tick);
+            let t = start.elapsed();
+            if t < next {
+                continue;
+            }
+            next += every;
+            let pos = bar.position();
+            let msg = bar.message();
+            let msg = if msg.is_empty() { String::new() } else { format!(" {}", msg.trim()) };
+            let total = match bar.length() {
+                Some(len) if len > 0 => format!("{pos}/{len} ({:.0} %)", 100.0 * pos as f64 / len as f64),
+                _ => format!("{pos}"),
+            };
+            eprintln!("tofwave {what}:{msg} {total} frames, {:.0} s", t.as_secs_f64());
+        }
+    });
+    PlainProgress { stop, thread: Some(thread) }
+}
+
+/// Stops [`plain_progress`]'s lines when dropped.
+pub struct PlainProgress {
+    /// Set to end the printing thread.
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    /// The printing thread (none on a terminal).
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl Drop for PlainProgress {
+    fn drop(&mut self) {
+        self.stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// Frames in the inputs, counted before a replay when the files hold at most
+/// 1 GiB (reading them twice costs little); `None` above that.
+fn count_frames(paths: &[PathBuf], opts: &capture::ReadOptions) -> Option<u64> {
+    let source = capture::frames(paths, opts).ok()?;
+    let size = |p: &std::path::Path| std::fs::metadata(p).map(|m| m.len()).unwrap_or(0);
+    let bytes: u64 = paths
+        .iter()
+        .map(|p| match std::fs::read_dir(p) {
+            Ok(entries) => entries.filter_map(Result::ok).map(|e| size(&e.path())).sum(),
+            Err(_) => size(p),
+        })
+        .sum();
+    if bytes > 1 << 30 {
+        return None;
+    }
+    let mut n = 0u64;
+    for f in source {
+        f.ok()?;
+        n += 1;
+    }
+    Some(n)
+}
+
+/// Replays captures; prints a progress bar (frames acknowledged of the total,
+/// percentage, frames/s) on stderr and the ack summary at the end. Fails when
+/// the server refused frames, so scripts notice.
 pub async fn run_replay(args: ReplayArgs) -> anyhow::Result<()> {
     let format: capture::Format = args
         .format
@@ -305,18 +391,22 @@ pub async fn run_replay(args: ReplayArgs) -> anyhow::Result<()> {
         sensor_id: args.sensor.clone().unwrap_or_else(|| "replay".to_string()),
     };
     let source = capture::frames(&args.input, &opts)?;
+    for s in source.skipped() {
+        eprintln!("note: {s}");
+    }
     let mut clients = client::connect(&args.to, &options(&args.token, &args.connect)?).await?;
+    let total = if args.quiet { None } else { count_frames(&args.input, &opts) };
     let bar = if args.quiet {
         indicatif::ProgressBar::hidden()
     } else {
         let bar =
-            indicatif::ProgressBar::with_draw_target(None, indicatif::ProgressDrawTarget::stderr());
-        bar.set_style(
-            indicatif::ProgressStyle::with_template(
-                "{spinner} {elapsed_precise} {pos} frames acknowledged ({per_sec}) {msg}",
-            )
-            .expect("valid template"),
-        );
+            indicatif::ProgressBar::with_draw_target(total, indicatif::ProgressDrawTarget::stderr());
+        let template = if total.is_some() {
+            "{spinner} {elapsed_precise} {bar:30} {pos}/{len} frames acknowledged ({percent} %, {per_sec}, eta {eta}) {msg}"
+        } else {
+            "{spinner} {elapsed_precise} {pos} frames acknowledged ({per_sec}) {msg}"
+        };
+        bar.set_style(indicatif::ProgressStyle::with_template(template).expect("valid template"));
         // Keeps the rate and spinner moving between acks (paced replays).
         bar.enable_steady_tick(std::time::Duration::from_millis(200));
         bar
@@ -326,6 +416,11 @@ pub async fn run_replay(args: ReplayArgs) -> anyhow::Result<()> {
         bytes: args.batch_bytes.max(1),
     };
     let progress = bar.clone();
+    let plain = if args.quiet {
+        None
+    } else {
+        Some(plain_progress(&bar, "replay", std::time::Duration::from_secs(5)))
+    };
     let summary = client::replay(
         &mut clients.ingest,
         source,
@@ -340,9 +435,17 @@ pub async fn run_replay(args: ReplayArgs) -> anyhow::Result<()> {
         },
     )
     .await;
+    drop(plain);
     bar.finish_and_clear();
     let summary = summary?;
-    eprintln!("tofwave replay: {summary}");
+    match total {
+        Some(t) if t > 0 => eprintln!(
+            "tofwave replay: {} of {t} frames acknowledged ({:.0} %); {summary}",
+            summary.accepted + summary.rejected,
+            100.0 * (summary.accepted + summary.rejected) as f64 / t as f64
+        ),
+        _ => eprintln!("tofwave replay: {summary}"),
+    }
     for r in summary.rejections.iter().take(10) {
         eprintln!(
             "  rejected {} #{}: {} {}",
@@ -366,10 +469,38 @@ pub async fn run_replay(args: ReplayArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// A warning for each requested sensor id the server has never seen (no
+/// frames, no scene set): a subscription to it waits silently, which looks
+/// like a hang when the id is mistyped or the sender uses another. Empty when
+/// every id is known, or when the token may not list sensors (read-only).
+pub async fn unseen_sensor_warnings(control: &mut client::ControlClient, wanted: &[String]) -> Vec<String> {
+    if wanted.is_empty() {
+        return Vec::new();
+    }
+    let Ok(list) = control.list_sensors(proto::ListSensorsRequest {}).await else {
+        return Vec::new();
+    };
+    let known: Vec<String> = list.into_inner().sensors.into_iter().map(|s| s.sensor_id).collect();
+    wanted
+        .iter()
+        .filter(|w| !known.contains(w))
+        .map(|w| {
+            format!(
+                "tofwave subscribe: warning: sensor {w:?} has sent no frames to this server yet (sensors seen: {}); \
+                 waiting for it. `tofwave replay` sends as --sensor ID, else as \"replay\" (or the id in a recording)",
+                if known.is_empty() { "none".to_string() } else { known.join(", ") }
+            )
+        })
+        .collect()
+}
+
 /// Prints reports as JSON lines (the `tofwave process` shape) until the server
 /// ends the stream or Ctrl-C; lag markers go to stderr.
 pub async fn run_subscribe(args: SubscribeArgs) -> anyhow::Result<()> {
     let mut clients = client::connect(&args.from, &options(&args.token, &args.connect)?).await?;
+    for w in unseen_sensor_warnings(&mut clients.control, &args.sensors).await {
+        eprintln!("{w}");
+    }
     let request = proto::SubscribeRequest {
         sensor_ids: args.sensors.clone(),
         min_snr_db: args.min_snr_db,
@@ -401,5 +532,179 @@ pub async fn run_subscribe(args: SubscribeArgs) -> anyhow::Result<()> {
         }
     }
     out.flush()?;
+    Ok(())
+}
+
+/// `tofwave ctl`: operate a running server over its Control service.
+#[derive(Debug, clap::Args)]
+pub struct CtlArgs {
+    /// Server URL: http://host:port, https://host:port, or host:port (plain http).
+    #[arg(long, value_name = "URL")]
+    pub to: String,
+    /// Bearer token for control (the server's --token; the read-only token is refused).
+    #[arg(
+        long,
+        env = "TOFWAVE_TOKEN",
+        hide_env_values = true,
+        value_name = "TOKEN"
+    )]
+    pub token: Option<String>,
+    /// TLS options.
+    #[command(flatten)]
+    pub connect: ConnectArgs,
+    /// What to do.
+    #[command(subcommand)]
+    pub command: CtlCommand,
+}
+
+/// `tofwave ctl` subcommands.
+#[derive(Debug, clap::Subcommand)]
+pub enum CtlCommand {
+    /// One line per sensor: id, frames received, processed and rejected, reports, returns,
+    /// missing sequence numbers, noise sigma (mV).
+    Sensors,
+    /// One sensor's counters and noise model, one `key: value` line each.
+    Status {
+        /// Sensor id.
+        sensor: String,
+    },
+    /// Print a sensor's scene (TOML), or replace it with --set FILE. Without SENSOR: the scene
+    /// new sensors start with.
+    Scene {
+        /// Sensor id [default: the scene new sensors start with].
+        sensor: Option<String>,
+        /// Scene TOML to apply: validated by the server, then applied between two frames.
+        #[arg(long, value_name = "FILE")]
+        set: Option<PathBuf>,
+    },
+    /// A sensor's noise model: mean, sigma and robust sigma (mV), skewness, excess kurtosis,
+    /// normality p-value, samples.
+    Noise {
+        /// Sensor id.
+        sensor: String,
+    },
+    /// Print a sensor's calibration (the [calibration] section of its scene), or apply a
+    /// calibration file from `tofwave calibrate` with --set FILE (refused when the file was
+    /// measured with another timing method than the sensor's scene).
+    Calibration {
+        /// Sensor id [default: the scene new sensors start with].
+        sensor: Option<String>,
+        /// Calibration TOML from `tofwave calibrate`.
+        #[arg(long, value_name = "FILE")]
+        set: Option<PathBuf>,
+    },
+}
+
+/// One sensor's line of `tofwave ctl sensors`.
+pub fn sensor_line(s: &proto::SensorStatus) -> String {
+    let sigma = s
+        .noise
+        .as_ref()
+        .map(|n| format!("{:.3}", n.sigma_v * 1e3))
+        .unwrap_or_else(|| "-".into());
+    format!(
+        "{}\tframes_received={} frames_processed={} frames_rejected={} reports={} returns={} sequence_missing={} noise_sigma_mv={}",
+        s.sensor_id,
+        s.frames_received,
+        s.frames_processed,
+        s.frames_rejected,
+        s.reports,
+        s.returns,
+        s.sequence_gaps,
+        sigma
+    )
+}
+
+fn noise_lines(n: &proto::NoiseModel) -> String {
+    format!(
+        "mean_mv: {:.4}\nsigma_mv: {:.4}\nrobust_sigma_mv: {:.4}\nskewness: {:.4}\nexcess_kurtosis: {:.4}\ngaussian: {}\nnormality_p_value: {:.4}\nsamples: {}\ncontaminated: {}\n",
+        n.mean_v * 1e3,
+        n.sigma_v * 1e3,
+        n.robust_sigma_v * 1e3,
+        n.skewness,
+        n.excess_kurtosis,
+        n.gaussian,
+        n.normality_p_value,
+        n.samples,
+        n.contaminated
+    )
+}
+
+/// The `[calibration]` section of a scene, as TOML.
+fn calibration_toml(scene: &Scene) -> anyhow::Result<String> {
+    #[derive(serde::Serialize)]
+    struct Section<'a> {
+        calibration: &'a crate::scene::CalibrationConfig,
+    }
+    Ok(crate::scene::human_floats(&toml::to_string(&Section { calibration: &scene.calibration })?))
+}
+
+/// Runs one `tofwave ctl` command and returns what it prints on standard output.
+pub async fn ctl(args: &CtlArgs) -> anyhow::Result<String> {
+    let mut clients = client::connect(&args.to, &options(&args.token, &args.connect)?).await?;
+    let c = &mut clients.control;
+    let status = |e: tonic::Status| anyhow::anyhow!("server: {} ({:?})", e.message(), e.code());
+    let sensor_req = |s: &str| proto::SensorRequest { sensor_id: s.to_string() };
+    let mut out = String::new();
+    match &args.command {
+        CtlCommand::Sensors => {
+            let r = c.list_sensors(proto::ListSensorsRequest {}).await.map_err(status)?.into_inner();
+            let mut sensors = r.sensors;
+            sensors.sort_by(|a, b| a.sensor_id.cmp(&b.sensor_id));
+            for s in &sensors {
+                out.push_str(&sensor_line(s));
+                out.push('\n');
+            }
+        }
+        CtlCommand::Status { sensor } => {
+            let s = c.get_status(sensor_req(sensor)).await.map_err(status)?.into_inner();
+            out.push_str(&format!(
+                "sensor: {}\nframes_received: {}\nframes_processed: {}\nframes_rejected: {}\nreports: {}\nreturns: {}\nlast_sequence: {}\nsequence_missing: {}\n",
+                s.sensor_id, s.frames_received, s.frames_processed, s.frames_rejected, s.reports, s.returns, s.last_sequence, s.sequence_gaps
+            ));
+            if let Some(n) = &s.noise {
+                out.push_str(&noise_lines(n));
+            }
+        }
+        CtlCommand::Noise { sensor } => {
+            let n = c.get_noise_model(sensor_req(sensor)).await.map_err(status)?.into_inner();
+            out.push_str(&noise_lines(&n));
+        }
+        CtlCommand::Scene { sensor, set } => {
+            let sensor_id = sensor.clone().unwrap_or_default();
+            let doc = match set {
+                Some(path) => {
+                    let toml = std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+                    // Checked here first, so a typo is named against the file, not the server.
+                    Scene::from_toml_str(&toml, &path.display().to_string())?;
+                    c.set_scene(proto::SetSceneRequest { sensor_id, toml }).await.map_err(status)?.into_inner()
+                }
+                None => c.get_scene(sensor_req(&sensor_id)).await.map_err(status)?.into_inner(),
+            };
+            out.push_str(&doc.toml);
+        }
+        CtlCommand::Calibration { sensor, set } => {
+            let sensor_id = sensor.clone().unwrap_or_default();
+            let doc = c.get_scene(sensor_req(&sensor_id)).await.map_err(status)?.into_inner();
+            let origin = format!("the scene of sensor {sensor_id:?}");
+            let mut scene = Scene::from_toml_str(&doc.toml, &origin)?;
+            if let Some(path) = set {
+                crate::scene::CalibrationFile::load(path)?.apply(&mut scene, &path.display().to_string())?;
+                c.set_scene(proto::SetSceneRequest { sensor_id, toml: scene.to_toml() })
+                    .await
+                    .map_err(status)?;
+            }
+            out.push_str(&calibration_toml(&scene)?);
+        }
+    }
+    Ok(out)
+}
+
+/// `tofwave ctl`: runs the command and prints its output.
+pub async fn run_ctl(args: CtlArgs) -> anyhow::Result<()> {
+    let text = ctl(&args).await?;
+    let mut stdout = std::io::stdout().lock();
+    stdout.write_all(text.as_bytes())?;
+    stdout.flush()?;
     Ok(())
 }

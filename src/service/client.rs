@@ -21,25 +21,40 @@ use tonic::{Request, Status};
 #[derive(Debug, thiserror::Error)]
 pub enum ClientError {
     /// Could not connect or set up TLS.
-    #[error("connecting to {url}: {source}")]
+    #[error("connecting to {url}: {cause}")]
     Connect {
         /// Server URL.
         url: String,
-        /// Cause.
-        source: tonic::transport::Error,
+        /// The transport error and its causes, each said once
+        /// ([`error_chain`]: tonic's errors repeat their own cause).
+        cause: String,
     },
     /// The URL or token is unusable.
     #[error("{0}")]
     Config(String),
     /// The server answered with an error status.
     #[error("server: {} ({:?})", .0.message(), .0.code())]
-    Status(#[from] Status),
+    Status(Status),
     /// The server ended a push stream with an error.
     #[error("push: {0}")]
-    Push(#[from] PushFailed),
+    Push(PushFailed),
     /// A capture could not be read.
     #[error("reading captures: {0}")]
     Capture(String),
+}
+
+// Not `#[from]`: that would make the status a `source` too, and the message,
+// which already prints it, would be followed by it again in an error chain.
+impl From<Status> for ClientError {
+    fn from(s: Status) -> Self {
+        ClientError::Status(s)
+    }
+}
+
+impl From<PushFailed> for ClientError {
+    fn from(p: PushFailed) -> Self {
+        ClientError::Push(p)
+    }
 }
 
 /// How to reach a server.
@@ -102,8 +117,47 @@ pub struct Clients {
     pub control: ControlClient,
 }
 
-/// Connects to `url` (`http://host:port` or `https://host:port`).
+/// An error and its causes as one line, each distinct message once
+/// (`transport error: tcp connect error: Connection refused (os error 111)`):
+/// wrappers that print their cause and also return it as `source()` would
+/// otherwise say it twice.
+pub fn error_chain(e: &(dyn std::error::Error + 'static)) -> String {
+    let mut parts: Vec<String> = Vec::new();
+    let mut next = Some(e);
+    while let Some(err) = next {
+        let msg = err.to_string();
+        // A wrapper that printed its cause already holds the cause's text.
+        if !parts.iter().any(|p| p.contains(&msg)) {
+            parts.push(msg);
+        }
+        next = err.source();
+    }
+    parts.join(": ")
+}
+
+/// A server address as a URL: `host:port` gets `http://`; `http://` and
+/// `https://` URLs are kept; anything else with a scheme is refused.
+pub fn normalize_url(url: &str) -> Result<String, ClientError> {
+    let url = url.trim();
+    if url.starts_with("http://") || url.starts_with("https://") {
+        return Ok(url.to_string());
+    }
+    if let Some((scheme, _)) = url.split_once("://") {
+        return Err(ClientError::Config(format!(
+            "URL {url:?}: scheme {scheme:?} is not served; use http://host:port, https://host:port or host:port"
+        )));
+    }
+    if url.is_empty() {
+        return Err(ClientError::Config("URL is empty; use host:port or http://host:port".into()));
+    }
+    Ok(format!("http://{url}"))
+}
+
+/// Connects to `url` (`http://host:port`, `https://host:port`, or `host:port`
+/// meaning `http://host:port`).
 pub async fn connect(url: &str, opts: &ClientOptions) -> Result<Clients, ClientError> {
+    let url = normalize_url(url)?;
+    let url = url.as_str();
     let mut ep = Endpoint::from_shared(url.to_string())
         .map_err(|e| ClientError::Config(format!("URL {url:?}: {e}")))?
         .tcp_nodelay(true);
@@ -115,14 +169,14 @@ pub async fn connect(url: &str, opts: &ClientOptions) -> Result<Clients, ClientE
         if let Some(d) = &opts.tls_domain {
             tls = tls.domain_name(d.clone());
         }
-        ep = ep.tls_config(tls).map_err(|source| ClientError::Connect {
+        ep = ep.tls_config(tls).map_err(|e| ClientError::Connect {
             url: url.into(),
-            source,
+            cause: error_chain(&e),
         })?;
     }
-    let channel = ep.connect().await.map_err(|source| ClientError::Connect {
+    let channel = ep.connect().await.map_err(|e| ClientError::Connect {
         url: url.into(),
-        source,
+        cause: error_chain(&e),
     })?;
     let token = BearerToken::new(opts.token.as_deref())?;
     let limit = opts
@@ -407,5 +461,24 @@ mod tests {
         for bad in ["0", "-1", "nan", "inf", "fast", ""] {
             assert!(bad.parse::<Rate>().is_err(), "{bad}");
         }
+    }
+
+    #[test]
+    fn urls_without_a_scheme_are_http() {
+        assert_eq!(normalize_url("127.0.0.1:50051").unwrap(), "http://127.0.0.1:50051");
+        assert_eq!(normalize_url("http://h:1").unwrap(), "http://h:1");
+        assert_eq!(normalize_url("https://h:1").unwrap(), "https://h:1");
+        assert!(normalize_url("nats://h:1").is_err());
+        assert!(normalize_url("").is_err());
+    }
+
+    #[test]
+    fn error_chains_say_each_cause_once() {
+        #[derive(Debug, thiserror::Error)]
+        #[error("open failed: {0}")]
+        struct Wrap(#[source] std::io::Error);
+        let e = Wrap(std::io::Error::from_raw_os_error(2));
+        let text = error_chain(&e);
+        assert_eq!(text.matches("os error 2").count(), 1, "{text}");
     }
 }

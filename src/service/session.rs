@@ -804,6 +804,9 @@ impl Worker {
             st.returns
                 .fetch_add(r.returns.len() as u64, Ordering::Relaxed);
             self.session.metrics.report_published(r.returns.len());
+            self.session
+                .metrics
+                .false_alarm(r.false_alarm.rate, r.false_alarm.ci95, r.detector.pfa_cell);
             self.hub.publish(r);
         }
     }

@@ -19,12 +19,12 @@ use std::path::{Path, PathBuf};
 #[derive(Debug, thiserror::Error)]
 pub enum StateError {
     /// File system error.
-    #[error("{path}: {source}")]
+    #[error("{path}: {cause}")]
     Io {
         /// File or directory.
         path: String,
         /// Cause.
-        source: std::io::Error,
+        cause: std::io::Error,
     },
     /// A saved file does not parse ([`StateDir::load`] skips it with a
     /// warning: the server starts, and that sensor starts on the default scene).
@@ -70,7 +70,7 @@ pub struct Loaded {
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> StateError + '_ {
     move |source| StateError::Io {
         path: path.display().to_string(),
-        source,
+        cause: source,
     }
 }
 

@@ -138,14 +138,24 @@ fn malformed_files_get_a_clear_error_and_exit_2() {
         assert!(reports.is_empty());
         assert!(err.contains(name) && err.contains(needle), "{name}: {err}");
     }
-    // A missing stop channel refuses the frame by name (exit 1), not the run.
+    // A stop channel the scene names but a frame lacks refuses the frame by
+    // name (exit 1), not the run.
     let p = dir.path().join("two.csv");
     let rows: String = (0..200).map(|k| format!("{:e},0.01,0.02\n", k as f64 * 1e-9)).collect();
     std::fs::write(&p, format!("time,CH1,CH2\n{rows}")).unwrap();
-    let (code, reports, err) = tofwave(&["process", "--input", p.to_str().unwrap(), "--stop-channel", "CH3"]);
+    let mut doc: toml::Table = toml::from_str(&tofwave::scene::Scene::default_scene().to_toml()).unwrap();
+    doc["channels"]["stop"] = toml::Value::String("CH3".into());
+    let scene = dir.path().join("ch3.toml");
+    std::fs::write(&scene, toml::to_string(&doc).unwrap()).unwrap();
+    let (code, reports, err) = tofwave(&["process", "--input", p.to_str().unwrap(), "--scene", scene.to_str().unwrap()]);
     assert_eq!(code, 1, "{err}");
     assert!(reports.is_empty());
-    assert!(err.contains("CH3") && err.contains("channels"), "{err}");
+    assert!(err.contains("CH3") && err.contains("channels.stop in the scene"), "{err}");
+    // Named by the flag instead, the flag is blamed and nothing runs (exit 2).
+    let (code, reports, err) = tofwave(&["process", "--input", p.to_str().unwrap(), "--stop-channel", "CH3"]);
+    assert_eq!(code, 2, "{err}");
+    assert!(reports.is_empty());
+    assert!(err.contains("--stop-channel CH3: the capture has no such channel") && err.contains("CH1, CH2"), "{err}");
 }
 
 #[test]

@@ -16,7 +16,7 @@ const LAYERS: &[&[&str]] = &[
     &["detect"],
     &["physics"],
     &["pipeline"],
-    &["calibrate", "capture"],
+    &["calibrate", "capture", "plot"],
     &["service"],
     &["bench"],
 ];

@@ -273,7 +273,7 @@ pub struct PlotOptions {
 
 /// Registers the embedded font once (PNG labels need a font; SVG text is
 /// rendered by the viewer, but plotters measures it with the same font).
-fn font_ready() -> Result<(), PlotError> {
+pub(crate) fn font_ready() -> Result<(), PlotError> {
     static FONT: OnceLock<bool> = OnceLock::new();
     let ok = *FONT.get_or_init(|| {
         plotters::style::register_font(

@@ -57,7 +57,7 @@ pub const FALSE_ALARM_CI95_HIGH: &str = "tofwave_false_alarm_rate_ci95_high";
 
 /// Every metric name above, for tests and dashboard checks. Histograms are
 /// exported as `<name>_bucket`, `<name>_sum` and `<name>_count`.
-pub const ALL_METRICS: [&str; 16] = [
+pub const ALL_METRICS: [&str; 18] = [
     FRAMES_RECEIVED,
     FRAMES_PROCESSED,
     FRAMES_REJECTED,
@@ -68,8 +68,10 @@ pub const ALL_METRICS: [&str; 16] = [
     QUEUE_DEPTH,
     SUBSCRIBER_LAGGED,
     SUBSCRIBERS,
+    DASHBOARD_CLIENTS,
     FRAMES_RECORDED,
     RECORDING_FAILURES,
+    SENSOR_FAULTED,
     FALSE_ALARM_RATE,
     FALSE_ALARM_DESIGN_RATE,
     FALSE_ALARM_CI95_LOW,

@@ -1,4 +1,5 @@
-//! SVG plots of a bench run (plotters, SVG backend only: no fonts or C libraries).
+//! SVG plots of a bench run (plotters' SVG backend; text is measured with the
+//! font embedded for `tofwave plot`, no system fonts or C libraries).
 
 use std::path::Path;
 
@@ -239,6 +240,8 @@ fn roc(res: &BenchResults, path: &Path) -> Result<(), BenchError> {
 
 /// Writes `work_precision.svg`, `rmse_over_crlb.svg` and `roc.svg` into `dir`.
 pub fn write_all(res: &BenchResults, dir: &Path) -> Result<(), BenchError> {
+    // plotters measures text with a registered font even for SVG.
+    crate::plot::font_ready().map_err(|e| err(&dir.join("work_precision.svg"), e))?;
     work_precision(&res.cells, &dir.join("work_precision.svg"))?;
     rmse_over_crlb(&res.cells, &dir.join("rmse_over_crlb.svg"))?;
     roc(res, &dir.join("roc.svg"))

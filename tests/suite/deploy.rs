@@ -94,3 +94,22 @@ fn the_systemd_units_documentation_is_installed_by_its_own_steps() {
         assert!(Path::new(env!("CARGO_MANIFEST_DIR")).join(src).is_file(), "{src} (installed as {path}) is not in the repository");
     }
 }
+
+/// `ALL_METRICS` lists every metric name `src/telemetry.rs` defines (the
+/// list the dashboard test trusts; two names were once missing from it).
+#[test]
+fn all_metrics_lists_every_metric_name_defined() {
+    let src = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("src/telemetry.rs")).unwrap();
+    let mut defined = Vec::new();
+    for line in src.lines().filter(|l| l.trim_start().starts_with("pub const ")) {
+        if let Some(i) = line.find("\"tofwave_") {
+            let name = &line[i + 1..];
+            defined.push(name[..name.find('"').unwrap()].to_string());
+        }
+    }
+    assert!(defined.len() >= 16, "{defined:?}");
+    for n in &defined {
+        assert!(ALL_METRICS.contains(&n.as_str()), "{n} is defined in src/telemetry.rs but missing from ALL_METRICS");
+    }
+    assert_eq!(defined.len(), ALL_METRICS.len(), "{defined:?}");
+}

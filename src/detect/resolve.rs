@@ -33,7 +33,8 @@ const FIT_ITERATIONS: usize = 40;
 /// whether that pulse earns its place (its cost, not its parameters, is used).
 const TEST_ITERATIONS: usize = 10;
 
-/// A cluster refit has converged when no delay step exceeds this, samples...
+/// A cluster refit has converged when no delay step exceeds this, samples
+/// (a tenth of a picosecond at 1 GS/s, far below any timing sigma)...
 const CONVERGED_SAMPLES: f64 = 1e-4;
 /// ... and no amplitude step this fraction of the amplitude.
 const CONVERGED_AMPLITUDE: f64 = 1e-6;
@@ -77,10 +78,58 @@ struct RefitScratch {
     step: Vec<f64>,
     /// The components after the step.
     trial: Vec<Component>,
-    /// Each component's window.
-    active: Vec<Range<usize>>,
     /// The components whose windows hold the current sample.
     live: Vec<usize>,
+    /// The data less the pulses held fixed, over the refit's region.
+    base: Vec<f64>,
+    /// Pulse values of the current components...
+    cur: PulseValues,
+    /// ... and of the trial step's.
+    next: PulseValues,
+}
+
+/// The pulse value and slope of each component over its window (clipped
+/// to a region), concatenated.
+#[derive(Debug, Default, Clone)]
+struct PulseValues {
+    /// (value, slope) per component and sample of its window.
+    vals: Vec<(f64, f64)>,
+    /// Each component's window, clipped to the region.
+    wins: Vec<Range<usize>>,
+    /// Where each component's values start in `vals`.
+    offsets: Vec<usize>,
+}
+
+impl PulseValues {
+    /// Evaluates the pulses of `comps` over their windows within [a, b).
+    fn fill(&mut self, shape: &Shape, comps: &[Component], window: &dyn Fn(f64) -> Range<usize>, a: usize, b: usize) {
+        self.vals.clear();
+        self.wins.clear();
+        self.offsets.clear();
+        for c in comps {
+            let w = window(c.peak_index);
+            let (s, e) = (w.start.max(a), w.end.min(b));
+            let w = s..e.max(s);
+            self.offsets.push(self.vals.len());
+            self.vals.extend(w.clone().map(|t| shape.value_and_slope(t as f64 - c.peak_index)));
+            self.wins.push(w);
+        }
+    }
+
+    /// residual = base - Σ amplitude × value over the region starting at
+    /// sample `a` (`residual` and `base` are the region's slices); returns
+    /// the residual sum of squares.
+    fn residual(&self, base: &[f64], comps: &[Component], residual: &mut [f64], a: usize) -> f64 {
+        residual.copy_from_slice(base);
+        for (i, c) in comps.iter().enumerate() {
+            let w = &self.wins[i];
+            let vals = &self.vals[self.offsets[i]..self.offsets[i] + w.len()];
+            for (r, &(v, _)) in residual[w.start - a..w.end - a].iter_mut().zip(vals) {
+                *r -= c.amplitude_v * v;
+            }
+        }
+        residual.iter().map(|v| v * v).sum()
+    }
 }
 
 impl Resolver {
@@ -152,13 +201,16 @@ impl Resolver {
                 );
                 comps[i] = a;
                 comps.push(b);
-                self.joint_refit(x, mean_v, sigma_v, shape, comps, &window);
+                // A trial: a few steps decide it; a kept split is refitted in full.
+                self.joint_refit_steps(x, mean_v, sigma_v, shape, comps, &window, TEST_ITERATIONS);
                 let j = comps.len() - 1;
                 let worse = comps[i].misfit > 0.8 * old.misfit && comps[j].misfit > 0.8 * old.misfit;
                 let weak = [comps[i], comps[j]].iter().any(|c| !(c.amplitude_v * plan.norm() > threshold));
                 if worse || weak {
                     std::mem::swap(comps, &mut self.before);
                     self.residual_from(x, mean_v, shape, comps, &window);
+                } else {
+                    self.joint_refit(x, mean_v, sigma_v, shape, comps, &window);
                 }
             }
             i += 1;
@@ -286,6 +338,21 @@ impl Resolver {
         comps: &mut [Component],
         window: &dyn Fn(f64) -> Range<usize>,
     ) {
+        self.joint_refit_steps(x, mean_v, sigma_v, shape, comps, window, FIT_ITERATIONS);
+    }
+
+    /// [`joint_refit`](Self::joint_refit) with at most `iterations` steps per cluster.
+    #[allow(clippy::too_many_arguments)]
+    fn joint_refit_steps(
+        &mut self,
+        x: &[f64],
+        mean_v: f64,
+        sigma_v: f64,
+        shape: &Shape,
+        comps: &mut [Component],
+        window: &dyn Fn(f64) -> Range<usize>,
+        iterations: usize,
+    ) {
         let clusters = self.label_clusters(comps, window);
         let (lo, hi) = shape.support();
         let margin = ((hi - lo).ceil().max(1.0)) as usize;
@@ -299,7 +366,7 @@ impl Resolver {
             others.extend((0..comps.len()).filter(|&i| self.cluster_of[i] != label).map(|i| comps[i]));
             let (sa, sb) = span(&cluster, window);
             let region = (sa.saturating_sub(margin), (sb + margin).min(n));
-            self.refit_cluster(x, mean_v, shape, &mut cluster, &others, window, region, FIT_ITERATIONS);
+            self.refit_cluster(x, mean_v, shape, &mut cluster, &others, window, region, iterations);
             let mut fitted = cluster.iter();
             for i in 0..comps.len() {
                 if self.cluster_of[i] == label
@@ -340,14 +407,18 @@ impl Resolver {
         let k = comps.len();
         let m = 2 * k;
         let mut lambda = 1e-3;
-        self.residual_span(x, mean_v, shape, &[others, comps], window, a, b);
-        let rss = |r: &[f64]| -> f64 { r[a..b].iter().map(|v| v * v).sum() };
-        let mut cost = rss(&self.residual);
         let mut ws = std::mem::take(&mut self.refit);
-        let RefitScratch { jtj, jtr, row, aug, step, trial, active, live } = &mut ws;
+        let RefitScratch { jtj, jtr, row, aug, step, trial, live, base, cur, next } = &mut ws;
+        // The data less the held pulses, over the region: computed once.
+        self.residual_span(x, mean_v, shape, &[others], window, a, b);
+        base.clear();
+        base.extend_from_slice(&self.residual[a..b]);
+        // The cluster's pulse values and slopes over their windows, kept from
+        // the accepted trial for the next step's Jacobian (one evaluation per
+        // sample and pulse per step, not two).
+        cur.fill(shape, comps, window, a, b);
+        let mut cost = cur.residual(base, comps, &mut self.residual[a..b], a);
         for _it in 0..iterations {
-            let (fa, fb) = span(comps, window);
-            let (fa, fb) = (fa.max(a), fb.min(b));
             for v in [&mut *jtj, &mut *jtr, &mut *row] {
                 v.clear();
             }
@@ -357,16 +428,14 @@ impl Resolver {
             // JᵀJ is banded: a sample feeds only the pulses whose windows
             // hold it (the others' rows are zero there), so each sample costs
             // its active pulses, not the whole cluster.
-            active.clear();
-            active.extend(comps.iter().map(|c| window(c.peak_index)));
+            let (fa, fb) = cur.wins.iter().fold((b, a), |(lo, hi), w| (lo.min(w.start), hi.max(w.end)));
             for t in fa..fb.max(fa) {
                 live.clear();
-                live.extend((0..k).filter(|&i| active[i].contains(&t)));
+                live.extend((0..k).filter(|&i| cur.wins[i].contains(&t)));
                 for &i in live.iter() {
-                    let c = &comps[i];
-                    let (v, dv) = shape.value_and_slope(t as f64 - c.peak_index);
+                    let (v, dv) = cur.vals[cur.offsets[i] + t - cur.wins[i].start];
                     row[2 * i] = v;
-                    row[2 * i + 1] = -c.amplitude_v * dv;
+                    row[2 * i + 1] = -comps[i].amplitude_v * dv;
                 }
                 let r = self.residual[t];
                 for &i in live.iter() {
@@ -393,25 +462,31 @@ impl Resolver {
                 if !(solve_in_place(aug, step, m, 0.0) && step.iter().all(|v| v.is_finite())) {
                     break;
                 }
+                // Converged once no delay would move by CONVERGED_SAMPLES and
+                // no amplitude by CONVERGED_AMPLITUDE of itself: stop without
+                // evaluating the step (a converged cluster, refitted again
+                // beside a changed one, costs one system solve, not eight
+                // trial residuals).
+                let small = comps.iter().enumerate().all(|(i, c)| {
+                    step[2 * i + 1].abs() < CONVERGED_SAMPLES && step[2 * i].abs() <= CONVERGED_AMPLITUDE * c.amplitude_v.abs()
+                });
+                if small {
+                    break;
+                }
                 trial.clear();
                 trial.extend(comps.iter().enumerate().map(|(i, c)| Component {
                     amplitude_v: c.amplitude_v + step[2 * i],
                     peak_index: c.peak_index + step[2 * i + 1].clamp(-2.0, 2.0),
                     ..*c
                 }));
-                self.residual_span(x, mean_v, shape, &[others, trial], window, a, b);
-                let new_cost = rss(&self.residual);
+                next.fill(shape, trial, window, a, b);
+                let new_cost = next.residual(base, trial, &mut self.residual[a..b], a);
                 if new_cost.is_finite() && new_cost < cost {
-                    // Converged once no delay moves by 1e-4 samples (a tenth
-                    // of a picosecond at 1 GS/s, far below any timing sigma)
-                    // and no amplitude by 1e-6 of itself.
-                    let small = comps.iter().enumerate().all(|(i, c)| {
-                        step[2 * i + 1].abs() < CONVERGED_SAMPLES && step[2 * i].abs() <= CONVERGED_AMPLITUDE * c.amplitude_v.abs()
-                    });
                     comps.copy_from_slice(trial);
+                    std::mem::swap(cur, next);
                     cost = new_cost;
                     lambda = (lambda * 0.3).max(1e-9);
-                    improved = !small;
+                    improved = true;
                     break;
                 }
                 lambda *= 10.0;
@@ -419,10 +494,10 @@ impl Resolver {
             if !improved {
                 break;
             }
-            // (The residual is the accepted trial's: it was computed last.)
         }
+        // The residual of the result (a rejected trial's may be there).
+        cur.residual(base, comps, &mut self.residual[a..b], a);
         self.refit = ws;
-        self.residual_span(x, mean_v, shape, &[others, comps], window, a, b);
     }
 
     fn fit(&self, shape: &Shape, start: f64, detected_at: usize, sigma_v: f64, window: &dyn Fn(f64) -> Range<usize>) -> Component {

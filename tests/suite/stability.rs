@@ -285,3 +285,28 @@ fn returns_half_and_one_pulse_width_apart_are_resolved_and_flagged() {
         assert!(e1.abs() < 0.3 && e2.abs() < 0.3, "{e1} {e2}");
     }
 }
+
+/// Maximum-likelihood timing fits returns whose pulse windows do not overlap
+/// separately (per cluster, `detect::resolve`): a second return far away
+/// leaves the first one's range and sigma unchanged to rounding, on the same
+/// noise. (The fit used to be joint over every return in the frame, at a
+/// cost growing with the square of their number.)
+#[test]
+fn a_distant_return_does_not_change_the_ml_fit_of_another() {
+    let mut scene = Scene::default_scene();
+    scene.timing.method = tofwave::scene::TimingMethod::Ml;
+    let t1 = 100e-9;
+    let t2 = 600e-9;
+    for k in 0..10u64 {
+        let alone = Synth { returns: vec![(t1, 0.3)], quantise_8bit: None, ..Synth::prototype() };
+        let both = Synth { returns: vec![(t1, 0.3), (t2, 0.4)], ..alone.clone() };
+        let a = run(&scene, alone.frame(&scene, k, &mut rng(700 + k)));
+        let b = run(&scene, both.frame(&scene, k, &mut rng(700 + k)));
+        assert_eq!((a.returns.len(), b.returns.len()), (1, 2), "{:?} / {:?}", a.returns, b.returns);
+        let near = b.returns.iter().min_by(|x, y| (x.tof_s - t1).abs().total_cmp(&(y.tof_s - t1).abs())).unwrap();
+        let (ra, rb) = (a.returns[0].range_m, near.range_m);
+        assert!((ra - rb).abs() <= 1e-9 * ra.abs().max(1.0), "frame {k}: {ra} alone, {rb} beside a distant return");
+        let (sa, sb) = (a.returns[0].range_sigma_m, near.range_sigma_m);
+        assert!((sa - sb).abs() <= 1e-9 * sa, "frame {k}: sigma {sa} alone, {sb} beside a distant return");
+    }
+}

@@ -111,7 +111,7 @@ impl PulseValues {
             let (s, e) = (w.start.max(a), w.end.min(b));
             let w = s..e.max(s);
             self.offsets.push(self.vals.len());
-            self.vals.extend(w.clone().map(|t| shape.value_and_slope(t as f64 - c.peak_index)));
+            shape.values_on_grid(w.start as f64 - c.peak_index, w.len(), &mut self.vals);
             self.wins.push(w);
         }
     }

@@ -251,8 +251,6 @@ struct Shared {
     duplicate_reports: AtomicU64,
     /// Reports of sensors or sequence numbers this run never pushed.
     foreign_reports: AtomicU64,
-    /// Lag markers' skipped counts, reliable subscriber.
-    reliable_lagged: AtomicU64,
     /// Reports the reliable subscriber received, per server life.
     reliable_reports_by_life: [AtomicU64; 2],
     /// Lag markers' skipped counts, reliable subscriber, per server life.
@@ -755,7 +753,6 @@ async fn reliable(shared: Arc<Shared>, mut target: watch::Receiver<Target>, read
                         }
                     }
                     Some(Event::Lagged(l)) => {
-                        shared.reliable_lagged.fetch_add(l.skipped, Ordering::Relaxed);
                         shared.reliable_lagged_by_life[usize::from(life.min(1))].fetch_add(l.skipped, Ordering::Relaxed);
                     }
                     None => {}
@@ -936,7 +933,6 @@ async fn soak(cfg: &SoakConfig, work: &Path, command: &str) -> Result<SoakReport
         stream_failures: AtomicU64::new(0),
         duplicate_reports: AtomicU64::new(0),
         foreign_reports: AtomicU64::new(0),
-        reliable_lagged: AtomicU64::new(0),
         reliable_reports_by_life: Default::default(),
         reliable_lagged_by_life: Default::default(),
         chaotic: ChaoticCounters::default(),
@@ -1193,7 +1189,7 @@ async fn soak(cfg: &SoakConfig, work: &Path, command: &str) -> Result<SoakReport
         report_lost_after_restart: n.report_lost_after,
         duplicate_reports: get(&shared.duplicate_reports),
         foreign_reports: get(&shared.foreign_reports) + foreign_recorded,
-        reliable_lagged: get(&shared.reliable_lagged),
+        reliable_lagged: shared.reliable_lagged_by_life.iter().map(get).sum(),
         reliable_reports_before_kill: get(&shared.reliable_reports_by_life[0]),
         reliable_reports_after_restart: get(&shared.reliable_reports_by_life[1]),
         reliable_lagged_after_restart: get(&shared.reliable_lagged_by_life[1]),

@@ -25,6 +25,7 @@ pub use snapshot::{Decimated, MAX_POINTS, Snapshot, Snapshots, Watch, decimate};
 use super::Shared;
 use super::auth::{Access, Tokens};
 use super::fanout::Published;
+use super::metrics_http::Head;
 use super::session::unix_ms;
 use crate::telemetry;
 use std::collections::{HashMap, HashSet};
@@ -42,8 +43,6 @@ const INDEX_HTML: &str = include_str!("index.html");
 /// The page's script (vanilla JS, canvas drawing).
 const APP_JS: &str = include_str!("app.js");
 
-/// Largest request head read, bytes.
-const MAX_REQUEST_BYTES: usize = 8192;
 /// Retained reports sent to a client when it connects, per sensor at most,
 /// so the strip chart starts with the recent past.
 const BACKLOG_PER_SENSOR: usize = 256;
@@ -71,24 +70,11 @@ pub(crate) async fn serve(
     shutdown: CancellationToken,
 ) {
     tracing::info!(addr = ?listener.local_addr().ok(), "dashboard endpoint");
-    loop {
-        let conn = tokio::select! {
-            _ = shutdown.cancelled() => return,
-            c = listener.accept() => c,
-        };
-        match conn {
-            Ok((stream, _)) => {
-                let dash = dash.clone();
-                let stop = shutdown.clone();
-                tokio::spawn(async move {
-                    if let Err(e) = respond(stream, &dash, stop).await {
-                        tracing::debug!(error = %e, "dashboard request failed");
-                    }
-                });
-            }
-            Err(e) => tracing::warn!(error = %e, "dashboard accept failed"),
-        }
-    }
+    super::metrics_http::accept_each(listener, "dashboard", shutdown, move |stream, stop| {
+        let dash = dash.clone();
+        async move { respond(stream, &dash, stop).await }
+    })
+    .await
 }
 
 /// A parsed request head: what the routes need.
@@ -166,9 +152,10 @@ async fn respond(
     shutdown: CancellationToken,
 ) -> std::io::Result<()> {
     let mut buf = Vec::with_capacity(1024);
-    let mut chunk = [0u8; 1024];
-    while !buf.windows(4).any(|w| w == b"\r\n\r\n") {
-        if buf.len() >= MAX_REQUEST_BYTES {
+    match super::metrics_http::read_head(&mut stream, &mut buf).await? {
+        Head::Complete => {}
+        Head::Closed => return Ok(()),
+        Head::TooLarge => {
             return reply(
                 &mut stream,
                 "431 Request Header Fields Too Large",
@@ -177,11 +164,6 @@ async fn respond(
             )
             .await;
         }
-        let n = stream.read(&mut chunk).await?;
-        if n == 0 {
-            return Ok(());
-        }
-        buf.extend_from_slice(&chunk[..n]);
     }
     let Some(req) = parse_request(&buf) else {
         return reply(

@@ -374,34 +374,36 @@ struct FalseAlarmCounter {
     /// Σ expected crossings and Σ their variance (dispersion-weighted).
     expected: f64,
     variance: f64,
-    /// The last (t, κ, ν, shift) and its crossing moments (solved per change).
-    moments: Option<([u64; 4], (f64, f64))>,
+    /// Crossing moments solved per (t, κ, ν, shift), up to [`TCache::CAPACITY`].
+    moments: std::collections::HashMap<[u64; 4], (f64, f64)>,
 }
 
 /// Thresholds in units of σ̂ for a gate variance distribution and a
-/// Gaussian level, kept for the last [`TCache::CAPACITY`] pairs (solving a
-/// correlated gate's costs ~0.1 ms; the Student-t form is immediate).
+/// Gaussian level, kept for up to [`TCache::CAPACITY`] pairs (solving a
+/// correlated gate's costs ~0.1 ms; the Student-t form is immediate). A
+/// cleaned gate's sample count, and so its quantised distribution, moves from
+/// frame to frame over a few dozen values: all of them stay solved.
 #[derive(Debug, Default)]
 struct TCache {
-    solved: Vec<([u64; 3], f64)>,
+    solved: std::collections::HashMap<[u64; 3], f64>,
 }
 
 impl TCache {
-    const CAPACITY: usize = 16;
+    const CAPACITY: usize = 1024;
 
     fn get(&mut self, gate: GateVariance, u: f64) -> f64 {
         if gate.shift == 0.0 {
             return gate.t_for(u);
         }
         let key = [gate.nu.to_bits(), gate.shift.to_bits(), u.to_bits()];
-        if let Some(t) = self.solved.iter().find(|t| t.0 == key) {
-            return t.1;
+        if let Some(t) = self.solved.get(&key) {
+            return *t;
         }
         let t = gate.t_for(u);
         if self.solved.len() >= Self::CAPACITY {
-            self.solved.remove(0);
+            self.solved.clear();
         }
-        self.solved.push((key, t));
+        self.solved.insert(key, t);
         t
     }
 }
@@ -471,13 +473,23 @@ impl FalseAlarmCounter {
     /// Variance over binomial variance of the crossings of `cells` cells
     /// sharing one gate estimate (threshold `t` in units of σ̂κ, inflation
     /// `kappa`, the estimate distributed as `gate` says).
+    ///
+    /// κ moves with the gate's sample count, which a cleaned gate changes
+    /// every frame; it is rounded to 1e-4 (a relative change of the
+    /// crossing probabilities below 1e-4 · t², far inside the dispersion's
+    /// own approximation) so that the moments are solved once per change
+    /// that matters rather than every frame.
     fn dispersion(&mut self, cells: f64, t: f64, kappa: f64, gate: GateVariance) -> f64 {
+        let kappa = (kappa * 1e4).round() / 1e4;
         let key = [t.to_bits(), kappa.to_bits(), gate.nu.to_bits(), gate.shift.to_bits()];
-        let (m1, m2) = match self.moments {
-            Some((k, m)) if k == key => m,
-            _ => {
+        let (m1, m2) = match self.moments.get(&key) {
+            Some(m) => *m,
+            None => {
                 let m = crossing_moments(t, kappa, gate);
-                self.moments = Some((key, m));
+                if self.moments.len() >= TCache::CAPACITY {
+                    self.moments.clear();
+                }
+                self.moments.insert(key, m);
                 m
             }
         };

@@ -15,6 +15,8 @@ mod events;
 pub mod learn;
 mod noise;
 mod start;
+/// One sensor's pipeline on several threads (a stage pipeline), bit-identical to one thread.
+pub mod threaded;
 mod timing;
 mod validate;
 

@@ -17,7 +17,7 @@ pub const FRAMES_RECEIVED: &str = "tofwave_frames_received_total";
 pub const FRAMES_PROCESSED: &str = "tofwave_frames_processed_total";
 /// Frames refused, per sensor and `reason` (`invalid_frame`, `sample_rate`,
 /// `samples_per_frame`, `missing_stop`, `pipeline`, `panic`, `oversize`, `sensor_limit`, `shutdown`,
-/// `recording`, `fault`).
+/// `recording`, `fault`, `cluster`: not persisted in JetStream).
 pub const FRAMES_REJECTED: &str = "tofwave_frames_rejected_total";
 /// Reports produced, per sensor.
 pub const REPORTS: &str = "tofwave_reports_total";
@@ -123,7 +123,7 @@ pub fn prometheus_handle() -> PrometheusHandle {
 }
 
 /// Values of the `reason` label of [`FRAMES_REJECTED`].
-pub const REJECT_REASONS: [&str; 11] = [
+pub const REJECT_REASONS: [&str; 12] = [
     "invalid_frame",
     "sample_rate",
     "samples_per_frame",
@@ -135,6 +135,7 @@ pub const REJECT_REASONS: [&str; 11] = [
     "shutdown",
     "recording",
     "fault",
+    "cluster",
 ];
 
 /// One sensor's metric handles, kept by its session. Building a labelled

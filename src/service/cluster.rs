@@ -294,19 +294,30 @@ impl Cluster {
             let js = js.clone();
             let url = url.clone();
             async move {
-                match js.get_key_value(name).await {
-                    Ok(kv) => Ok(kv),
-                    Err(_) => js
-                        .create_key_value(kv::Config {
-                            bucket: name.into(),
-                            history: 1,
-                            max_age,
-                            storage: stream::StorageType::File,
-                            ..Default::default()
-                        })
-                        .await
-                        .map_err(|e| setup(&url, name)(&e)),
+                if let Ok(kv) = js.get_key_value(name).await {
+                    return Ok(kv);
                 }
+                // The bucket's stream, made as the KV API makes it
+                // (`create_key_value` first reads account info in a shape
+                // nats-server 2.9 does not send).
+                js.get_or_create_stream(stream::Config {
+                    name: format!("KV_{name}"),
+                    subjects: vec![format!("$KV.{name}.>")],
+                    max_messages_per_subject: 1,
+                    max_bytes: -1,
+                    max_message_size: -1,
+                    max_age,
+                    storage: stream::StorageType::File,
+                    allow_rollup: true,
+                    deny_delete: true,
+                    allow_direct: true,
+                    discard: stream::DiscardPolicy::New,
+                    num_replicas: 1,
+                    ..Default::default()
+                })
+                .await
+                .map_err(|e| setup(&url, name)(&e))?;
+                js.get_key_value(name).await.map_err(|e| setup(&url, name)(&e))
             }
         };
         let leases = bucket(LEASES_BUCKET, config.lease_ttl).await?;

@@ -105,6 +105,10 @@ pub struct ServeArgs {
     /// another node after this long; leases are renewed every third of it, seconds.
     #[arg(long, value_name = "SECONDS", default_value_t = super::cluster::DEFAULT_LEASE_TTL_S, requires = "cluster")]
     pub lease_ttl_s: f64,
+    /// With --cluster: copies JetStream keeps of the streams and buckets this node creates
+    /// (1 for one NATS server; 3 for a 3-server NATS cluster, which then survives losing one).
+    #[arg(long, value_name = "N", default_value_t = 1, requires = "cluster")]
+    pub cluster_replicas: usize,
 }
 
 /// Client connection flags shared by replay and subscribe.
@@ -241,6 +245,7 @@ impl ServeArgs {
                     url: url.clone(),
                     node_id,
                     lease_ttl: std::time::Duration::from_secs_f64(self.lease_ttl_s),
+                    replicas: self.cluster_replicas.clamp(1, 5),
                 })
             }
         };

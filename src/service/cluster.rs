@@ -114,6 +114,9 @@ pub struct ClusterConfig {
     pub node_id: String,
     /// A lease not renewed for this long expires and its sensor moves; renewed every third of it.
     pub lease_ttl: Duration,
+    /// Copies JetStream keeps of every stream and bucket it creates (1 on a
+    /// single NATS server; 3 on a 3-server NATS cluster survives losing one).
+    pub replicas: usize,
 }
 
 /// Errors joining the cluster (all name the URL) or using it.
@@ -274,6 +277,7 @@ impl Cluster {
                 name: FRAMES_STREAM.into(),
                 subjects: vec![format!("{FRAMES_PREFIX}>")],
                 storage: stream::StorageType::File,
+                num_replicas: config.replicas.max(1),
                 description: Some("tofwave frames, one subject per sensor".into()),
                 ..Default::default()
             })
@@ -285,11 +289,13 @@ impl Cluster {
                 subjects: vec![format!("{REPORTS_PREFIX}>")],
                 storage: stream::StorageType::File,
                 duplicate_window: Duration::from_secs(120),
+                num_replicas: config.replicas.max(1),
                 description: Some("tofwave reports (JSON lines), one subject per sensor".into()),
                 ..Default::default()
             })
             .await
             .map_err(|e| setup(&url, REPORTS_STREAM)(&e))?;
+        let replicas = config.replicas.max(1);
         let bucket = |name: &'static str, max_age: Duration| {
             let js = js.clone();
             let url = url.clone();
@@ -312,7 +318,7 @@ impl Cluster {
                     deny_delete: true,
                     allow_direct: true,
                     discard: stream::DiscardPolicy::New,
-                    num_replicas: 1,
+                    num_replicas: replicas,
                     ..Default::default()
                 })
                 .await
@@ -513,6 +519,21 @@ impl Cluster {
             }
         }
         Ok(found)
+    }
+}
+
+impl Cluster {
+    /// Removes everything the cluster holds of `sensor` (its frames,
+    /// reports, consumer and published floor), so its history is not
+    /// replayed again: a sensor retired for good, or a benchmark's scratch
+    /// sensor. Run it only while no node owns the sensor.
+    pub async fn forget_sensor(&self, sensor: &str) -> Result<(), String> {
+        let token = sensor_token(sensor);
+        let _ = self.frames.delete_consumer(&consumer_name(&token)).await;
+        self.frames.purge().filter(frames_subject(sensor)).await.map_err(|e| format!("purging {sensor}'s frames: {e}"))?;
+        self.reports.purge().filter(reports_subject(sensor)).await.map_err(|e| format!("purging {sensor}'s reports: {e}"))?;
+        self.progress.purge(&token).await.map_err(|e| format!("purging {sensor}'s published floor: {e}"))?;
+        Ok(())
     }
 }
 

@@ -76,6 +76,7 @@ impl Node {
                 url: nats.url.clone(),
                 node_id: node_id.into(),
                 lease_ttl: Duration::from_secs(3),
+                replicas: 1,
             }),
             ..ServerConfig::default()
         };

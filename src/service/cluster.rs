@@ -264,7 +264,7 @@ impl Cluster {
         let client = async_nats::ConnectOptions::new()
             .name(format!("tofwave {}", config.node_id))
             .connection_timeout(Duration::from_secs(5))
-            .connect(url.as_str())
+            .connect(url.split(',').map(str::trim).filter(|u| !u.is_empty()).collect::<Vec<_>>())
             .await
             .map_err(|e| ClusterError::Connect { url: url.clone(), message: e.to_string() })?;
         let js = jetstream::ContextBuilder::new()

@@ -16,6 +16,8 @@
 //!   (server-sent events from the same fan-out, waveform snapshots);
 //! - `status` is the one place that maps errors to gRPC `Status`;
 //! - [`state`](crate::service::state) persists scenes and noise models;
+//! - [`cluster`](crate::service::cluster): `serve --cluster`, nodes sharing
+//!   sensors over NATS JetStream (only reached when the flag is given);
 //! - [`client`](crate::service::client) is the library side of `tofwave replay`
 //!   and `tofwave subscribe` ([`cli`](crate::service::cli)).
 

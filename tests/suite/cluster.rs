@@ -233,6 +233,14 @@ async fn two_nodes_report_every_sensor_in_order_as_one_node_does() {
     let pushed = tokio::spawn(async move {
         client::push(&mut on_a.ingest, tokio_stream::iter(batches), |_| {}).await.map_err(|e| format!("{e:?}"))
     });
+    // Scenes come from the nodes' --scene in cluster mode: SetScene says so.
+    let refused = on_b
+        .control
+        .set_scene(proto::SetSceneRequest { sensor_id: "lidar-0".into(), toml: scene.to_toml() })
+        .await
+        .unwrap_err();
+    assert_eq!(refused.code(), tonic::Code::FailedPrecondition, "{refused:?}");
+    assert!(refused.message().contains(&nats.url), "{}", refused.message());
     let got = collect(&mut events, all.len(), Duration::from_secs(60), |_, _| {}).await;
     let elapsed = t0.elapsed();
     let summary = pushed.await.unwrap().unwrap();
@@ -249,6 +257,24 @@ async fn two_nodes_report_every_sensor_in_order_as_one_node_does() {
     }
     a.shutdown().await;
     b.shutdown().await;
+}
+
+/// An unreachable NATS server stops the server at start with an error naming the URL.
+#[tokio::test]
+async fn unreachable_nats_is_an_error_naming_the_url() {
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let url = format!("nats://127.0.0.1:{port}");
+    let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let config = ServerConfig {
+        cluster: Some(ClusterConfig { url: url.clone(), node_id: "x".into(), lease_ttl: Duration::from_secs(3), replicas: 1 }),
+        ..ServerConfig::default()
+    };
+    let err = tokio::time::timeout(Duration::from_secs(20), run(listener, config, std::future::pending::<()>()))
+        .await
+        .expect("fails within 20 s")
+        .unwrap_err();
+    let text = err.to_string();
+    assert!(text.contains(&url) && text.contains("cannot connect"), "{text}");
 }
 
 /// Sensor names split half and half between nodes "a" and "b" by the

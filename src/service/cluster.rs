@@ -589,6 +589,8 @@ struct Item {
     stream_seq: u64,
     /// False while replaying frames whose reports were published already.
     publish: bool,
+    /// When the owner received it (the processing-latency metric).
+    received: Instant,
 }
 
 /// A processed frame: its reports as (message id, JSON line).
@@ -750,7 +752,7 @@ async fn work(
                         break;
                     }
                 };
-                let item = Item { msg, stream_seq, publish: stream_seq > floor };
+                let item = Item { msg, stream_seq, publish: stream_seq > floor, received: Instant::now() };
                 if in_tx.send(item).await.is_err() {
                     break;
                 }
@@ -792,6 +794,9 @@ fn process_frames(
 ) {
     let mut reports = Vec::new();
     let token = sensor_token(sensor);
+    // The same per-sensor metrics a single node records, for live frames
+    // only (a replay re-counts nothing).
+    let metrics = crate::telemetry::SensorMetrics::new(sensor);
     while let Some(item) = rx.blocking_recv() {
         let frame = proto::Frame::decode(item.msg.payload.as_ref())
             .map_err(|e| e.to_string())
@@ -807,9 +812,16 @@ fn process_frames(
             Ok(f) => {
                 let run = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| pipeline.push(f, &mut reports)));
                 match run {
-                    Ok(Ok(())) => {}
+                    Ok(Ok(())) => {
+                        if item.publish {
+                            metrics.frame_processed(item.received.elapsed());
+                        }
+                    }
                     Ok(Err(e)) => {
                         stats.frames_refused.fetch_add(1, Ordering::Relaxed);
+                        if item.publish {
+                            metrics.frames_rejected("pipeline", 1);
+                        }
                         tracing::debug!(sensor, error = %e, "pipeline refused frame");
                     }
                     Err(_) => {
@@ -822,12 +834,17 @@ fn process_frames(
                     }
                 }
                 for (k, r) in reports.drain(..).enumerate() {
+                    if item.publish {
+                        metrics.report_published(r.returns.len());
+                        metrics.false_alarm(r.false_alarm.rate, r.false_alarm.ci95, r.detector.pfa_cell);
+                    }
                     out.push((format!("{token}:{}:{k}", item.stream_seq), report_json(&r)));
                 }
             }
             Err(e) => {
                 stats.frames_refused.fetch_add(1, Ordering::Relaxed);
                 if item.publish {
+                    metrics.frames_rejected("invalid_frame", 1);
                     tracing::warn!(sensor, stream_seq = item.stream_seq, error = %e, "frame refused");
                 }
             }

@@ -58,7 +58,10 @@
 //! so a report the old owner published but did not get acknowledged is
 //! dropped by the reports stream's duplicate window. Every acknowledged
 //! frame is thereby reported exactly once, and the reports after a takeover
-//! equal those of a single node. The cost: a takeover replays the sensor's
+//! equal those of a single node. (Once, that is, when the takeover comes
+//! within the 2-minute duplicate window of the old owner's last publication:
+//! after a longer outage of the whole cluster, the reports of the last
+//! batch in flight at the crash can be published twice.) The cost: a takeover replays the sensor's
 //! retained history (retention limits on TOFWAVE_FRAMES bound it; state
 //! then starts from the oldest retained frame).
 //!
@@ -645,7 +648,12 @@ async fn own(cluster: Arc<Cluster>, sensor: String, token: String, revision: u64
     {
         let (halt, stop, lost) = (halt.clone(), stop.clone(), lost.clone());
         tokio::spawn(async move {
-            tokio::select! { _ = stop.cancelled() => {}, _ = lost.cancelled() => {} }
+            tokio::select! {
+                _ = stop.cancelled() => {}
+                _ = lost.cancelled() => {}
+                // The work ended by itself (an error): nothing left to halt.
+                _ = halt.cancelled() => return,
+            }
             halt.cancel();
         });
     }

@@ -259,6 +259,62 @@ async fn two_nodes_report_every_sensor_in_order_as_one_node_does() {
     b.shutdown().await;
 }
 
+/// Node B joins while node A holds every sensor: A hands B its share
+/// (rendezvous preference) mid-stream, B rebuilds each sensor's state by
+/// replay, and the reports stay exactly one machine's.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_joining_node_takes_over_its_share_and_reports_stay_exact() {
+    let nats = Nats::start();
+    let mut scene = Scene::default_scene();
+    scene.averaging.frames = 4;
+    let sensors: Vec<String> = (0..6).map(|i| format!("lidar-{i}")).collect();
+    let (all, batches) = interleaved(&sensors, 800);
+    let want = all.len() / 4;
+    let a = Node::start(&nats, "a", scene.clone()).await;
+    let mut on_a = client::connect(&a.url, &ClientOptions::default()).await.unwrap();
+    let mut events = client::subscribe(&mut on_a.reports, proto::SubscribeRequest::default()).await.unwrap();
+    let pushed = tokio::spawn(async move {
+        client::push(&mut on_a.ingest, tokio_stream::iter(batches), |_| {}).await.map_err(|e| format!("{e:?}"))
+    });
+    let mut got = collect(&mut events, want / 4, Duration::from_secs(60), |_, _| {}).await;
+    let b = Node::start(&nats, "b", scene.clone()).await;
+    // Who holds which sensor, read from the lease bucket.
+    let js = async_nats::jetstream::new(async_nats::connect(nats.url.as_str()).await.unwrap());
+    let leases = js.get_key_value(cluster::LEASES_BUCKET).await.unwrap();
+    let live: BTreeSet<String> = ["a".to_string(), "b".to_string()].into();
+    let b_share: Vec<&String> = sensors
+        .iter()
+        .filter(|s| cluster::preferred_node(&cluster::sensor_token(s), &live) == Some("b"))
+        .collect();
+    assert!(!b_share.is_empty(), "the test's sensors all prefer node a");
+    let deadline = Instant::now() + Duration::from_secs(15);
+    let mut moved = BTreeSet::new();
+    while moved.len() < b_share.len() {
+        for s in &b_share {
+            if leases.get(cluster::sensor_token(s)).await.unwrap().as_deref() == Some(b"b".as_slice()) {
+                moved.insert(s.to_string());
+            }
+        }
+        assert!(Instant::now() < deadline, "node b took {moved:?} of its share {b_share:?} within 15 s");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let rest = collect(&mut events, want - got.len(), Duration::from_secs(60), |_, _| {}).await;
+    got.extend(rest);
+    let summary = pushed.await.unwrap().unwrap();
+    assert_eq!((summary.accepted, summary.rejected), (all.len() as u64, 0));
+    println!("node b joined after {} of {want} reports and took {} of {} sensors", want / 4, moved.len(), sensors.len());
+    let cluster = by_sensor_in_order(&got);
+    let reference = reference_by_sensor(&scene, &all);
+    for (s, want) in &reference {
+        assert_eq!(cluster.get(s).map_or(0, Vec::len), want.len(), "sensor {s}");
+        if let Some(i) = (0..want.len()).find(|&i| cluster[s][i] != want[i]) {
+            panic!("sensor {s} report {i} differs from one node's:\ncluster: {}\none node: {}", cluster[s][i], want[i]);
+        }
+    }
+    a.shutdown().await;
+    b.shutdown().await;
+}
+
 /// An unreachable NATS server stops the server at start with an error naming the URL.
 #[tokio::test]
 async fn unreachable_nats_is_an_error_naming_the_url() {

@@ -315,6 +315,42 @@ async fn a_joining_node_takes_over_its_share_and_reports_stay_exact() {
     b.shutdown().await;
 }
 
+/// A digitiser gateway publishing encoded frames straight to
+/// `tofwave.frames.<sensor>` is served like gRPC ingest; a frame of another
+/// sensor on that subject, or one that does not decode, is refused (no report).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn frames_published_to_nats_by_a_gateway_are_processed() {
+    use prost::Message as _;
+    let nats = Nats::start();
+    let scene = Scene::default_scene();
+    let node = Node::start(&nats, "a", scene.clone()).await;
+    let mut c = client::connect(&node.url, &ClientOptions::default()).await.unwrap();
+    let mut events = client::subscribe(&mut c.reports, proto::SubscribeRequest::default()).await.unwrap();
+    let js = async_nats::jetstream::new(async_nats::connect(nats.url.as_str()).await.unwrap());
+    let sensor = "gate.way 1";
+    let subject = cluster::frames_subject(sensor);
+    assert_eq!(subject, "tofwave.frames.gate=2Eway=201");
+    let fs = frames(sensor, 0..24, 77);
+    for (i, f) in fs.iter().enumerate() {
+        let payload = match i {
+            // Another sensor's frame on this subject, and bytes that are no frame.
+            5 => tofwave::wire::frame_to_proto(&Frame { sensor_id: "other".into(), ..f.clone() }).encode_to_vec(),
+            9 => b"not a frame".to_vec(),
+            _ => tofwave::wire::frame_to_proto(f).encode_to_vec(),
+        };
+        js.publish(subject.clone(), payload.into()).await.unwrap().await.unwrap();
+    }
+    let kept: Vec<Frame> = fs.iter().enumerate().filter(|(i, _)| *i != 5 && *i != 9).map(|(_, f)| f.clone()).collect();
+    let got = collect(&mut events, kept.len(), Duration::from_secs(30), |_, _| {}).await;
+    let cluster = by_sensor_in_order(&got);
+    assert_eq!(cluster[sensor], reference_by_sensor(&scene, &kept)[sensor]);
+    match tokio::time::timeout(Duration::from_millis(500), events.message()).await {
+        Err(_) => {}
+        Ok(m) => panic!("a report for a refused frame: {m:?}"),
+    }
+    node.shutdown().await;
+}
+
 /// An unreachable NATS server stops the server at start with an error naming the URL.
 #[tokio::test]
 async fn unreachable_nats_is_an_error_naming_the_url() {

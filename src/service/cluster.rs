@@ -333,10 +333,17 @@ impl Cluster {
         let nodes = bucket(NODES_BUCKET, config.lease_ttl).await?;
         let progress = bucket(PROGRESS_BUCKET, Duration::ZERO).await?;
         let node_key = sensor_token(&config.node_id);
-        nodes
-            .put(&node_key, Bytes::from(config.node_id.clone()))
-            .await
-            .map_err(|e| setup(&url, NODES_BUCKET)(&e))?;
+        // `create`: two live nodes with one id would renew each other's leases.
+        if let Err(e) = nodes.create(&node_key, Bytes::from(config.node_id.clone())).await {
+            let message = match nodes.get(&node_key).await {
+                Ok(Some(_)) => format!(
+                    "node id {:?} is in use by a live node (pick another --node-id, or wait {:?} after that node stopped)",
+                    config.node_id, config.lease_ttl
+                ),
+                _ => e.to_string(),
+            };
+            return Err(ClusterError::Setup { url, what: NODES_BUCKET.into(), message });
+        }
         tracing::info!(url = %url, node = %config.node_id, "joined the cluster");
         Ok(Arc::new(Cluster {
             config,

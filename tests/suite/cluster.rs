@@ -105,7 +105,7 @@ struct ChildNode {
 
 impl ChildNode {
     fn start(nats: &Nats, node_id: &str, scene_file: &std::path::Path, log: &std::path::Path) -> ChildNode {
-        let child = Command::new(env!("CARGO_BIN_EXE_tofwave"))
+        let mut child = Command::new(env!("CARGO_BIN_EXE_tofwave"))
             .args(["serve", "--listen", "127.0.0.1:0", "--cluster", &nats.url, "--node-id", node_id])
             .args(["--subscriber-buffer", "65536", "--scene"])
             .arg(scene_file)
@@ -120,7 +120,11 @@ impl ChildNode {
             if let Some(addr) = text.lines().find_map(|l| l.strip_prefix("tofwave: serving gRPC on ")) {
                 return ChildNode { child, url: format!("http://{}", addr.trim()) };
             }
-            assert!(Instant::now() < deadline, "node {node_id} did not start within 20 s:\n{text}");
+            if Instant::now() > deadline {
+                let _ = child.kill();
+                let _ = child.wait();
+                panic!("node {node_id} did not start within 20 s:\n{text}");
+            }
             std::thread::sleep(Duration::from_millis(20));
         }
     }
@@ -234,6 +238,14 @@ async fn two_nodes_report_every_sensor_in_order_as_one_node_does() {
         client::push(&mut on_a.ingest, tokio_stream::iter(batches), |_| {}).await.map_err(|e| format!("{e:?}"))
     });
     // Scenes come from the nodes' --scene in cluster mode: SetScene says so.
+    // A second node with a live node's id is refused at start.
+    let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let twin = ServerConfig {
+        cluster: Some(ClusterConfig { url: nats.url.clone(), node_id: "b".into(), lease_ttl: Duration::from_secs(3), replicas: 1 }),
+        ..ServerConfig::default()
+    };
+    let err = run(listener, twin, std::future::pending::<()>()).await.unwrap_err().to_string();
+    assert!(err.contains("\"b\" is in use"), "{err}");
     let refused = on_b
         .control
         .set_scene(proto::SetSceneRequest { sensor_id: "lidar-0".into(), toml: scene.to_toml() })

@@ -486,3 +486,23 @@ async fn kill_9_of_an_owner_moves_its_sensors_and_every_acked_frame_is_reported_
     let log = std::fs::read_to_string(dir.path().join("a.log")).unwrap();
     assert!(log.contains("sensor claimed"), "{log}");
 }
+
+/// `tofwave bench --cluster`: both arms run and are timed, and the cluster
+/// arm's scratch sensor is forgotten (its frames purged) afterwards.
+#[test]
+fn bench_cluster_measures_both_arms_and_forgets_its_sensor() {
+    let nats = Nats::start();
+    let scene = tofwave::bench::reference_scene();
+    let cost = tofwave::bench::measure_cluster_cost(&scene, 30.0, 300, 1, &nats.url).unwrap();
+    assert_eq!((cost.single_frames_per_s.len(), cost.cluster_frames_per_s.len()), (1, 1));
+    for r in cost.single_frames_per_s.iter().chain(&cost.cluster_frames_per_s) {
+        assert!(r.is_finite() && *r > 10.0, "{cost:?}");
+    }
+    assert!(cost.markdown().contains("Cluster path / single node"), "{}", cost.markdown());
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    rt.block_on(async {
+        let js = async_nats::jetstream::new(async_nats::connect(nats.url.as_str()).await.unwrap());
+        let info = js.get_stream(cluster::FRAMES_STREAM).await.unwrap().info().await.unwrap().clone();
+        assert_eq!(info.state.messages, 0, "the bench's frames were not purged: {:?}", info.state);
+    });
+}

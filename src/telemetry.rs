@@ -55,9 +55,17 @@ pub const FALSE_ALARM_CI95_LOW: &str = "tofwave_false_alarm_rate_ci95_low";
 /// Upper end of the observed rate's 95 % interval (`false_alarm.ci95[1]`), per sensor.
 pub const FALSE_ALARM_CI95_HIGH: &str = "tofwave_false_alarm_rate_ci95_high";
 
+/// Cluster mode (`serve --cluster`): sensors this node holds the lease of.
+pub const CLUSTER_SENSORS_OWNED: &str = "tofwave_cluster_sensors_owned";
+/// Cluster mode: sensors this node claimed (took over), per sensor.
+pub const CLUSTER_CLAIMS: &str = "tofwave_cluster_claims_total";
+/// Cluster mode: frames replayed to rebuild a sensor's state after a claim
+/// (processed without publishing), per sensor.
+pub const CLUSTER_FRAMES_REPLAYED: &str = "tofwave_cluster_frames_replayed_total";
+
 /// Every metric name above, for tests and dashboard checks. Histograms are
 /// exported as `<name>_bucket`, `<name>_sum` and `<name>_count`.
-pub const ALL_METRICS: [&str; 18] = [
+pub const ALL_METRICS: [&str; 21] = [
     FRAMES_RECEIVED,
     FRAMES_PROCESSED,
     FRAMES_REJECTED,
@@ -76,6 +84,9 @@ pub const ALL_METRICS: [&str; 18] = [
     FALSE_ALARM_DESIGN_RATE,
     FALSE_ALARM_CI95_LOW,
     FALSE_ALARM_CI95_HIGH,
+    CLUSTER_SENSORS_OWNED,
+    CLUSTER_CLAIMS,
+    CLUSTER_FRAMES_REPLAYED,
 ];
 
 /// Histogram buckets for [`PROCESSING_SECONDS`]: 10 µs to 10 s, roughly x3 steps.
@@ -299,6 +310,19 @@ pub fn frames_rejected(sensor: &str, reason: &'static str, count: u64) {
 /// `sensor` became faulted (see [`SENSOR_FAULTED`]).
 pub fn sensor_faulted(sensor: &str) {
     metrics::gauge!(SENSOR_FAULTED, "sensor" => sensor_label(sensor)).set(1.0);
+}
+
+/// Cluster mode: this node claimed `sensor` (+1 owned) or let it go (-1).
+pub fn cluster_sensor_owned(sensor: &str, claimed: bool) {
+    if claimed {
+        metrics::counter!(CLUSTER_CLAIMS, "sensor" => sensor_label(sensor)).increment(1);
+    }
+    metrics::gauge!(CLUSTER_SENSORS_OWNED).increment(if claimed { 1.0 } else { -1.0 });
+}
+
+/// Cluster mode: `count` frames of `sensor` replayed after a claim.
+pub fn cluster_frames_replayed(sensor: &str, count: u64) {
+    metrics::counter!(CLUSTER_FRAMES_REPLAYED, "sensor" => sensor_label(sensor)).increment(count);
 }
 
 /// A subscriber fell behind and `skipped` reports were dropped for it.

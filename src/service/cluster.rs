@@ -624,6 +624,7 @@ impl Owner {
 async fn own(cluster: Arc<Cluster>, sensor: String, token: String, revision: u64, stop: CancellationToken) {
     let claimed = Instant::now();
     cluster.stats.claims.fetch_add(1, Ordering::Relaxed);
+    crate::telemetry::cluster_sensor_owned(&sensor, true);
     tracing::info!(sensor = %sensor, node = %cluster.config.node_id, "sensor claimed");
     // Renewal runs beside the work: a renewal that fails (another revision:
     // the lease expired and someone took it) stops the work at once.
@@ -665,6 +666,7 @@ async fn own(cluster: Arc<Cluster>, sensor: String, token: String, revision: u64
         });
     }
     let result = work(&cluster, &sensor, &token, &halt, claimed).await;
+    crate::telemetry::cluster_sensor_owned(&sensor, false);
     finished.cancel();
     let _ = renewer.await;
     halt.cancel();
@@ -812,6 +814,8 @@ fn process_frames(
     // The same per-sensor metrics a single node records, for live frames
     // only (a replay re-counts nothing).
     let metrics = crate::telemetry::SensorMetrics::new(sensor);
+    // Replayed frames not yet counted in the metric (counted once the replay ends).
+    let mut replayed = 0u64;
     while let Some(item) = rx.blocking_recv() {
         let frame = proto::Frame::decode(item.msg.payload.as_ref())
             .map_err(|e| e.to_string())
@@ -866,13 +870,20 @@ fn process_frames(
         }
         if item.publish {
             stats.frames_processed.fetch_add(1, Ordering::Relaxed);
+            if replayed > 0 {
+                crate::telemetry::cluster_frames_replayed(sensor, std::mem::take(&mut replayed));
+            }
         } else {
             stats.frames_replayed.fetch_add(1, Ordering::Relaxed);
+            replayed += 1;
         }
         let done = Done { msg: item.msg, stream_seq: item.stream_seq, publish: item.publish, reports: out };
         if tx.blocking_send(done).is_err() {
             return;
         }
+    }
+    if replayed > 0 {
+        crate::telemetry::cluster_frames_replayed(sensor, replayed);
     }
     // No flush: an averaging group in progress continues on the next owner.
 }

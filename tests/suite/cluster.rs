@@ -101,13 +101,33 @@ impl Node {
 struct ChildNode {
     child: Child,
     url: String,
+    /// Where its log (standard error) goes.
+    log: std::path::PathBuf,
+}
+
+impl ChildNode {
+    /// Its Prometheus text (`--metrics`), read with a plain HTTP/1.0 GET.
+    fn metrics(&self) -> String {
+        use std::io::{Read, Write};
+        let text = std::fs::read_to_string(&self.log).unwrap();
+        let addr = text
+            .lines()
+            .find_map(|l| l.strip_prefix("tofwave: serving Prometheus metrics on http://"))
+            .and_then(|l| l.strip_suffix("/metrics"))
+            .unwrap_or_else(|| panic!("no metrics address in the log:\n{text}"));
+        let mut c = std::net::TcpStream::connect(addr).unwrap();
+        c.write_all(b"GET /metrics HTTP/1.0\r\n\r\n").unwrap();
+        let mut body = String::new();
+        c.read_to_string(&mut body).unwrap();
+        body
+    }
 }
 
 impl ChildNode {
     fn start(nats: &Nats, node_id: &str, scene_file: &std::path::Path, log: &std::path::Path) -> ChildNode {
         let mut child = Command::new(env!("CARGO_BIN_EXE_tofwave"))
             .args(["serve", "--listen", "127.0.0.1:0", "--cluster", &nats.url, "--node-id", node_id])
-            .args(["--subscriber-buffer", "65536", "--scene"])
+            .args(["--subscriber-buffer", "65536", "--metrics", "127.0.0.1:0", "--scene"])
             .arg(scene_file)
             .env("RUST_LOG", "tofwave=info")
             .stdout(Stdio::null())
@@ -118,7 +138,9 @@ impl ChildNode {
         loop {
             let text = std::fs::read_to_string(log).unwrap_or_default();
             if let Some(addr) = text.lines().find_map(|l| l.strip_prefix("tofwave: serving gRPC on ")) {
-                return ChildNode { child, url: format!("http://{}", addr.trim()) };
+                if text.contains("tofwave: serving Prometheus metrics on") {
+                    return ChildNode { child, url: format!("http://{}", addr.trim()), log: log.to_path_buf() };
+                }
             }
             if Instant::now() > deadline {
                 let _ = child.kill();
@@ -485,6 +507,20 @@ async fn kill_9_of_an_owner_moves_its_sensors_and_every_acked_frame_is_reported_
     }
     let log = std::fs::read_to_string(dir.path().join("a.log")).unwrap();
     assert!(log.contains("sensor claimed"), "{log}");
+    // A claimed B's sensors and rebuilt their state by replay.
+    let metrics = a.metrics();
+    for s in &b_sensors {
+        let claims = format!("tofwave_cluster_claims_total{{sensor=\"{s}\"}} 1");
+        assert!(metrics.contains(&claims), "no {claims} in\n{metrics}");
+        let replayed = metrics
+            .lines()
+            .find_map(|l| l.strip_prefix(&format!("tofwave_cluster_frames_replayed_total{{sensor=\"{s}\"}} ")))
+            .and_then(|v| v.trim().parse::<f64>().ok())
+            .unwrap_or(0.0);
+        assert!(replayed >= 100.0, "{s}: {replayed} frames replayed (B had reported about half of its 1200)");
+        println!("{s}: {replayed} frames replayed on a");
+    }
+    assert!(metrics.contains("tofwave_cluster_sensors_owned 8"), "{metrics}");
 }
 
 /// `tofwave bench --cluster`: both arms run and are timed, and the cluster

@@ -34,7 +34,7 @@ pub mod calibrate;
 pub mod capture;
 /// Static PNG/SVG plots of processed frames: trace, gates, threshold, detector output, returns.
 pub mod plot;
-/// gRPC services (the only module that knows tonic), fan-out, sessions, shutdown; the browser dashboard (HTTP, server-sent events).
+/// gRPC services (the only module that knows tonic), fan-out, sessions, shutdown; the browser dashboard (HTTP, server-sent events); cluster mode over NATS JetStream (`serve --cluster`, the only module that knows NATS).
 pub mod service;
 /// Work-precision report, numpy/scipy peer, service throughput and bandwidth yardstick (`tofwave bench`).
 pub mod bench;

@@ -151,6 +151,18 @@ struct BenchArgs {
     /// Soak: keep the scratch directory (recordings, state, server log) instead of deleting it.
     #[arg(long, requires = "soak")]
     soak_keep: bool,
+    /// Instead of the report: the cluster path's cost. Trials alternate a server on 127.0.0.1
+    /// alone (`serve`) and the same server joined to the NATS JetStream at URL
+    /// (`serve --cluster URL`, one node), one sensor pushing as fast as acknowledged; prints the
+    /// steady-state frames/s of each trial and their ratio (Markdown) and writes cluster.md to --out.
+    #[arg(long, value_name = "URL", conflicts_with_all = ["soak", "dashboard_only"])]
+    cluster: Option<String>,
+    /// With --cluster: frames per trial and arm (frames).
+    #[arg(long, value_name = "N", default_value_t = 8000, requires = "cluster")]
+    cluster_frames: usize,
+    /// With --cluster: trials per arm.
+    #[arg(long, value_name = "N", default_value_t = 3, requires = "cluster")]
+    cluster_trials: usize,
 }
 
 #[derive(Args, Debug)]
@@ -367,6 +379,9 @@ fn bench(a: BenchArgs) -> Result<i32> {
     if a.dashboard_only {
         return dashboard_cost(&a);
     }
+    if let Some(url) = &a.cluster {
+        return cluster_cost(&a, url);
+    }
     let scene = match &a.scene {
         Some(p) => Scene::load(p)?,
         None => bench::bench_scene(),
@@ -437,6 +452,28 @@ fn dashboard_cost(a: &BenchArgs) -> Result<i32> {
     );
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     std::fs::write(a.out.join("dashboard.md"), &md).with_context(|| format!("writing {}", a.out.join("dashboard.md").display()))?;
+    println!("{md}");
+    Ok(0)
+}
+
+fn cluster_cost(a: &BenchArgs, url: &str) -> Result<i32> {
+    use tofwave::bench::{self, BenchConfig};
+    if a.cluster_frames < 2 || a.cluster_trials == 0 {
+        bail!("--cluster-frames {} / --cluster-trials {}: give at least 2 frames and 1 trial", a.cluster_frames, a.cluster_trials);
+    }
+    eprintln!("tofwave bench: cluster path against single node, {} trials per arm ...", a.cluster_trials);
+    let reference = bench::reference_scene();
+    let snr_db = BenchConfig::default_run().reference_snr_db;
+    let cost = bench::measure_cluster_cost(&reference, snr_db, a.cluster_frames, a.cluster_trials, url)?;
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let md = format!(
+        "# Cluster path cost\n\nCommand: `tofwave {}`; {} CPUs.\n\n{}",
+        args.join(" "),
+        std::thread::available_parallelism().map_or(0, |n| n.get()),
+        cost.markdown()
+    );
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    std::fs::write(a.out.join("cluster.md"), &md).with_context(|| format!("writing {}", a.out.join("cluster.md").display()))?;
     println!("{md}");
     Ok(0)
 }

@@ -17,7 +17,7 @@ pub const FRAMES_RECEIVED: &str = "tofwave_frames_received_total";
 pub const FRAMES_PROCESSED: &str = "tofwave_frames_processed_total";
 /// Frames refused, per sensor and `reason` (`invalid_frame`, `sample_rate`,
 /// `samples_per_frame`, `missing_stop`, `pipeline`, `panic`, `oversize`, `sensor_limit`, `shutdown`,
-/// `recording`, `fault`).
+/// `recording`, `fault`, `cluster`: not persisted in JetStream).
 pub const FRAMES_REJECTED: &str = "tofwave_frames_rejected_total";
 /// Reports produced, per sensor.
 pub const REPORTS: &str = "tofwave_reports_total";
@@ -55,9 +55,17 @@ pub const FALSE_ALARM_CI95_LOW: &str = "tofwave_false_alarm_rate_ci95_low";
 /// Upper end of the observed rate's 95 % interval (`false_alarm.ci95[1]`), per sensor.
 pub const FALSE_ALARM_CI95_HIGH: &str = "tofwave_false_alarm_rate_ci95_high";
 
+/// Cluster mode (`serve --cluster`): sensors this node holds the lease of.
+pub const CLUSTER_SENSORS_OWNED: &str = "tofwave_cluster_sensors_owned";
+/// Cluster mode: sensors this node claimed (took over), per sensor.
+pub const CLUSTER_CLAIMS: &str = "tofwave_cluster_claims_total";
+/// Cluster mode: frames replayed to rebuild a sensor's state after a claim
+/// (processed without publishing), per sensor.
+pub const CLUSTER_FRAMES_REPLAYED: &str = "tofwave_cluster_frames_replayed_total";
+
 /// Every metric name above, for tests and dashboard checks. Histograms are
 /// exported as `<name>_bucket`, `<name>_sum` and `<name>_count`.
-pub const ALL_METRICS: [&str; 18] = [
+pub const ALL_METRICS: [&str; 21] = [
     FRAMES_RECEIVED,
     FRAMES_PROCESSED,
     FRAMES_REJECTED,
@@ -76,6 +84,9 @@ pub const ALL_METRICS: [&str; 18] = [
     FALSE_ALARM_DESIGN_RATE,
     FALSE_ALARM_CI95_LOW,
     FALSE_ALARM_CI95_HIGH,
+    CLUSTER_SENSORS_OWNED,
+    CLUSTER_CLAIMS,
+    CLUSTER_FRAMES_REPLAYED,
 ];
 
 /// Histogram buckets for [`PROCESSING_SECONDS`]: 10 µs to 10 s, roughly x3 steps.
@@ -123,7 +134,7 @@ pub fn prometheus_handle() -> PrometheusHandle {
 }
 
 /// Values of the `reason` label of [`FRAMES_REJECTED`].
-pub const REJECT_REASONS: [&str; 11] = [
+pub const REJECT_REASONS: [&str; 12] = [
     "invalid_frame",
     "sample_rate",
     "samples_per_frame",
@@ -135,6 +146,7 @@ pub const REJECT_REASONS: [&str; 11] = [
     "shutdown",
     "recording",
     "fault",
+    "cluster",
 ];
 
 /// One sensor's metric handles, kept by its session. Building a labelled
@@ -298,6 +310,19 @@ pub fn frames_rejected(sensor: &str, reason: &'static str, count: u64) {
 /// `sensor` became faulted (see [`SENSOR_FAULTED`]).
 pub fn sensor_faulted(sensor: &str) {
     metrics::gauge!(SENSOR_FAULTED, "sensor" => sensor_label(sensor)).set(1.0);
+}
+
+/// Cluster mode: this node claimed `sensor` (+1 owned) or let it go (-1).
+pub fn cluster_sensor_owned(sensor: &str, claimed: bool) {
+    if claimed {
+        metrics::counter!(CLUSTER_CLAIMS, "sensor" => sensor_label(sensor)).increment(1);
+    }
+    metrics::gauge!(CLUSTER_SENSORS_OWNED).increment(if claimed { 1.0 } else { -1.0 });
+}
+
+/// Cluster mode: `count` frames of `sensor` replayed after a claim.
+pub fn cluster_frames_replayed(sensor: &str, count: u64) {
+    metrics::counter!(CLUSTER_FRAMES_REPLAYED, "sensor" => sensor_label(sensor)).increment(count);
 }
 
 /// A subscriber fell behind and `skipped` reports were dropped for it.

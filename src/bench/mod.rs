@@ -7,6 +7,7 @@
 //! Everything here is driven by [`run`] (what `tofwave bench` calls); the
 //! pieces are public so that tests can run a tiny grid.
 
+mod cluster;
 mod grid;
 mod membw;
 mod output;
@@ -15,6 +16,7 @@ mod plot;
 mod service;
 mod soak;
 
+pub use cluster::{ClusterCost, measure_cluster_cost};
 pub use grid::{
     BenchConfig, CellStats, RocPoint, SnrSetting, Variant, analytic_crlb_range_m, bench_scene,
     offline_throughput, reference_frames, reference_scene, roc, run_grid, snr_scene, variants,

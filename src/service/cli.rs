@@ -92,6 +92,23 @@ pub struct ServeArgs {
     /// Reports retained per sensor for subscribers resuming from a sequence number, reports.
     #[arg(long, value_name = "REPORTS", default_value_t = 1024)]
     pub history_reports: usize,
+    /// Join a cluster over NATS JetStream (nats://HOST:PORT; comma-separate several servers):
+    /// frames pushed to any node are stored in JetStream (an ack means stored), each sensor is
+    /// processed by one node at a time, and Subscribe on any node sees every sensor's reports
+    /// (also on the NATS subjects tofwave.reports.<sensor>). Without it, nothing of this runs.
+    #[arg(long, value_name = "URL")]
+    pub cluster: Option<String>,
+    /// With --cluster: this node's id, unique in the cluster [default: the host name and process id].
+    #[arg(long, value_name = "ID", requires = "cluster")]
+    pub node_id: Option<String>,
+    /// With --cluster: a sensor whose owner stops renewing its lease (killed, cut off) moves to
+    /// another node after this long; leases are renewed every third of it, seconds.
+    #[arg(long, value_name = "SECONDS", default_value_t = super::cluster::DEFAULT_LEASE_TTL_S, requires = "cluster")]
+    pub lease_ttl_s: f64,
+    /// With --cluster: copies JetStream keeps of the streams and buckets this node creates
+    /// (1 for one NATS server; 3 for a 3-server NATS cluster, which then survives losing one).
+    #[arg(long, value_name = "N", default_value_t = 1, requires = "cluster")]
+    pub cluster_replicas: usize,
 }
 
 /// Client connection flags shared by replay and subscribe.
@@ -205,7 +222,35 @@ impl ServeArgs {
             }),
             _ => None,
         };
+        let cluster = match &self.cluster {
+            None => None,
+            Some(url) => {
+                if !(self.lease_ttl_s.is_finite() && (0.3..=3600.0).contains(&self.lease_ttl_s)) {
+                    anyhow::bail!("--lease-ttl-s {}: give a number of seconds from 0.3 to 3600", self.lease_ttl_s);
+                }
+                let node_id = match &self.node_id {
+                    Some(id) if id.trim().is_empty() => anyhow::bail!("--node-id: the id is empty"),
+                    Some(id) => id.clone(),
+                    None => {
+                        let host = std::fs::read_to_string("/etc/hostname")
+                            .ok()
+                            .map(|h| h.trim().to_string())
+                            .filter(|h| !h.is_empty())
+                            .or_else(|| std::env::var("HOSTNAME").ok())
+                            .unwrap_or_else(|| "node".into());
+                        format!("{host}-{}", std::process::id())
+                    }
+                };
+                Some(super::cluster::ClusterConfig {
+                    url: url.clone(),
+                    node_id,
+                    lease_ttl: std::time::Duration::from_secs_f64(self.lease_ttl_s),
+                    replicas: self.cluster_replicas.clamp(1, 5),
+                })
+            }
+        };
         Ok(ServerConfig {
+            cluster,
             scene,
             write_token: self.token.clone(),
             read_token: self.read_token.clone(),
@@ -254,6 +299,9 @@ pub async fn run_serve(args: ServeArgs) -> anyhow::Result<()> {
         .await
         .with_context(|| format!("binding {}", args.listen))?;
     eprintln!("tofwave: serving gRPC on {}", listener.local_addr()?);
+    if let Some(c) = &config.cluster {
+        eprintln!("tofwave: cluster node {:?} on NATS {} (lease {:?})", c.node_id, c.url, c.lease_ttl);
+    }
     match metrics_addr {
         Some(a) => eprintln!("tofwave: serving Prometheus metrics on http://{a}/metrics"),
         None => eprintln!("tofwave: no metrics endpoint (--metrics ADDR serves one)"),

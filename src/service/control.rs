@@ -87,6 +87,13 @@ impl grpc::control_server::Control for ControlService {
     ) -> Result<Response<proto::SceneDocument>, Status> {
         let req = request.into_inner();
         check_sensor_id(&req.sensor_id).map_err(status::invalid_field)?;
+        if let Some(c) = &self.shared.cluster {
+            // A scene set here would reach one node's edge and no owner.
+            return Err(Status::failed_precondition(format!(
+                "this server is a node of the cluster at {}: every sensor runs the scene the nodes were                  started with (--scene); change it there, on every node",
+                c.url()
+            )));
+        }
         let origin = if req.sensor_id.is_empty() {
             "SetScene(default)".to_string()
         } else {

@@ -23,6 +23,11 @@ pub struct Published {
     /// When it was published (server clock), ms since the Unix epoch: the
     /// dashboard measures how long a report takes to reach the screen.
     pub published_unix_ms: u64,
+    /// The report as it came off the wire, for reports another cluster node
+    /// processed (`serve --cluster`): then `report` holds only the sensor,
+    /// sequence numbers, time and returns, and subscribers get this message.
+    /// `None` for reports of this server's own pipelines.
+    pub wire: Option<proto::Report>,
 }
 
 impl Published {
@@ -30,6 +35,16 @@ impl Published {
     pub fn event(&self, min_snr_db: Option<f64>) -> proto::ReportEvent {
         // A NaN SNR never passes a threshold.
         let keep = |snr_db: f64, min: f64| snr_db >= min;
+        if let Some(w) = &self.wire {
+            let mut msg = w.clone();
+            if let Some(min) = min_snr_db
+                && msg.returns.iter().any(|r| !keep(r.snr_db, min))
+            {
+                msg.returns.retain(|x| keep(x.snr_db, min));
+                msg.json = filter_json_returns(&msg.json, min);
+            }
+            return proto::ReportEvent { event: Some(proto::report_event::Event::Report(msg)) };
+        }
         let msg = match min_snr_db {
             Some(min) if self.report.returns.iter().any(|r| !keep(r.snr_db, min)) => {
                 let mut r = self.report.clone();
@@ -43,6 +58,19 @@ impl Published {
             event: Some(proto::report_event::Event::Report(msg)),
         }
     }
+}
+
+/// A report's JSON line keeping only returns with `snr_db >= min` (a
+/// `null`, non-finite SNR never passes), re-serialised: the same fields and
+/// numbers, object keys in sorted order; a line that does not parse is kept.
+fn filter_json_returns(json: &str, min: f64) -> String {
+    let Ok(mut v) = serde_json::from_str::<serde_json::Value>(json) else {
+        return json.to_string();
+    };
+    if let Some(returns) = v.get_mut("returns").and_then(|r| r.as_array_mut()) {
+        returns.retain(|r| r.get("snr_db").and_then(|x| x.as_f64()).is_some_and(|x| x >= min));
+    }
+    serde_json::to_string(&v).unwrap_or_else(|_| json.to_string())
 }
 
 /// Fan-out and history.
@@ -84,11 +112,16 @@ impl Hub {
     /// Publishes a report to live subscribers and the history.
     pub fn publish(&self, report: Report) {
         let json = report_json(&report);
-        let p = Arc::new(Published {
+        self.publish_published(Arc::new(Published {
             report,
             json,
             published_unix_ms: super::session::unix_ms(),
-        });
+            wire: None,
+        }));
+    }
+
+    /// Publishes a report already rendered (a cluster node's report read from NATS).
+    pub fn publish_published(&self, p: Arc<Published>) {
         let mut g = lock(&self.inner);
         let cap = g.history_cap;
         if cap > 0 {

@@ -224,13 +224,23 @@ impl grpc::ingest_server::Ingest for IngestService {
     }
 }
 
-/// A frame in flight: where it came from and the pipeline's verdict to come.
+/// A frame in flight: where it came from and the verdict to come.
 struct Pending {
     index: usize,
     sensor: String,
     sequence: u64,
-    session: Arc<Session>,
-    verdict: oneshot::Receiver<Verdict>,
+    outcome: Outcome,
+}
+
+/// What a frame in flight waits for.
+enum Outcome {
+    /// The local pipeline's verdict.
+    Pipeline {
+        session: Arc<Session>,
+        verdict: oneshot::Receiver<Verdict>,
+    },
+    /// Cluster mode: JetStream's acknowledgement that the frame is stored.
+    Persisted(async_nats::jetstream::context::PublishAckFuture),
 }
 
 /// A batch whose frames are queued: the ack so far (edge rejections, gaps)
@@ -280,6 +290,28 @@ async fn start_batch(shared: &Shared, batch: proto::FrameBatch) -> PendingBatch 
         // Checked before a session exists: the id names its thread, files and metrics.
         if let Err(e) = wire::check_sensor_id(&msg.sensor_id) {
             reject(e.into(), None);
+            continue;
+        }
+        if let Some(cluster) = &shared.cluster {
+            // Cluster mode: checked against the scene every node runs, then
+            // stored in JetStream; the sensor's owner node processes it.
+            telemetry::frame_received(&sensor);
+            let checked = wire::frame_from_proto(msg)
+                .map_err(EdgeRejection::from)
+                .and_then(|f| check_against_scene(&f, &shared.sessions.default_scene()));
+            if let Err(r) = checked {
+                reject(r, None);
+                continue;
+            }
+            match cluster.publish_frame(&sensor, prost::Message::encode_to_vec(msg).into()).await {
+                Ok(ack) => pending.push(Pending { index, sensor, sequence, outcome: Outcome::Persisted(ack) }),
+                Err(message) => {
+                    reject(EdgeRejection { reason: "cluster", field: "sensor_id".into(), message }, None);
+                    if let Some(r) = ack.rejections.last_mut() {
+                        r.code = "UNAVAILABLE".into();
+                    }
+                }
+            }
             continue;
         }
         let session = match shared.sessions.get_or_start(&sensor) {
@@ -334,8 +366,7 @@ async fn start_batch(shared: &Shared, batch: proto::FrameBatch) -> PendingBatch 
                 index,
                 sensor,
                 sequence,
-                session,
-                verdict,
+                outcome: Outcome::Pipeline { session, verdict },
             }),
             Err(e) => {
                 let (reason, code) = match &e {
@@ -369,7 +400,25 @@ async fn finish_batch(batch: PendingBatch, totals: &mut StreamTotals) -> proto::
             code: "INTERNAL".into(),
             message,
         };
-        match p.verdict.await {
+        let (session, verdict) = match p.outcome {
+            Outcome::Pipeline { session, verdict } => (session, verdict),
+            Outcome::Persisted(stored) => {
+                match stored.await {
+                    Ok(_) => ack.accepted += 1,
+                    Err(e) => {
+                        telemetry::frames_rejected(&p.sensor, "cluster", 1);
+                        ack.rejections.push(proto::Rejection {
+                            sensor_id: p.sensor.clone(),
+                            sequence: p.sequence,
+                            code: "UNAVAILABLE".into(),
+                            message: format!("frames[{}]: not persisted: JetStream did not acknowledge it ({e})", p.index),
+                        });
+                    }
+                }
+                continue;
+            }
+        };
+        match verdict.await {
             Ok(Verdict::Processed) => ack.accepted += 1,
             Ok(Verdict::Refused(e)) => ack.rejections.push(proto::Rejection {
                 sensor_id: p.sensor.clone(),
@@ -389,8 +438,8 @@ async fn finish_batch(batch: PendingBatch, totals: &mut StreamTotals) -> proto::
             }),
             // The worker is gone (it cannot answer): not processed.
             Err(_) => {
-                p.session.metrics.frames_rejected("pipeline", 1);
-                p.session
+                session.metrics.frames_rejected("pipeline", 1);
+                session
                     .stats
                     .frames_rejected
                     .fetch_add(1, Ordering::Relaxed);

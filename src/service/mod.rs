@@ -16,6 +16,8 @@
 //!   (server-sent events from the same fan-out, waveform snapshots);
 //! - `status` is the one place that maps errors to gRPC `Status`;
 //! - [`state`](crate::service::state) persists scenes and noise models;
+//! - [`cluster`](crate::service::cluster): `serve --cluster`, nodes sharing
+//!   sensors over NATS JetStream (only reached when the flag is given);
 //! - [`client`](crate::service::client) is the library side of `tofwave replay`
 //!   and `tofwave subscribe` ([`cli`](crate::service::cli)).
 
@@ -33,6 +35,7 @@ pub mod grpc {
 pub mod auth;
 pub mod cli;
 pub mod client;
+pub mod cluster;
 pub mod control;
 pub mod dashboard;
 pub mod fanout;
@@ -96,6 +99,10 @@ pub struct ServerConfig {
     pub drain_timeout: std::time::Duration,
     /// What an ack promises about the recording; how often noise models are saved.
     pub durability: session::Durability,
+    /// Join a cluster over NATS JetStream (`serve --cluster`): frames go to
+    /// JetStream and the sensor's owner node processes them. `None`: this
+    /// server processes what it receives (the default; no NATS code runs).
+    pub cluster: Option<cluster::ClusterConfig>,
 }
 
 /// TLS identity in PEM.
@@ -127,6 +134,7 @@ impl Default for ServerConfig {
             record_dir: None,
             drain_timeout: std::time::Duration::from_secs(20),
             durability: session::Durability::default(),
+            cluster: None,
         }
     }
 }
@@ -154,6 +162,9 @@ pub enum ServiceError {
     /// A server task failed unexpectedly (a panic).
     #[error("internal: {0}")]
     Internal(String),
+    /// The cluster could not be joined.
+    #[error("cluster: {0}")]
+    Cluster(#[from] cluster::ClusterError),
     /// The reflection service could not be built from the descriptors.
     #[error("gRPC reflection: {0}")]
     Reflection(#[from] tonic_reflection::server::Error),
@@ -187,6 +198,9 @@ pub(crate) struct Shared {
     /// Long-lived tasks (ingest streams, subscriptions, the metrics
     /// endpoint): after the drain, `run` waits until every one has ended.
     pub(crate) tasks: TaskTracker,
+    /// The cluster this server is a node of (`serve --cluster`): ingest
+    /// publishes frames to JetStream instead of queueing them locally.
+    pub(crate) cluster: Option<Arc<cluster::Cluster>>,
 }
 
 /// Serves Ingest, Reports and Control (plus health and reflection) on
@@ -223,11 +237,25 @@ pub async fn run(
         config.durability,
         snapshots.clone(),
     )?;
+    // Cluster mode: join before serving, so the reports feed exists before
+    // the first subscriber; the node's work runs until the drain stops it.
+    let mut cluster_work = None;
+    let cluster = match &config.cluster {
+        None => None,
+        Some(c) => {
+            let node = cluster::Cluster::connect(c.clone(), config.scene.clone()).await?;
+            node.start_feed(hub.clone(), shutdown_begun.clone()).await?;
+            let stop = CancellationToken::new();
+            cluster_work = Some((stop.clone(), tokio::spawn(node.clone().run(stop))));
+            Some(node)
+        }
+    };
     let shared = Arc::new(Shared {
         sessions,
         hub: hub.clone(),
         shutdown: shutdown_begun.clone(),
         tasks: tasks.clone(),
+        cluster,
     });
 
     let auth = auth::Tokens::new(config.write_token.clone(), config.read_token.clone());
@@ -367,7 +395,7 @@ pub async fn run(
     let drain_begun = shutdown_begun.clone();
     let drainer = tokio::spawn(async move {
         drain_begun.cancelled().await;
-        drain(drain_shared).await
+        drain(drain_shared, cluster_work).await
     });
     drop(shared);
 
@@ -438,8 +466,17 @@ pub async fn run(
 /// `sessions.wait_ingest_idle`), then sessions close their
 /// queues and their workers process what is queued and flush, then the hub
 /// closes so subscribers receive the last reports and see their streams end.
-async fn drain(shared: Arc<Shared>) -> Result<(), ServiceError> {
+async fn drain(
+    shared: Arc<Shared>,
+    cluster_work: Option<(CancellationToken, tokio::task::JoinHandle<()>)>,
+) -> Result<(), ServiceError> {
     shared.sessions.wait_ingest_idle().await;
+    // Cluster mode: owners report the frames in hand and release their
+    // sensors (other nodes take them over at once); the node leaves.
+    if let Some((stop, work)) = cluster_work {
+        stop.cancel();
+        let _ = work.await;
+    }
     let result = shared.sessions.close_all().await;
     shared.hub.close();
     tracing::info!("shutdown: drained");

@@ -11,7 +11,7 @@ mod convert;
 mod report;
 
 pub use convert::{ConvertError, check_sensor_id, frame_from_proto, frame_to_proto};
-pub use report::{noise_from_proto, noise_to_proto, report_to_proto};
+pub use report::{noise_from_proto, noise_to_proto, report_from_json, report_to_proto};
 
 /// Generated message types of `tofwave.v1` (prost only; no tonic).
 #[allow(missing_docs, clippy::all)]

@@ -84,3 +84,110 @@ pub fn report_to_proto(r: &Report, json: String) -> proto::Report {
         json,
     }
 }
+
+/// A report on the wire from its JSON line (`pipeline::report_json`): the
+/// inverse of [`report_to_proto`] for what the JSON carries, which is every
+/// wire field (`json` is the line itself). A cluster node reads reports that
+/// other nodes published to NATS as JSON lines (readable by any NATS client)
+/// and serves them to its gRPC subscribers with this. Numbers round-trip
+/// exactly (shortest-representation floats); a non-finite number, written
+/// `null`, comes back as NaN.
+pub fn report_from_json(json: &str) -> Result<proto::Report, String> {
+    use serde_json::Value;
+    let v: Value = serde_json::from_str(json).map_err(|e| format!("not a JSON report: {e}"))?;
+    let obj = |v: &Value, field: &str| -> Result<Value, String> {
+        v.get(field).cloned().ok_or_else(|| format!("report JSON: no field {field:?}"))
+    };
+    let f = |v: &Value, field: &str| -> Result<f64, String> {
+        match v.get(field) {
+            Some(Value::Null) => Ok(f64::NAN),
+            Some(x) => x.as_f64().ok_or_else(|| format!("report JSON: {field} is not a number")),
+            None => Err(format!("report JSON: no field {field:?}")),
+        }
+    };
+    let u = |v: &Value, field: &str| -> Result<u64, String> {
+        v.get(field).and_then(Value::as_u64).ok_or_else(|| format!("report JSON: {field} is not an unsigned integer"))
+    };
+    let b = |v: &Value, field: &str| -> Result<bool, String> {
+        v.get(field).and_then(Value::as_bool).ok_or_else(|| format!("report JSON: {field} is not a boolean"))
+    };
+    let s = |v: &Value, field: &str| -> Result<String, String> {
+        v.get(field).and_then(Value::as_str).map(str::to_string).ok_or_else(|| format!("report JSON: {field} is not a string"))
+    };
+    let strings = |v: &Value, field: &str| -> Result<Vec<String>, String> {
+        v.get(field)
+            .and_then(Value::as_array)
+            .ok_or_else(|| format!("report JSON: {field} is not a list"))?
+            .iter()
+            .map(|x| x.as_str().map(str::to_string).ok_or_else(|| format!("report JSON: {field} holds a non-string")))
+            .collect()
+    };
+    let noise = obj(&v, "noise")?;
+    let det = obj(&v, "detector")?;
+    let fa = obj(&v, "false_alarm")?;
+    let ci = fa.get("ci95").and_then(Value::as_array).ok_or("report JSON: false_alarm.ci95 is not a list")?;
+    let ci_at = |i: usize| match ci.get(i) {
+        Some(Value::Null) => Ok(f64::NAN),
+        Some(x) => x.as_f64().ok_or_else(|| "report JSON: false_alarm.ci95 holds a non-number".to_string()),
+        None => Err("report JSON: false_alarm.ci95 has fewer than 2 numbers".to_string()),
+    };
+    let returns = v
+        .get("returns")
+        .and_then(Value::as_array)
+        .ok_or("report JSON: returns is not a list")?
+        .iter()
+        .map(|r| {
+            Ok(proto::Return {
+                range_m: f(r, "range_m")?,
+                range_sigma_m: f(r, "range_sigma_m")?,
+                tof_s: f(r, "tof_s")?,
+                amplitude_v: f(r, "amplitude_v")?,
+                snr_db: f(r, "snr_db")?,
+                score: f(r, "score")?,
+                pd: f(r, "pd")?,
+                t_stop_s: f(r, "t_stop_s")?,
+                flags: strings(r, "flags")?,
+            })
+        })
+        .collect::<Result<Vec<_>, String>>()?;
+    Ok(proto::Report {
+        sensor: s(&v, "sensor")?,
+        seq_first: u(&v, "seq_first")?,
+        seq_last: u(&v, "seq_last")?,
+        frames_averaged: u32::try_from(u(&v, "frames_averaged")?).map_err(|_| "report JSON: frames_averaged is too large")?,
+        time_s: f(&v, "time_s")?,
+        stages: strings(&v, "stages")?,
+        noise: Some(proto::NoiseModel {
+            mean_v: f(&noise, "mean_v")?,
+            sigma_v: f(&noise, "sigma_v")?,
+            skewness: f(&noise, "skewness")?,
+            excess_kurtosis: f(&noise, "excess_kurtosis")?,
+            gaussian: b(&noise, "gaussian")?,
+            normality_p_value: f(&noise, "normality_p_value")?,
+            robust_sigma_v: f(&noise, "robust_sigma_v")?,
+            samples: u(&noise, "samples")?,
+            contaminated: b(&noise, "contaminated")?,
+        }),
+        detector: Some(proto::Detector {
+            kind: s(&det, "kind")?,
+            pfa_design: f(&det, "pfa_design")?,
+            threshold: f(&det, "threshold")?,
+            pfa_cell: f(&det, "pfa_cell")?,
+            cells_effective: f(&det, "cells_effective")?,
+        }),
+        false_alarm: Some(proto::FalseAlarmStats {
+            expected_per_frame: f(&fa, "expected_per_frame")?,
+            observed: u(&fa, "observed")?,
+            cells: f(&fa, "cells")?,
+            rate: f(&fa, "rate")?,
+            ci95_low: ci_at(0)?,
+            ci95_high: ci_at(1)?,
+            excess: b(&fa, "excess")?,
+        }),
+        returns,
+        t_start_s: f(&v, "t_start_s")?,
+        t_start_sigma_s: f(&v, "t_start_sigma_s")?,
+        flags: strings(&v, "flags")?,
+        json: json.to_string(),
+    })
+}

@@ -113,3 +113,22 @@ fn all_metrics_lists_every_metric_name_defined() {
     }
     assert_eq!(defined.len(), ALL_METRICS.len(), "{defined:?}");
 }
+
+/// The scale-out compose file: three NATS servers routed to each other with
+/// JetStream, three tofwave nodes with distinct ids, each given every NATS
+/// server and three replicas, each reachable on its own gRPC port.
+#[test]
+fn cluster_compose_joins_three_nodes_to_three_nats_servers() {
+    let compose = deploy("docker-compose.cluster.yml");
+    let conf = deploy("config/nats.conf");
+    assert!(conf.contains("jetstream") && conf.contains("store_dir: /data"), "{conf}");
+    for n in 1..=3 {
+        assert!(conf.contains(&format!("nats://nats-{n}:6222")), "nats.conf routes lack nats-{n}");
+        assert!(compose.contains(&format!("\"--name\", \"nats-{n}\"")), "no NATS server nats-{n}");
+        assert!(compose.contains(&format!("\"--node-id\", \"tofwave-{n}\"")), "no tofwave node tofwave-{n}");
+        assert!(compose.contains(&format!("\"5005{n}:50051\"")), "tofwave-{n} publishes no gRPC port");
+    }
+    let all = "\"--cluster\", \"nats://nats-1:4222,nats://nats-2:4222,nats://nats-3:4222\"";
+    assert_eq!(compose.matches(all).count(), 3, "every node is given every NATS server");
+    assert_eq!(compose.matches("\"--cluster-replicas\", \"3\"").count(), 3);
+}

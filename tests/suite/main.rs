@@ -13,6 +13,7 @@ mod capture;
 mod captures_scene;
 mod cfar;
 mod cli;
+mod cluster;
 mod dashboard;
 mod coverage;
 mod denoise;

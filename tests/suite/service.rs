@@ -120,19 +120,19 @@ fn test_frame(sensor: &str, seq: u64, rng: &mut ChaCha8Rng) -> Frame {
     }
 }
 
-fn frames(sensor: &str, seqs: std::ops::Range<u64>, seed: u64) -> Vec<Frame> {
+pub(crate) fn frames(sensor: &str, seqs: std::ops::Range<u64>, seed: u64) -> Vec<Frame> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     seqs.map(|s| test_frame(sensor, s, &mut rng)).collect()
 }
 
-fn batch(frames: &[Frame]) -> proto::FrameBatch {
+pub(crate) fn batch(frames: &[Frame]) -> proto::FrameBatch {
     proto::FrameBatch {
         frames: frames.iter().map(frame_to_proto).collect(),
     }
 }
 
 /// Runs frames through `Pipeline` directly: the reference for server output.
-fn direct_reports(scene: &Scene, frames: &[Frame]) -> Vec<String> {
+pub(crate) fn direct_reports(scene: &Scene, frames: &[Frame]) -> Vec<String> {
     let mut by_sensor: Vec<(String, tofwave::pipeline::Pipeline)> = Vec::new();
     let mut out = Vec::new();
     let mut reports = Vec::new();

@@ -499,6 +499,7 @@ mod tests {
                 },
                 json: String::new(),
                 published_unix_ms: 0,
+                wire: None,
             })
         };
         let backlog = vec![p("a", 0), p("a", 1), p("a", 2), p("b", 0)];

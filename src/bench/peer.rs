@@ -426,7 +426,11 @@ fn run_row(
             reports = r;
         }
         let _ = std::fs::remove_file(&out_path);
+        // One core, as tofwave's side: no BLAS or OpenMP threads.
         let o = Command::new(python)
+            .env("OPENBLAS_NUM_THREADS", "1")
+            .env("OMP_NUM_THREADS", "1")
+            .env("MKL_NUM_THREADS", "1")
             .arg(&script)
             .arg(&header_path)
             .arg(&out_path)

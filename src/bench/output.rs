@@ -178,7 +178,7 @@ pub fn markdown(res: &BenchResults, opts: &RunOptions) -> String {
         Some(PeerOutcome::Ran(p)) => {
             let _ = writeln!(
                 md,
-                "| ≥ 10× the stage-matched, batched numpy/scipy peer; ranges within 0.1 σ | peer {:.1} µs/frame, tofwave {:.1} µs/frame: **{:.2}×**; |Δrange|/σ max {:.3} | {} |",
+                "| ≥ 10× the stage-matched, batched numpy/scipy peer; ranges within 0.1 σ | peer {:.1} µs/frame, tofwave {:.1} µs/frame: **{:.2}×**; \\|Δrange\\|/σ max {:.3} | {} |",
                 p.full.peer_ns_per_frame / 1e3,
                 p.full.rust_ns_per_frame / 1e3,
                 p.speed_ratio(),

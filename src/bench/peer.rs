@@ -171,7 +171,7 @@ impl PeerComparison {
         );
         let _ = writeln!(
             md,
-            "| row | tofwave | peer | peer / tofwave | returns (tofwave / peer / matched) | |Δrange|/σ p99 | max | median |Δrange| |\n|---|---|---|---|---|---|---|---|"
+            "| row | tofwave | peer | peer / tofwave | returns (tofwave / peer / matched) | \\|Δrange\\|/σ p99 | max | median \\|Δrange\\| |\n|---|---|---|---|---|---|---|---|"
         );
         for r in [&self.full, &self.minimal] {
             let _ = writeln!(

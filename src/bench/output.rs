@@ -178,24 +178,25 @@ pub fn markdown(res: &BenchResults, opts: &RunOptions) -> String {
         Some(PeerOutcome::Ran(p)) => {
             let _ = writeln!(
                 md,
-                "| ≥ 25× faster than numpy/scipy peer | peer {:.1} µs/frame, tofwave {:.2} µs/frame: **{:.1}×** | {} |",
-                p.peer_ns_per_frame / 1e3,
-                p.rust_ns_per_frame / 1e3,
+                "| ≥ 10× the stage-matched, batched numpy/scipy peer; ranges within 0.1 σ | peer {:.1} µs/frame, tofwave {:.1} µs/frame: **{:.2}×**; \\|Δrange\\|/σ max {:.3} | {} |",
+                p.full.peer_ns_per_frame / 1e3,
+                p.full.rust_ns_per_frame / 1e3,
                 p.speed_ratio(),
-                verdict(p.speed_ratio() >= 25.0)
+                p.full.max_over_sigma,
+                verdict(p.speed_ratio() >= 10.0 && p.agree())
             );
         }
         Some(PeerOutcome::Failed(why)) => {
             let _ = writeln!(
                 md,
-                "| ≥ 25× faster than numpy/scipy peer | peer did not run: {} | not measured |",
+                "| ≥ 10× the stage-matched, batched numpy/scipy peer | peer did not run: {} | not measured |",
                 why.replace('|', "/").replace('\n', " ")
             );
         }
         None => {
             let _ = writeln!(
                 md,
-                "| ≥ 25× faster than numpy/scipy peer | skipped (--no-peer) | not measured |"
+                "| ≥ 10× the stage-matched, batched numpy/scipy peer | skipped (--no-peer) | not measured |"
             );
         }
     }
@@ -249,37 +250,7 @@ pub fn markdown(res: &BenchResults, opts: &RunOptions) -> String {
         let _ = writeln!(md, "## numpy/scipy peer\n");
         match peer {
             PeerOutcome::Ran(p) => {
-                let _ = writeln!(
-                    md,
-                    "The same {} reference frames through `bench/peer/peer.py` ({}). Per-frame time excludes \
-                     file reading on both sides; tofwave also times the start channel, which the peer does not.\n",
-                    p.frames, p.peer_versions
-                );
-                let _ = writeln!(md, "| | tofwave | peer |\n|---|---|---|");
-                let _ = writeln!(
-                    md,
-                    "| time per frame | {:.2} µs | {:.1} µs |",
-                    p.rust_ns_per_frame / 1e3,
-                    p.peer_ns_per_frame / 1e3
-                );
-                let _ = writeln!(md, "| returns | {} | {} |", p.rust_returns, p.peer_returns);
-                let _ = writeln!(
-                    md,
-                    "\nSpeed ratio (peer / tofwave per frame): **{:.1}×**. Frames where both found the return: {}; \
-                     |Δt_stop| median {:.3} ns, max {:.3} ns = {:.2} × the report's timing sigma; \
-                     within 3 sigma: {:.1} % ({}).\n",
-                    p.speed_ratio(),
-                    p.matched,
-                    p.median_abs_delta_s * 1e9,
-                    p.max_abs_delta_s * 1e9,
-                    p.max_delta_over_sigma,
-                    100.0 * p.within_3_sigma_fraction,
-                    if p.agree() {
-                        "ranges agree within the estimators' precision"
-                    } else {
-                        "**ranges disagree**"
-                    }
-                );
+                md.push_str(&p.markdown());
             }
             PeerOutcome::Failed(why) => {
                 let _ = writeln!(

@@ -104,6 +104,57 @@ pub struct EventTest {
     band: Option<(usize, Vec<f64>)>,
     /// The step-1 statistic's distribution under noise, learned from the gates.
     null: EmpiricalNull,
+    /// Pulse values and slopes at the samples of the detections judged lately.
+    pulses: PulseCache,
+}
+
+/// The pulse's (value, slope) at every sample of its support, for each peak
+/// position asked for lately: a frame's detections are judged one by one and
+/// each judgement needs the pulses of all those reaching its window, so
+/// without this every pulse would be evaluated once per reaching detection.
+#[derive(Debug, Clone, Default)]
+struct PulseCache {
+    /// (peak bits, first sample, offset into `vals`, samples).
+    keys: Vec<(u64, i64, usize, usize)>,
+    /// (value, slope) pairs.
+    vals: Vec<(f64, f64)>,
+}
+
+impl PulseCache {
+    /// Peaks kept before the cache starts again (a frame's detections are at most a few dozen).
+    const CAPACITY: usize = 64;
+
+    /// The first sample of the pulse at `p` and its (value, slope) from there
+    /// to the end of its support: `pulse.value_and_slope(j as f64 - p)` for
+    /// each sample j.
+    fn get(&mut self, pulse: &Shape, p: f64) -> (i64, &[(f64, f64)]) {
+        let key = p.to_bits();
+        let at = match self.keys.iter().position(|k| k.0 == key) {
+            Some(i) => i,
+            None => {
+                if self.keys.len() >= Self::CAPACITY {
+                    self.keys.clear();
+                    self.vals.clear();
+                }
+                let (lo, hi) = pulse.support();
+                let (a, b) = ((p + lo).ceil() as i64, (p + hi).floor() as i64);
+                // Grown once, in full: later peaks allocate nothing.
+                if self.keys.capacity() < Self::CAPACITY {
+                    self.keys.reserve(Self::CAPACITY);
+                }
+                let need = Self::CAPACITY * ((hi - lo).ceil() as usize + 2);
+                if self.vals.capacity() < need {
+                    self.vals.reserve(need - self.vals.len());
+                }
+                let off = self.vals.len();
+                self.vals.extend((a..=b).map(|j| pulse.value_and_slope(j as f64 - p)));
+                self.keys.push((key, a, off, self.vals.len() - off));
+                self.keys.len() - 1
+            }
+        };
+        let (_, a, off, n) = self.keys[at];
+        (a, &self.vals[off..off + n])
+    }
 }
 
 /// Band energy of noise-gate windows (in σ²), the last [`NULL_CAP`] of
@@ -175,7 +226,7 @@ impl EventTest {
         let basis = &mut self.basis;
         basis.reset(band, len, &self.xw);
         for &p in peaks.iter().filter(|&&p| reaches(p)) {
-            basis.push_pulse(band, len, &self.xw, pulse, p, first);
+            basis.push_pulse(band, len, &self.xw, self.pulses.get(pulse, p), first);
         }
         let pulses_alone = basis.energy();
         for j in 0..bands {
@@ -200,9 +251,9 @@ impl EventTest {
             basis.push(band, len, &self.xw, Col::Band(j));
         }
         for &p in peaks.iter().filter(|&&p| p != c && reaches(p)) {
-            basis.push_pulse(band, len, &self.xw, pulse, p, first);
+            basis.push_pulse(band, len, &self.xw, self.pulses.get(pulse, p), first);
         }
-        let (num, var) = basis.off_span(band, len, &self.xw, pulse, c, first, noise.rho, &mut self.col);
+        let (num, var) = basis.off_span(band, len, &self.xw, self.pulses.get(pulse, c), first, noise.rho, &mut self.col);
         let z = if var > 0.0 { num / (sigma * var.sqrt()) } else { 0.0 };
         if z > threshold { Verdict::ReturnWithEvent(z) } else { Verdict::Event(z) }
     }
@@ -481,22 +532,15 @@ impl Basis {
         self.cols.push(a);
     }
 
-    /// Appends the pulse at peak `p` (and its slope) as sparse columns over
-    /// its support within the window `first..first + len`.
-    fn push_pulse(&mut self, band: &[f64], len: usize, xw: &[f64], pulse: &Shape, p: f64, first: usize) {
-        let (lo, hi) = pulse.support();
-        let a = ((p + lo).ceil() - first as f64).max(0.0);
-        let b = ((p + hi).floor() - first as f64).min(len as f64 - 1.0);
-        if !(b >= a) {
-            return;
-        }
-        let (start, n) = (a as usize, (b - a) as usize + 1);
+    /// Appends the pulse (and its slope) as sparse columns over its support
+    /// within the window `first..first + len`; `pulse` is the first sample
+    /// of the support and the (value, slope) from there ([`PulseCache::get`]).
+    fn push_pulse(&mut self, band: &[f64], len: usize, xw: &[f64], pulse: (i64, &[(f64, f64)]), first: usize) {
+        let Some((start, values)) = clip(pulse, first, len) else { return };
+        let n = values.len();
         for d in 0..2 {
             let off = self.vals.len();
-            self.vals.extend((0..n).map(|i| {
-                let (v, s) = pulse.value_and_slope((first + start + i) as f64 - p);
-                if d == 0 { v } else { s }
-            }));
+            self.vals.extend(values.iter().map(|&(v, s)| if d == 0 { v } else { s }));
             self.push(band, len, xw, Col::Sparse { start, off, len: n });
         }
     }
@@ -508,18 +552,13 @@ impl Basis {
     // place, and the noise colour are all needed; a struct for one private
     // call would only rename them.
     #[allow(clippy::too_many_arguments)]
-    fn off_span(&mut self, band: &[f64], len: usize, xw: &[f64], pulse: &Shape, c: f64, first: usize, rho: &[f64], q: &mut Vec<f64>) -> (f64, f64) {
+    fn off_span(&mut self, band: &[f64], len: usize, xw: &[f64], pulse: (i64, &[(f64, f64)]), first: usize, rho: &[f64], q: &mut Vec<f64>) -> (f64, f64) {
         q.clear();
         q.resize(len, 0.0);
-        let (lo, hi) = pulse.support();
-        let a = ((c + lo).ceil() - first as f64).max(0.0);
-        let b = ((c + hi).floor() - first as f64).min(len as f64 - 1.0);
-        if !(b >= a) {
-            return (0.0, 0.0);
-        }
-        let (start, n) = (a as usize, (b - a) as usize + 1);
+        let Some((start, values)) = clip(pulse, first, len) else { return (0.0, 0.0) };
+        let n = values.len();
         let off = self.vals.len();
-        self.vals.extend((0..n).map(|i| pulse.value_and_slope((first + start + i) as f64 - c).0));
+        self.vals.extend(values.iter().map(|v| v.0));
         let col = Col::Sparse { start, off, len: n };
         let (d2, _) = self.project(band, len, col);
         if !(d2 > 0.0) {
@@ -563,6 +602,15 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
 }
 
 /// Σ (q_jᵀv)² over the orthonormal columns of `q`: the energy of `v` in their span.
+/// The part of a cached pulse ([`PulseCache::get`]) inside the window
+/// `first..first + len`: its start in the window and its (value, slope) there.
+fn clip(pulse: (i64, &[(f64, f64)]), first: usize, len: usize) -> Option<(usize, &[(f64, f64)])> {
+    let (a, values) = pulse;
+    let lo = a.max(first as i64);
+    let hi = (a + values.len() as i64).min((first + len) as i64);
+    (hi > lo).then(|| ((lo - first as i64) as usize, &values[(lo - a) as usize..(hi - a) as usize]))
+}
+
 fn energy(q: &[f64], len: usize, v: &[f64]) -> f64 {
     q.chunks_exact(len).map(|col| col.iter().zip(v).map(|(a, b)| a * b).sum::<f64>().powi(2)).sum()
 }

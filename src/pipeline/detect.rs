@@ -403,6 +403,10 @@ impl TCache {
         if self.solved.len() >= Self::CAPACITY {
             self.solved.clear();
         }
+        // Grown once, in full: later insertions allocate nothing.
+        if self.solved.capacity() < Self::CAPACITY {
+            self.solved.reserve(Self::CAPACITY);
+        }
         self.solved.insert(key, t);
         t
     }
@@ -488,6 +492,9 @@ impl FalseAlarmCounter {
                 let m = crossing_moments(t, kappa, gate);
                 if self.moments.len() >= TCache::CAPACITY {
                     self.moments.clear();
+                }
+                if self.moments.capacity() < TCache::CAPACITY {
+                    self.moments.reserve(TCache::CAPACITY);
                 }
                 self.moments.insert(key, m);
                 m

@@ -40,5 +40,6 @@ mod seedgen_check;
 mod service;
 mod soak;
 mod stability;
+mod threads;
 mod walk;
 mod whiten;

@@ -1,0 +1,69 @@
+//! One sensor on several threads (`pipeline::threaded`, `process --threads`):
+//! the reports must be bit-identical to one thread's, whatever the cut,
+//! with averaging groups, refused frames and the final flush.
+
+use crate::common::tofwave_ok;
+use std::path::PathBuf;
+use tofwave::capture::{self, ReadOptions};
+use tofwave::frame::Frame;
+use tofwave::pipeline::{report_json, threaded};
+use tofwave::scene::Scene;
+
+/// 700 frames of the default (prototype) scene: past the 400 frames the
+/// threaded run spends on one thread choosing its cut.
+fn simulated(dir: &tempfile::TempDir) -> Vec<Frame> {
+    let path = dir.path().join("sim.twr");
+    tofwave_ok(&["simulate", "--frames", "700", "--seed", "11", "--out", path.to_str().unwrap()]);
+    let opts = ReadOptions { sensor_id: "t".into(), ..ReadOptions::default() };
+    capture::frames(&[PathBuf::from(&path)], &opts).unwrap().map(|f| f.unwrap()).collect()
+}
+
+/// Every outcome as text: each report's JSON, or the refusal's message.
+fn run(scene: &Scene, frames: &[Frame], threads: usize) -> (Vec<String>, threaded::Cut) {
+    let mut lines = Vec::new();
+    let cut = threaded::run(scene, "t", threads, frames.to_vec(), |o| {
+        lines.extend(o.reports.iter().map(report_json));
+        if let Err(e) = o.result {
+            lines.push(format!("refused: {e}"));
+        }
+        lines.push("--".into());
+    });
+    (lines, cut)
+}
+
+#[test]
+fn threaded_reports_are_bit_identical_to_one_thread() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut frames = simulated(&dir);
+    // Two bad frames, one in the single-thread pilot and one after it.
+    for k in [50, 600] {
+        frames[k].sample_interval_s = -1.0;
+    }
+    for average in [1u32, 3] {
+        let mut scene = Scene::default_scene();
+        scene.averaging.frames = average;
+        let (one, _) = run(&scene, &frames, 1);
+        assert!(one.iter().filter(|l| l.starts_with("refused")).count() == 2, "the bad frames are refused");
+        assert!(one.iter().filter(|l| l.starts_with('{')).count() >= 700 / average as usize - 2);
+        for threads in [2, 3, 8] {
+            let (many, cut) = run(&scene, &frames, threads);
+            assert_eq!(cut.segments.len(), threads.min(cut.segments.iter().map(Vec::len).sum()), "{cut}");
+            assert_eq!(many.len(), one.len(), "average {average}, {threads} threads ({cut})");
+            for (i, (a, b)) in one.iter().zip(&many).enumerate() {
+                assert_eq!(a, b, "average {average}, {threads} threads ({cut}): outcome line {i} differs");
+            }
+        }
+    }
+}
+
+#[test]
+fn process_threads_flag_gives_the_same_output() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("sim.twr");
+    tofwave_ok(&["simulate", "--frames", "500", "--seed", "5", "--out", path.to_str().unwrap()]);
+    let p = path.to_str().unwrap();
+    let one = tofwave_ok(&["process", "-i", p, "--threads", "1"]);
+    let two = tofwave_ok(&["process", "-i", p, "--threads", "2"]);
+    assert_eq!(one.lines().count(), 500);
+    assert!(one == two, "process --threads 2 differs from --threads 1");
+}

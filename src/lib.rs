@@ -26,7 +26,7 @@ pub mod scene;
 pub mod detect;
 /// Link budget, photodetector chain, noise sources, scene simulator.
 pub mod physics;
-/// Stage trait, stages built from a scene, per-sensor pipeline.
+/// Stage trait, stages built from a scene, per-sensor pipeline (and `threaded`: one sensor's stages cut over threads).
 pub mod pipeline;
 /// System-delay (and walk-table) calibration from reports of a target at a known range.
 pub mod calibrate;

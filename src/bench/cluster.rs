@@ -22,6 +22,7 @@ use crate::service::client::{self, ClientOptions};
 use crate::service::cluster::{Cluster, ClusterConfig};
 use crate::service::{ServerConfig, run};
 use crate::wire::frame_to_proto;
+use super::service::median;
 use crate::wire::proto::{self, report_event::Event};
 
 /// Frames per `FrameBatch` of the load generator.
@@ -43,16 +44,6 @@ pub struct ClusterCost {
     /// Seconds from the first frame sent to the first report, cluster arm, per trial
     /// (the new sensor is noticed and claimed in this time).
     pub cluster_first_report_s: Vec<f64>,
-}
-
-fn median(v: &[f64]) -> f64 {
-    let mut v = v.to_vec();
-    v.sort_by(f64::total_cmp);
-    match v.len() {
-        0 => f64::NAN,
-        n if n % 2 == 1 => v[n / 2],
-        n => 0.5 * (v[n / 2 - 1] + v[n / 2]),
-    }
 }
 
 impl ClusterCost {

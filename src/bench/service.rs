@@ -213,7 +213,8 @@ pub struct DashboardCost {
     pub with_seconds: f64,
 }
 
-fn median(v: &[f64]) -> f64 {
+/// Median of `v` (NaN when empty); the bench's trial summaries share it.
+pub(super) fn median(v: &[f64]) -> f64 {
     let mut v = v.to_vec();
     v.sort_by(f64::total_cmp);
     match v.len() {

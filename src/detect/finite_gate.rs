@@ -183,14 +183,7 @@ impl GateVariance {
             return t_quantile_from_z(u, self.nu);
         }
         let target = ln_q(u);
-        let ln_tail = |t: f64| {
-            let mut terms = [f64::NEG_INFINITY; NODES];
-            for (v, (s, w)) in terms.iter_mut().zip(self.nodes()) {
-                *v = w.ln() + ln_q(t * s);
-            }
-            let top = terms.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-            top + terms.iter().map(|v| (v - top).exp()).sum::<f64>().ln()
-        };
+        let ln_tail = |t: f64| self.ln_tail(t);
         // The tail at t = u is above Q(u) (σ̂ is sometimes small); double until below.
         let (mut lo, mut hi) = (u, 2.0 * u);
         while ln_tail(hi) > target && hi < 1e3 {
@@ -236,6 +229,18 @@ impl GateVariance {
             // Interpolated within the last bracket.
             hi - fhi * (hi - lo) / (fhi - flo)
         }
+    }
+}
+
+impl GateVariance {
+    /// ln P(output > t σ̂), averaged over the gate's σ̂ (the quadrature t_for solves on).
+    fn ln_tail(&self, t: f64) -> f64 {
+        let mut terms = [f64::NEG_INFINITY; NODES];
+        for (v, (s, w)) in terms.iter_mut().zip(self.nodes()) {
+            *v = w.ln() + ln_q(t * s);
+        }
+        let top = terms.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        top + terms.iter().map(|v| (v - top).exp()).sum::<f64>().ln()
     }
 }
 
@@ -393,11 +398,7 @@ mod tests {
         // from 2 to 7 sigma.
         fn bisected(g: GateVariance, u: f64) -> f64 {
             let target = ln_q(u);
-            let ln_tail = |t: f64| {
-                let terms: Vec<f64> = g.nodes().map(|(s, w)| w.ln() + ln_q(t * s)).collect();
-                let top = terms.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-                top + terms.iter().map(|v| (v - top).exp()).sum::<f64>().ln()
-            };
+            let ln_tail = |t: f64| g.ln_tail(t);
             let (mut lo, mut hi) = (u, 2.0 * u);
             while ln_tail(hi) > target && hi < 1e3 {
                 lo = hi;

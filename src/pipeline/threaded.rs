@@ -9,8 +9,9 @@
 //! model, the pooled colour, the false-alarm counters, the timing floor) is
 //! updated in frame order on one thread, and the reports are bit-identical to
 //! the single-thread run whatever the cut. What the cut changes is only how
-//! fast: the slowest segment sets the pace. The cut is chosen from the stage
-//! times measured on the first frames (a pilot run on a throwaway pipeline).
+//! fast: the slowest segment sets the pace. The first frames run on the
+//! calling thread, the later of them timed stage by stage, and the cut that
+//! balances those times best is used for the rest.
 //!
 //! Units that finish (their report went out, or averaging consumed them) go
 //! back to segment 0, whose validate stage reuses their buffers.
@@ -169,7 +170,7 @@ where
             let spare_tx = spare_tx.clone();
             match head.take() {
                 Some((validate, spare, spare_rx, frames_rx)) => {
-                    s.spawn(move || head_segment(validate, spare, spare_rx, frames_rx, group, tx, spare_tx));
+                    s.spawn(move || head_segment(validate, spare, spare_rx, frames_rx, group, tx));
                 }
                 None => {
                     let from = input.take().expect("an earlier segment");
@@ -180,15 +181,14 @@ where
         }
         // The collector: units become reports; their buffers go back to the head.
         let from = input.expect("at least one segment");
-        let mut flushed = Vec::new();
+        let (mut flushed, mut back) = (Vec::new(), Vec::new());
         while let Ok(msgs) = from.recv() {
             for msg in msgs {
                 match msg {
                     Msg::Push(inflight) => {
                         let mut reports = Vec::with_capacity(inflight.units.len());
-                        let mut back = Vec::with_capacity(inflight.units.len());
                         reports.extend(inflight.units.into_iter().map(|w| finish(w, &mut back)));
-                        back.into_iter().for_each(|w| drop(spare_tx.send(w)));
+                        back.drain(..).for_each(|w| drop(spare_tx.send(w)));
                         if inflight.flush {
                             flushed.extend(reports);
                         } else {
@@ -257,7 +257,6 @@ fn head_segment(
     frames: Receiver<Vec<Frame>>,
     mut stages: Vec<Box<dyn Stage>>,
     out: SyncSender<Vec<Msg>>,
-    _spare_tx: Sender<Work>,
 ) {
     let mut leaving = Vec::new();
     while let Ok(chunk) = frames.recv() {

@@ -11,6 +11,8 @@ pub mod stats;
 pub mod linalg;
 /// Lag-product sums and the pooled autocovariance accumulator.
 pub mod autocov;
+/// Roots of monotone functions: Illinois false position from a bracket or a guess.
+pub mod roots;
 /// Selection: median, high median, trimmed mean, MAD sigma.
 pub mod select;
 /// Robust sigma of samples on a quantisation grid (where the MAD is itself quantised).

@@ -163,6 +163,19 @@ struct BenchArgs {
     /// With --cluster: trials per arm.
     #[arg(long, value_name = "N", default_value_t = 3, requires = "cluster")]
     cluster_trials: usize,
+    /// Instead of the report: one sensor on N threads against one thread, offline (`process
+    /// --threads N`) and in a loopback service (`serve --workers-per-sensor N`), on the same
+    /// simulated frames of the default scene (or --scene), trials alternating the four arms;
+    /// prints steady-state frames/s and the ratios (Markdown) and writes threads.md to --out.
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(2..=64),
+          conflicts_with_all = ["soak", "dashboard_only", "cluster"])]
+    threads: Option<u32>,
+    /// With --threads: frames per trial and arm (frames).
+    #[arg(long, value_name = "N", default_value_t = 6000, requires = "threads")]
+    threads_frames: usize,
+    /// With --threads: trials per arm.
+    #[arg(long, value_name = "N", default_value_t = 3, requires = "threads")]
+    threads_trials: usize,
 }
 
 #[derive(Args, Debug)]
@@ -382,6 +395,9 @@ fn bench(a: BenchArgs) -> Result<i32> {
     if let Some(url) = &a.cluster {
         return cluster_cost(&a, url);
     }
+    if let Some(n) = a.threads {
+        return threads_cost(&a, n as usize);
+    }
     let scene = match &a.scene {
         Some(p) => Scene::load(p)?,
         None => bench::bench_scene(),
@@ -474,6 +490,34 @@ fn cluster_cost(a: &BenchArgs, url: &str) -> Result<i32> {
     );
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     std::fs::write(a.out.join("cluster.md"), &md).with_context(|| format!("writing {}", a.out.join("cluster.md").display()))?;
+    println!("{md}");
+    Ok(0)
+}
+
+fn threads_cost(a: &BenchArgs, threads: usize) -> Result<i32> {
+    use tofwave::physics::Simulator;
+    if a.threads_frames < 2 || a.threads_trials == 0 {
+        bail!("--threads-frames {} / --threads-trials {}: give at least 2 frames and 1 trial", a.threads_frames, a.threads_trials);
+    }
+    let scene = match &a.scene {
+        Some(p) => Scene::load(p)?,
+        None => Scene::default_scene(),
+    };
+    eprintln!("tofwave bench: one sensor on {threads} threads against one, {} frames, {} trials per arm ...", a.threads_frames, a.threads_trials);
+    let sim = Simulator::new(&scene)?;
+    let seed = a.seed.unwrap_or(1);
+    let frames: Vec<_> = (0..a.threads_frames as u64).map(|i| sim.frame(seed, i).0).collect();
+    let cost = tofwave::bench::measure_threads_cost(&scene, &frames, threads, a.threads_trials, |m| eprintln!("tofwave bench --threads: {m}"))?;
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let md = format!(
+        "# One sensor on {threads} threads\n\nCommand: `tofwave {}`; {} CPUs; scene \"{}\".\n\n{}",
+        args.join(" "),
+        std::thread::available_parallelism().map_or(0, |n| n.get()),
+        scene.name,
+        cost.markdown()
+    );
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    std::fs::write(a.out.join("threads.md"), &md).with_context(|| format!("writing {}", a.out.join("threads.md").display()))?;
     println!("{md}");
     Ok(0)
 }
@@ -697,17 +741,17 @@ fn run(scene: &Scene, c: &SceneInput, threads: Option<u32>) -> Result<(Vec<Repor
     );
     let mut reports = Vec::new();
     let mut refused = 0;
-    let cut = tofwave::pipeline::threaded::run(scene, &c.sensor, threads, frames, |o| {
+    tofwave::pipeline::threaded::run(scene, &c.sensor, threads, frames, |o| {
         reports.extend(o.reports);
         if let Err(e) = o.result {
             refused += 1;
             bar.suspend(|| eprintln!("refused: {e}"));
+        } else if let Some(m) = &o.panic {
+            refused += 1;
+            bar.suspend(|| eprintln!("refused: the pipeline panicked on this frame ({m}); the stage was rebuilt"));
         }
         bar.inc(1);
     });
-    if threads > 1 {
-        tracing::info!(threads, cut = %cut, "stages cut over threads");
-    }
     drop(plain);
     bar.finish_and_clear();
     Ok((reports, refused))

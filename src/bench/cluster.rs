@@ -120,9 +120,9 @@ pub fn measure_cluster_cost(
         let stamp = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_millis());
         for t in 0..trials.max(1) {
             let sensor = format!("bench-{stamp}-{t}");
-            let (fps, _) = trial(scene, &wire, &format!("{sensor}-single"), None).await?;
+            let (fps, _) = trial(scene, &wire, &format!("{sensor}-single"), None, 1).await?;
             cost.single_frames_per_s.push(fps);
-            let (fps, first) = trial(scene, &wire, &sensor, Some(cluster.clone())).await?;
+            let (fps, first) = trial(scene, &wire, &sensor, Some(cluster.clone()), 1).await?;
             cost.cluster_frames_per_s.push(fps);
             cost.cluster_first_report_s.push(first);
             admin.forget_sensor(&sensor).await.map_err(|e| err(&e))?;
@@ -140,11 +140,12 @@ pub fn measure_cluster_cost(
 
 /// One server (alone, or a cluster node), one sensor: steady-state reports/s
 /// and seconds to the first report.
-async fn trial(
+pub(super) async fn trial(
     scene: &Scene,
     wire: &[proto::Frame],
     sensor: &str,
     cluster: Option<ClusterConfig>,
+    workers_per_sensor: usize,
 ) -> Result<(f64, f64), BenchError> {
     let err = |e: &dyn std::fmt::Display| BenchError::Service(e.to_string());
     let count = wire.len();
@@ -156,6 +157,7 @@ async fn trial(
         subscriber_buffer: count + 16,
         history_reports: 16,
         cluster,
+        workers_per_sensor,
         ..ServerConfig::default()
     };
     let (stop_tx, stop_rx) = oneshot::channel::<()>();

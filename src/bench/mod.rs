@@ -15,6 +15,7 @@ mod peer;
 mod plot;
 mod service;
 mod soak;
+mod threads;
 
 pub use cluster::{ClusterCost, measure_cluster_cost};
 pub use grid::{
@@ -25,6 +26,7 @@ pub use membw::{Bandwidth, measure_bandwidth};
 pub use output::{CSV_COLUMNS, ROC_COLUMNS, write_csv, write_roc_csv};
 pub use peer::{FULL_STAGES, MINIMAL_STAGES, PeerComparison, PeerOutcome, PeerRow, REPEATS, run_peer};
 pub use service::{DASHBOARD_SENSORS, DashboardCost, ServiceThroughput, measure_dashboard_cost, measure_service};
+pub use threads::{ThreadsCost, measure_threads_cost};
 pub use soak::{ChaoticSummary, RssLife, SoakConfig, SoakReport, run_soak};
 
 use std::path::{Path, PathBuf};

@@ -16,8 +16,8 @@
 //! Units that finish (their report went out, or averaging consumed them) go
 //! back to segment 0, whose validate stage reuses their buffers.
 
-use super::{retire, FrameError, Pipeline, Stage, Work};
-use crate::frame::{Frame, Report};
+use super::{retire, FrameError, Observer, Pipeline, Stage, Work};
+use crate::frame::{Frame, NoiseSummary, Report};
 use crate::scene::Scene;
 use std::sync::mpsc::{channel, sync_channel, Receiver, Sender, SyncSender};
 use std::time::Instant;
@@ -29,6 +29,8 @@ pub struct Outcome {
     pub reports: Vec<Report>,
     /// Why it (or a unit it completed) was refused, if it was.
     pub result: Result<(), FrameError>,
+    /// A stage panicked on it: the message (its unit is lost, the stage rebuilt).
+    pub panic: Option<String>,
 }
 
 /// Frames per message between threads: amortises the hand-over (a wake-up
@@ -50,6 +52,8 @@ struct InFlight {
     result: Result<(), FrameError>,
     /// A stage's flush made these (not a frame).
     flush: bool,
+    /// A stage panicked on this frame.
+    panic: Option<String>,
 }
 
 enum Msg {
@@ -93,133 +97,443 @@ impl std::fmt::Display for Cut {
 pub fn run<I, F>(scene: &Scene, sensor: &str, threads: usize, frames: I, mut each: F) -> Cut
 where
     I: IntoIterator<Item = Frame>,
-    I::IntoIter: Send,
     F: FnMut(Outcome),
 {
-    let mut frames = frames.into_iter();
-    let mut pipeline = Pipeline::new(scene, sensor);
-    let names = pipeline.stage_names();
-    let segments = threads.min(names.len()).max(1);
-    // The first frames run here, one thread, each step timed once the
-    // pipeline's start-up (plans, tables, a settling colour estimate) is past.
-    let pilot = if segments == 1 { usize::MAX } else { PILOT_WARMUP + PILOT_TIMED };
-    let mut costs = vec![0.0; names.len()];
-    let (mut units, mut leaving, mut retired) = (Vec::new(), Vec::new(), Vec::new());
-    for (k, frame) in frames.by_ref().take(pilot).enumerate() {
-        let timed = segments > 1 && k >= PILOT_WARMUP;
-        let t0 = Instant::now();
-        let mut result = pipeline.validate.process(frame, &mut pipeline.spare, &mut units);
-        if timed {
-            costs[0] += t0.elapsed().as_secs_f64();
+    let mut staged = Staged::new(scene, sensor, threads);
+    let mut out = Vec::new();
+    for frame in frames {
+        staged.push(frame, &mut out);
+        out.drain(..).for_each(&mut each);
+    }
+    let flushed = staged.finish(&mut out);
+    out.drain(..).for_each(&mut each);
+    each(flushed);
+    staged.cut()
+}
+
+/// One sensor's pipeline, on the calling thread or cut over threads: frames
+/// go in with [`Staged::push`], outcomes come out in frame order, one per
+/// pushed frame (with the stages on threads, a few pushes later; at once
+/// after [`Staged::sync`]).
+///
+/// With more than one thread the first frames run on the calling thread
+/// (the pilot: start-up, then the stages timed); from then on the stages
+/// run on one thread per segment of the cut, and the calling thread only
+/// hands frames in and takes outcomes out.
+///
+/// A stage that panics costs the unit it held (its frame's outcome says so)
+/// and its own running state: on the calling thread the whole pipeline is
+/// rebuilt from the scene, as a fresh one; on threads only that stage is.
+/// The other frames and the other stages carry on.
+pub struct Staged {
+    scene: Scene,
+    sensor: String,
+    threads: usize,
+    mode: Mode,
+    observer: Option<Observer>,
+    last_noise: Option<NoiseSummary>,
+    cut: Option<Cut>,
+}
+
+impl std::fmt::Debug for Staged {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Staged").field("sensor", &self.sensor).field("threads", &self.threads).field("cut", &self.cut).finish()
+    }
+}
+
+enum Mode {
+    /// On the calling thread: `seen` frames so far, the pilot's step times.
+    Local { pipeline: Box<Pipeline>, seen: usize, costs: Vec<f64> },
+    /// The segments on their threads.
+    Split(Pool),
+    /// Finished.
+    Done,
+}
+
+/// The threads of a cut pipeline and the channels to them.
+struct Pool {
+    frames: Option<SyncSender<Vec<Frame>>>,
+    /// Frames pushed and not yet sent (sent by the chunk).
+    pending: Vec<Frame>,
+    out: Receiver<Vec<Msg>>,
+    spare_tx: Sender<Work>,
+    /// Finished units on their way back to the head.
+    back: Vec<Work>,
+    /// Frames sent whose outcome has not come back.
+    in_flight: usize,
+    /// What the stages' final flushes completed.
+    flushed: Vec<Report>,
+    handles: Vec<std::thread::JoinHandle<()>>,
+}
+
+impl Staged {
+    /// A pipeline for `scene` on up to `threads` threads (≤ 1: the calling thread only).
+    pub fn new(scene: &Scene, sensor: &str, threads: usize) -> Staged {
+        let pipeline = Box::new(Pipeline::new(scene, sensor));
+        let costs = vec![0.0; pipeline.stage_names().len()];
+        Staged {
+            scene: scene.clone(),
+            sensor: sensor.to_string(),
+            threads: threads.clamp(1, costs.len()),
+            mode: Mode::Local { pipeline, seen: 0, costs },
+            observer: None,
+            last_noise: None,
+            cut: None,
         }
-        if result.is_ok() {
-            for (i, stage) in pipeline.stages.iter_mut().enumerate() {
-                let t0 = Instant::now();
-                run_stages(std::slice::from_mut(stage), &mut units, &mut leaving, &mut result, &mut retired);
-                if timed {
-                    costs[i + 1] += t0.elapsed().as_secs_f64();
+    }
+
+    /// Calls `f` with every finished unit of work (on the calling thread).
+    pub fn set_observer(&mut self, f: Observer) {
+        match &mut self.mode {
+            Mode::Local { pipeline, .. } => pipeline.set_observer(f),
+            _ => self.observer = Some(f),
+        }
+    }
+
+    /// The latest report's noise model, once a report has come out.
+    pub fn noise_model(&self) -> Option<NoiseSummary> {
+        self.last_noise
+    }
+
+    /// The scene the pipeline was built from.
+    pub fn scene(&self) -> &Scene {
+        &self.scene
+    }
+
+    /// How the stages are cut (one segment until the pilot has chosen).
+    pub fn cut(&self) -> Cut {
+        self.cut.clone().unwrap_or_else(|| Cut {
+            segments: vec![Pipeline::new(&self.scene, &self.sensor).stage_names()],
+            shares: vec![1.0],
+        })
+    }
+
+    /// Frames pushed whose outcome has not come out yet.
+    pub fn in_flight(&self) -> usize {
+        match &self.mode {
+            Mode::Split(pool) => pool.in_flight + pool.pending.len(),
+            _ => 0,
+        }
+    }
+
+    /// Processes `frame`; appends the outcomes that are ready (this frame's
+    /// and earlier ones', in order) to `out`.
+    pub fn push(&mut self, frame: Frame, out: &mut Vec<Outcome>) {
+        match &mut self.mode {
+            Mode::Local { pipeline, seen, costs } => {
+                let timed = self.threads > 1 && *seen >= PILOT_WARMUP;
+                let run = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                    if self.threads > 1 {
+                        push_timed(pipeline, frame, timed.then_some(costs.as_mut_slice()))
+                    } else {
+                        let mut reports = Vec::new();
+                        let result = pipeline.push(frame, &mut reports);
+                        (reports, result)
+                    }
+                }));
+                *seen += 1;
+                let outcome = match run {
+                    Ok((reports, result)) => Outcome { reports, result, panic: None },
+                    Err(panic) => {
+                        let observer = pipeline.observer.take();
+                        **pipeline = Pipeline::new(&self.scene, &self.sensor);
+                        pipeline.observer = observer;
+                        Outcome { reports: Vec::new(), result: Ok(()), panic: Some(panic_message(panic.as_ref())) }
+                    }
+                };
+                if let Some(n) = pipeline.noise_model() {
+                    self.last_noise = Some(n);
+                }
+                out.push(outcome);
+                if self.threads > 1 && *seen >= PILOT_WARMUP + PILOT_TIMED {
+                    self.split();
                 }
             }
+            Mode::Split(pool) => {
+                pool.pending.push(frame);
+                if pool.pending.len() >= CHUNK {
+                    pool.send();
+                }
+                pool.collect(false, &mut self.observer, &mut self.last_noise, out);
+            }
+            Mode::Done => panic!("Staged::push after finish"),
         }
-        pipeline.spare.append(&mut retired);
-        let reports = units.drain(..).map(|w| finish(w, &mut pipeline.spare)).collect();
-        each(Outcome { reports, result });
     }
-    if segments == 1 || costs.iter().sum::<f64>() == 0.0 {
-        // One thread, or the input ended during the pilot.
-        let mut reports = Vec::new();
-        pipeline.flush(&mut reports);
-        each(Outcome { reports, result: Ok(()) });
-        return Cut { segments: vec![names], shares: vec![1.0] };
-    }
-    let bounds = partition(&costs, segments);
-    let total: f64 = costs.iter().sum();
-    let cut = Cut {
-        segments: bounds.windows(2).map(|b| names[b[0]..b[1]].to_vec()).collect(),
-        shares: bounds.windows(2).map(|b| costs[b[0]..b[1]].iter().sum::<f64>() / total).collect(),
-    };
-    // Cost index 0 is validate; pipeline stage i is cost index i + 1.
-    let mut all = std::mem::take(&mut pipeline.stages);
-    let mut groups: Vec<Vec<Box<dyn Stage>>> = Vec::new();
-    for b in bounds.windows(2).rev() {
-        groups.push(all.split_off(b[0].saturating_sub(1)));
-    }
-    groups.reverse();
-    let validate = pipeline.validate;
-    let spare = std::mem::take(&mut pipeline.spare);
 
-    std::thread::scope(|s| {
+    /// Waits until every pushed frame's outcome is in `out`.
+    pub fn sync(&mut self, out: &mut Vec<Outcome>) {
+        if let Mode::Split(pool) = &mut self.mode {
+            pool.send();
+            pool.collect(true, &mut self.observer, &mut self.last_noise, out);
+        }
+    }
+
+    /// End of input: every pushed frame's outcome goes to `out`, and the
+    /// reports the stages' flush completes (averages in progress) are
+    /// returned as one more outcome. The threads are joined.
+    pub fn finish(&mut self, out: &mut Vec<Outcome>) -> Outcome {
+        self.sync(out);
+        let mut reports = Vec::new();
+        match std::mem::replace(&mut self.mode, Mode::Done) {
+            Mode::Local { mut pipeline, .. } => {
+                pipeline.flush(&mut reports);
+                if let Some(n) = pipeline.noise_model() {
+                    self.last_noise = Some(n);
+                }
+            }
+            Mode::Split(mut pool) => {
+                pool.frames = None;
+                pool.collect(true, &mut self.observer, &mut self.last_noise, out);
+                while let Ok(msgs) = pool.out.recv() {
+                    pool.take(msgs, &mut self.observer, &mut self.last_noise, out);
+                }
+                reports = std::mem::take(&mut pool.flushed);
+                for h in pool.handles.drain(..) {
+                    let _ = h.join();
+                }
+            }
+            Mode::Done => {}
+        }
+        Outcome { reports, result: Ok(()), panic: None }
+    }
+
+    /// Cuts the stages by the pilot's times and starts their threads.
+    fn split(&mut self) {
+        let Mode::Local { pipeline, costs, .. } = std::mem::replace(&mut self.mode, Mode::Done) else {
+            return;
+        };
+        let mut pipeline = *pipeline;
+        self.observer = pipeline.observer.take();
+        let names = pipeline.stage_names();
+        // No stage took measurable time: cut evenly by count.
+        let even = costs.iter().sum::<f64>() <= 0.0;
+        let costs: Vec<f64> = if even { vec![1.0; costs.len()] } else { costs };
+        let bounds = partition(&costs, self.threads);
+        let total: f64 = costs.iter().sum();
+        let cut = Cut {
+            segments: bounds.windows(2).map(|b| names[b[0]..b[1]].to_vec()).collect(),
+            shares: bounds.windows(2).map(|b| costs[b[0]..b[1]].iter().sum::<f64>() / total).collect(),
+        };
+        tracing::info!(sensor = %self.sensor, threads = self.threads, cut = %cut, "stages cut over threads");
+        self.cut = Some(cut);
+        // Cost index 0 is validate; pipeline stage i is cost index i + 1.
+        let mut all = std::mem::take(&mut pipeline.stages);
+        let mut groups: Vec<(usize, Vec<Box<dyn Stage>>)> = Vec::new();
+        for b in bounds.windows(2).rev() {
+            let first = b[0].saturating_sub(1);
+            groups.push((first, all.split_off(first)));
+        }
+        groups.reverse();
+        let spare = std::mem::take(&mut pipeline.spare);
         let (spare_tx, spare_rx) = channel::<Work>();
         let (frames_tx, frames_rx) = sync_channel::<Vec<Frame>>(QUEUE);
-        s.spawn(move || {
-            let mut chunk = Vec::with_capacity(CHUNK);
-            for f in frames {
-                chunk.push(f);
-                if chunk.len() == CHUNK && frames_tx.send(std::mem::replace(&mut chunk, Vec::with_capacity(CHUNK))).is_err() {
-                    return;
-                }
-            }
-            if !chunk.is_empty() {
-                let _ = frames_tx.send(chunk);
-            }
-        });
+        let mut handles = Vec::new();
         let mut input: Option<Receiver<Vec<Msg>>> = None;
-        let mut head = Some((validate, spare, spare_rx, frames_rx));
-        for group in groups {
-            let (tx, rx) = sync_channel::<Vec<Msg>>(QUEUE);
-            let spare_tx = spare_tx.clone();
-            match head.take() {
-                Some((validate, spare, spare_rx, frames_rx)) => {
-                    s.spawn(move || head_segment(validate, spare, spare_rx, frames_rx, group, tx));
-                }
+        let mut head = Some((pipeline.validate, spare, spare_rx, frames_rx));
+        let count = groups.len();
+        for (i, (first, group)) in groups.into_iter().enumerate() {
+            // The last segment's output is unbounded: the calling thread
+            // drains it only between pushes, and must never block a segment
+            // that blocks it in turn.
+            let (tx, rx) = if i + 1 == count {
+                let (tx, rx) = channel::<Vec<Msg>>();
+                (Out::Last(tx), rx)
+            } else {
+                let (tx, rx) = sync_channel::<Vec<Msg>>(QUEUE);
+                (Out::Next(tx), rx)
+            };
+            let rebuild = Rebuild { scene: self.scene.clone(), sensor: self.sensor.clone(), first };
+            let name = format!("tofwave-seg{i}");
+            let handle = match head.take() {
+                Some((validate, spare, spare_rx, frames_rx)) => std::thread::Builder::new()
+                    .name(name)
+                    .spawn(move || head_segment(validate, spare, spare_rx, frames_rx, group, tx, rebuild)),
                 None => {
                     let from = input.take().expect("an earlier segment");
-                    s.spawn(move || segment(group, from, tx, spare_tx));
+                    let spare_tx = spare_tx.clone();
+                    std::thread::Builder::new().name(name).spawn(move || segment(group, from, tx, spare_tx, rebuild))
                 }
-            }
+            };
+            handles.push(handle.expect("spawning a pipeline thread"));
             input = Some(rx);
         }
-        // The collector: units become reports; their buffers go back to the head.
-        let from = input.expect("at least one segment");
-        let (mut flushed, mut back) = (Vec::new(), Vec::new());
-        while let Ok(msgs) = from.recv() {
-            for msg in msgs {
-                match msg {
-                    Msg::Push(inflight) => {
-                        let mut reports = Vec::with_capacity(inflight.units.len());
-                        reports.extend(inflight.units.into_iter().map(|w| finish(w, &mut back)));
-                        back.drain(..).for_each(|w| drop(spare_tx.send(w)));
-                        if inflight.flush {
-                            flushed.extend(reports);
-                        } else {
-                            each(Outcome { reports, result: inflight.result });
-                        }
-                    }
-                    Msg::Flush => {}
-                }
+        self.mode = Mode::Split(Pool {
+            frames: Some(frames_tx),
+            pending: Vec::with_capacity(CHUNK),
+            out: input.expect("at least one segment"),
+            spare_tx,
+            back: Vec::new(),
+            in_flight: 0,
+            flushed: Vec::new(),
+            handles,
+        });
+    }
+}
+
+impl Drop for Staged {
+    fn drop(&mut self) {
+        if let Mode::Split(pool) = &mut self.mode {
+            pool.frames = None;
+            while pool.out.recv().is_ok() {}
+            for h in pool.handles.drain(..) {
+                let _ = h.join();
             }
         }
-        each(Outcome { reports: flushed, result: Ok(()) });
-    });
-    cut
+    }
+}
+
+/// One frame through `pipeline` stage by stage, each stage's time added to
+/// `costs` (index 0 validate) when given.
+fn push_timed(pipeline: &mut Pipeline, frame: Frame, mut costs: Option<&mut [f64]>) -> (Vec<Report>, Result<(), FrameError>) {
+    let (mut units, mut leaving, mut retired) = (Vec::new(), Vec::new(), Vec::new());
+    let t0 = Instant::now();
+    let mut result = pipeline.validate.process(frame, &mut pipeline.spare, &mut units);
+    if let Some(c) = costs.as_deref_mut() {
+        c[0] += t0.elapsed().as_secs_f64();
+    }
+    if result.is_ok() {
+        for (i, stage) in pipeline.stages.iter_mut().enumerate() {
+            let t0 = Instant::now();
+            run_stages(std::slice::from_mut(stage), &mut units, &mut leaving, &mut result, &mut retired, &mut None, None);
+            if let Some(c) = costs.as_deref_mut() {
+                c[i + 1] += t0.elapsed().as_secs_f64();
+            }
+        }
+    }
+    pipeline.spare.append(&mut retired);
+    let mut reports = Vec::with_capacity(units.len());
+    for mut w in units.drain(..) {
+        if let Some(f) = &mut pipeline.observer {
+            f(&w);
+        }
+        pipeline.last_noise = Some(w.report.noise);
+        reports.push(std::mem::take(&mut w.report));
+        retire(&mut pipeline.spare, w);
+    }
+    (reports, result)
+}
+
+impl Pool {
+    /// Sends the pending frames as one chunk (blocks while the head's queue is full).
+    fn send(&mut self) {
+        if self.pending.is_empty() {
+            return;
+        }
+        let chunk = std::mem::replace(&mut self.pending, Vec::with_capacity(CHUNK));
+        self.in_flight += chunk.len();
+        if let Some(tx) = &self.frames
+            && tx.send(chunk).is_err()
+        {
+            // The head is gone (it cannot panic out: stages are caught).
+            self.frames = None;
+        }
+    }
+
+    /// Takes the outcomes that have come back; with `all`, waits for every frame in flight.
+    fn collect(&mut self, all: bool, observer: &mut Option<Observer>, noise: &mut Option<NoiseSummary>, out: &mut Vec<Outcome>) {
+        loop {
+            let msgs = if all && self.in_flight > 0 {
+                match self.out.recv() {
+                    Ok(m) => m,
+                    Err(_) => break,
+                }
+            } else {
+                match self.out.try_recv() {
+                    Ok(m) => m,
+                    Err(_) => break,
+                }
+            };
+            self.take(msgs, observer, noise, out);
+        }
+    }
+
+    /// Units become reports (seen by the observer first); their buffers go back to the head.
+    fn take(&mut self, msgs: Vec<Msg>, observer: &mut Option<Observer>, noise: &mut Option<NoiseSummary>, out: &mut Vec<Outcome>) {
+        for msg in msgs {
+            let Msg::Push(inflight) = msg else { continue };
+            let mut reports = Vec::with_capacity(inflight.units.len());
+            for w in inflight.units {
+                if let Some(f) = observer {
+                    f(&w);
+                }
+                *noise = Some(w.report.noise);
+                reports.push(finish(w, &mut self.back));
+            }
+            self.back.drain(..).for_each(|w| drop(self.spare_tx.send(w)));
+            if inflight.flush {
+                self.flushed.extend(reports);
+            } else {
+                self.in_flight = self.in_flight.saturating_sub(1);
+                out.push(Outcome { reports, result: inflight.result, panic: inflight.panic });
+            }
+        }
+    }
+}
+
+/// Where a segment sends what it passed on.
+enum Out {
+    Next(SyncSender<Vec<Msg>>),
+    Last(Sender<Vec<Msg>>),
+}
+
+impl Out {
+    fn send(&self, msgs: Vec<Msg>) -> bool {
+        match self {
+            Out::Next(tx) => tx.send(msgs).is_ok(),
+            Out::Last(tx) => tx.send(msgs).is_ok(),
+        }
+    }
+}
+
+/// Builds a fresh copy of a segment's stage after a panic.
+struct Rebuild {
+    scene: Scene,
+    sensor: String,
+    /// Pipeline index of the segment's first stage.
+    first: usize,
+}
+
+impl Rebuild {
+    fn stage(&self, i: usize) -> Box<dyn Stage> {
+        let mut p = Pipeline::new(&self.scene, &self.sensor);
+        p.stages.swap_remove(self.first + i)
+    }
 }
 
 /// Runs `units` through `stages` as [`Pipeline`]'s `run_from` does (each
 /// unit through a stage before the next stage; the last error kept);
-/// consumed units go to `retired`.
+/// consumed units go to `retired`. With `rebuild`, a stage that panics is
+/// replaced by a fresh one and the panic's message kept in `panic` (the
+/// unit it held is lost); without, the panic goes on up.
 fn run_stages(
     stages: &mut [Box<dyn Stage>],
     units: &mut Vec<Work>,
     leaving: &mut Vec<Work>,
     result: &mut Result<(), FrameError>,
     retired: &mut Vec<Work>,
+    panic: &mut Option<String>,
+    rebuild: Option<(&Rebuild, usize)>,
 ) {
-    for stage in stages {
+    for (i, stage) in stages.iter_mut().enumerate() {
         leaving.clear();
         for mut w in units.drain(..) {
             w.report.stages.push(stage.name());
-            if let Err(e) = stage.process(w, leaving) {
-                *result = Err(e);
+            match rebuild {
+                None => {
+                    if let Err(e) = stage.process(w, leaving) {
+                        *result = Err(e);
+                    }
+                }
+                Some((r, offset)) => {
+                    match std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| stage.process(w, leaving))) {
+                        Ok(Ok(())) => {}
+                        Ok(Err(e)) => *result = Err(e),
+                        Err(p) => {
+                            *panic = Some(panic_message(p.as_ref()));
+                            *stage = r.stage(offset + i);
+                        }
+                    }
+                }
             }
             while let Some(w) = stage.consumed() {
                 retire(retired, w);
@@ -231,18 +545,22 @@ fn run_stages(
 
 /// Flushes `stages` in order as [`Pipeline::flush`] does, each stage's
 /// output run through the rest of the segment; one message per stage.
-fn flush_stages(stages: &mut [Box<dyn Stage>], out: &mut Vec<Msg>, retired: &mut Vec<Work>) {
+fn flush_stages(stages: &mut [Box<dyn Stage>], out: &mut Vec<Msg>, retired: &mut Vec<Work>, rebuild: &Rebuild) {
     let mut leaving = Vec::new();
     for i in 0..stages.len() {
         let mut units = Vec::new();
-        stages[i].flush(&mut units);
+        let flushed = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| stages[i].flush(&mut units)));
+        if flushed.is_err() {
+            stages[i] = rebuild.stage(i);
+            continue;
+        }
         while let Some(w) = stages[i].consumed() {
             retire(retired, w);
         }
         if !units.is_empty() {
-            let mut result = Ok(());
-            run_stages(&mut stages[i + 1..], &mut units, &mut leaving, &mut result, retired);
-            out.push(Msg::Push(InFlight { units, result: Ok(()), flush: true }));
+            let (mut result, mut panic) = (Ok(()), None);
+            run_stages(&mut stages[i + 1..], &mut units, &mut leaving, &mut result, retired, &mut panic, Some((rebuild, i + 1)));
+            out.push(Msg::Push(InFlight { units, result: Ok(()), flush: true, panic: None }));
         }
     }
     out.push(Msg::Flush);
@@ -256,7 +574,8 @@ fn head_segment(
     spare_rx: Receiver<Work>,
     frames: Receiver<Vec<Frame>>,
     mut stages: Vec<Box<dyn Stage>>,
-    out: SyncSender<Vec<Msg>>,
+    out: Out,
+    rebuild: Rebuild,
 ) {
     let mut leaving = Vec::new();
     while let Ok(chunk) = frames.recv() {
@@ -264,23 +583,31 @@ fn head_segment(
         let mut msgs = Vec::with_capacity(chunk.len());
         for frame in chunk {
             let mut units = Vec::with_capacity(1);
-            let mut result = validate.process(frame, &mut spare, &mut units);
-            if result.is_ok() {
-                run_stages(&mut stages, &mut units, &mut leaving, &mut result, &mut spare);
+            let mut panic = None;
+            let mut result = match std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| validate.process(frame, &mut spare, &mut units))) {
+                Ok(r) => r,
+                Err(p) => {
+                    panic = Some(panic_message(p.as_ref()));
+                    validate = super::validate::Validate::new(&rebuild.scene);
+                    Ok(())
+                }
+            };
+            if result.is_ok() && panic.is_none() {
+                run_stages(&mut stages, &mut units, &mut leaving, &mut result, &mut spare, &mut panic, Some((&rebuild, 0)));
             }
-            msgs.push(Msg::Push(InFlight { units, result, flush: false }));
+            msgs.push(Msg::Push(InFlight { units, result, flush: false, panic }));
         }
-        if out.send(msgs).is_err() {
+        if !out.send(msgs) {
             return;
         }
     }
     let mut msgs = Vec::new();
-    flush_stages(&mut stages, &mut msgs, &mut spare);
+    flush_stages(&mut stages, &mut msgs, &mut spare, &rebuild);
     let _ = out.send(msgs);
 }
 
 /// A later segment: runs its stages on what the segment before it passes on.
-fn segment(mut stages: Vec<Box<dyn Stage>>, from: Receiver<Vec<Msg>>, out: SyncSender<Vec<Msg>>, spare_tx: Sender<Work>) {
+fn segment(mut stages: Vec<Box<dyn Stage>>, from: Receiver<Vec<Msg>>, out: Out, spare_tx: Sender<Work>, rebuild: Rebuild) {
     let mut leaving = Vec::new();
     let mut retired = Vec::new();
     while let Ok(msgs) = from.recv() {
@@ -288,16 +615,35 @@ fn segment(mut stages: Vec<Box<dyn Stage>>, from: Receiver<Vec<Msg>>, out: SyncS
         for msg in msgs {
             match msg {
                 Msg::Push(mut inflight) => {
-                    run_stages(&mut stages, &mut inflight.units, &mut leaving, &mut inflight.result, &mut retired);
+                    run_stages(
+                        &mut stages,
+                        &mut inflight.units,
+                        &mut leaving,
+                        &mut inflight.result,
+                        &mut retired,
+                        &mut inflight.panic,
+                        Some((&rebuild, 0)),
+                    );
                     next.push(Msg::Push(inflight));
                 }
-                Msg::Flush => flush_stages(&mut stages, &mut next, &mut retired),
+                Msg::Flush => flush_stages(&mut stages, &mut next, &mut retired, &rebuild),
             }
         }
         retired.drain(..).for_each(|w| drop(spare_tx.send(w)));
-        if out.send(next).is_err() {
+        if !out.send(next) {
             return;
         }
+    }
+}
+
+/// A panic's message, for the outcome of the frame it cost.
+pub fn panic_message(panic: &(dyn std::any::Any + Send)) -> String {
+    if let Some(s) = panic.downcast_ref::<&str>() {
+        (*s).to_string()
+    } else if let Some(s) = panic.downcast_ref::<String>() {
+        s.clone()
+    } else {
+        "panic with a non-text payload".to_string()
     }
 }
 

@@ -76,6 +76,10 @@ pub struct ServerConfig {
     pub max_streams_per_connection: u32,
     /// Frames queued per sensor before ingest waits (backpressure), frames.
     pub queue_frames: usize,
+    /// Threads one sensor's pipeline runs on: its stages are cut into this
+    /// many consecutive segments once the first 400 frames have timed them
+    /// (reports identical to one thread's, in order).
+    pub workers_per_sensor: usize,
     /// Sensors served at most; frames of further sensor ids are refused
     /// (`RESOURCE_EXHAUSTED`), since each sensor holds a thread and a pipeline.
     pub max_sensors: usize,
@@ -124,6 +128,7 @@ impl Default for ServerConfig {
             max_message_bytes: DEFAULT_MAX_MESSAGE_BYTES,
             max_streams_per_connection: 64,
             queue_frames: 64,
+            workers_per_sensor: 1,
             max_sensors: 256,
             history_reports: 1024,
             subscriber_buffer: 1024,
@@ -236,6 +241,7 @@ pub async fn run(
         config.record_dir.clone(),
         config.durability,
         snapshots.clone(),
+        config.workers_per_sensor,
     )?;
     // Cluster mode: join before serving, so the reports feed exists before
     // the first subscriber; the node's work runs until the drain stops it.

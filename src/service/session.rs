@@ -12,6 +12,7 @@ use super::dashboard::Snapshots;
 use super::state::StateDir;
 use crate::capture::RecordingWriter;
 use crate::frame::{Frame, NoiseSummary, Report};
+use crate::pipeline::threaded::{Outcome, Staged};
 use crate::pipeline::{FrameError, Pipeline};
 use crate::scene::Scene;
 use crate::telemetry;
@@ -22,8 +23,8 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 use tokio::sync::{mpsc, oneshot, watch};
 
-/// Builds a sensor's pipeline. The one place that constructs `Pipeline`, so a
-/// fallible constructor is a one-line change here.
+/// Builds a pipeline on the calling thread (cluster replay, scene checks);
+/// a session's worker runs a [`Staged`] one, on `--workers-per-sensor` threads.
 pub fn build_pipeline(scene: &Scene, sensor: &str) -> Result<Pipeline, String> {
     Ok(Pipeline::new(scene, sensor))
 }
@@ -252,6 +253,8 @@ pub struct Sessions {
     record_dir: Option<PathBuf>,
     /// Record sync policy and persistence period.
     durability: Durability,
+    /// Threads each sensor's pipeline may run on (its stages cut over them).
+    workers_per_sensor: usize,
     /// Open ingest streams (shutdown waits for zero).
     ingest_streams: watch::Sender<usize>,
     /// Bumped whenever a sensor becomes faulted (`service::run` sets health).
@@ -311,6 +314,7 @@ impl Sessions {
         record_dir: Option<PathBuf>,
         durability: Durability,
         snapshots: Option<Arc<Snapshots>>,
+        workers_per_sensor: usize,
     ) -> Result<Sessions, ServiceError> {
         if let Some(dir) = &record_dir {
             std::fs::create_dir_all(dir).map_err(|e| ServiceError::Record {
@@ -344,6 +348,7 @@ impl Sessions {
             state,
             record_dir,
             durability,
+            workers_per_sensor: workers_per_sensor.max(1),
             ingest_streams: watch::Sender::new(0),
             faults: Arc::new(watch::Sender::new(0)),
             snapshots,
@@ -431,7 +436,7 @@ impl Sessions {
         if limited && map.len() >= self.max_sensors {
             return Err(StartError::Limit(self.max_sensors));
         }
-        let mut pipeline = build_pipeline(&scene, sensor).map_err(StartError::Build)?;
+        let mut pipeline = Staged::new(&scene, sensor, self.workers_per_sensor);
         if let Some(s) = &self.snapshots {
             pipeline.set_observer(s.observer());
         }
@@ -465,6 +470,8 @@ impl Sessions {
             durability: self.durability,
             saved_at: std::time::Instant::now(),
             unacked: Vec::new(),
+            waiting: std::collections::VecDeque::new(),
+            workers: self.workers_per_sensor,
             snapshots: self.snapshots.clone(),
         };
         let watched = session.clone();
@@ -574,8 +581,12 @@ fn open_recording(dir: &std::path::Path, sensor: &str) -> Result<(Recorder, Path
 struct Worker {
     /// Counters and noise model to update.
     session: Arc<Session>,
-    /// The running pipeline.
-    pipeline: Pipeline,
+    /// The running pipeline (its stages on `workers` threads once it has timed them).
+    pipeline: Staged,
+    /// Threads the pipeline may use.
+    workers: usize,
+    /// Frames in the pipeline, oldest first: when each was queued, and where its verdict goes.
+    waiting: std::collections::VecDeque<(Instant, oneshot::Sender<Verdict>)>,
     /// Where reports go.
     hub: Arc<Hub>,
     /// Lossless copy of every accepted frame, when recording.
@@ -607,7 +618,7 @@ const ACKS_PER_FLUSH: usize = 256;
 impl Worker {
     fn run(mut self, mut rx: mpsc::Receiver<Job>) {
         let sensor = self.session.sensor.clone();
-        let mut reports = Vec::new();
+        let mut outcomes = Vec::new();
         while let Some(job) = rx.blocking_recv() {
             match job {
                 Job::Frame {
@@ -631,63 +642,35 @@ impl Worker {
                         let _ = done.send(Verdict::Unrecorded(reason.clone()));
                         continue;
                     }
-                    let verdict = self.process(frame, &mut reports);
-                    match &verdict {
-                        Verdict::Processed => {
-                            let st = &self.session.stats;
-                            st.frames_processed.fetch_add(1, Ordering::Relaxed);
-                            let latency = enqueued.elapsed();
-                            st.last_latency_us.store(latency.as_micros() as u64, Ordering::Relaxed);
-                            st.last_processed_unix_ms.store(unix_ms(), Ordering::Relaxed);
-                            self.session.metrics.frame_processed(latency);
-                        }
-                        Verdict::Refused(e) => {
-                            self.session
-                                .stats
-                                .frames_rejected
-                                .fetch_add(1, Ordering::Relaxed);
-                            self.session.metrics.frames_rejected("pipeline", 1);
-                            tracing::debug!(sensor = %sensor, error = %e, "pipeline refused frame");
-                        }
-                        Verdict::Panicked(m) => {
-                            self.session
-                                .stats
-                                .frames_rejected
-                                .fetch_add(1, Ordering::Relaxed);
-                            self.session.metrics.frames_rejected("panic", 1);
-                            tracing::error!(sensor = %sensor, message = %m, "pipeline panicked; rebuilt");
-                        }
-                        // Only the recorder refuses this way (above).
-                        Verdict::Unrecorded(_) => {}
+                    self.waiting.push_back((enqueued, done));
+                    self.pipeline.push(frame, &mut outcomes);
+                    // Nothing more queued: the frames on the pipeline's
+                    // threads are finished now rather than with later ones.
+                    if rx.is_empty() {
+                        self.pipeline.sync(&mut outcomes);
                     }
-                    self.publish(&mut reports);
+                    for o in outcomes.drain(..) {
+                        self.complete(o, &sensor);
+                    }
                     self.session.metrics.queue_depth(rx.len());
-                    // Saved before the ack, so an ack after the period means a saved model.
-                    self.persist_noise(false);
-                    if self.recorder.is_some() {
-                        self.unacked.push((done, verdict));
-                        if rx.is_empty() || self.unacked.len() >= ACKS_PER_FLUSH {
-                            self.flush_and_ack();
-                        }
-                    } else {
-                        let _ = done.send(verdict);
+                    if self.recorder.is_some() && ((rx.is_empty() && self.waiting.is_empty()) || self.unacked.len() >= ACKS_PER_FLUSH) {
+                        self.flush_and_ack();
                     }
                 }
                 Job::SetScene { scene, done } => {
-                    self.flush_and_ack();
                     let result = self.build(&scene).map(|p| {
-                        self.pipeline.flush(&mut reports);
-                        self.publish(&mut reports);
-                        self.pipeline = p;
+                        let old = std::mem::replace(&mut self.pipeline, p);
+                        self.finish(old, &sensor);
                         tracing::info!(sensor = %sensor, scene = %scene.name, "scene applied");
                     });
+                    self.flush_and_ack();
                     let _ = done.send(result);
                 }
             }
         }
+        let last = std::mem::replace(&mut self.pipeline, Staged::new(&Scene::default_scene(), &sensor, 1));
+        self.finish(last, &sensor);
         self.flush_and_ack();
-        self.pipeline.flush(&mut reports);
-        self.publish(&mut reports);
         if let Some(w) = self.recorder.take()
             && let Err(e) = w.finish()
         {
@@ -696,9 +679,74 @@ impl Worker {
         tracing::info!(sensor = %sensor, "session drained");
     }
 
+    /// Ends `pipeline`: the outcomes of its frames, then what its flush completes.
+    fn finish(&mut self, mut pipeline: Staged, sensor: &str) {
+        let mut outcomes = Vec::new();
+        let flushed = pipeline.finish(&mut outcomes);
+        for o in outcomes {
+            self.complete(o, sensor);
+        }
+        if let Some(n) = pipeline.noise_model() {
+            *lock(&self.session.noise) = Some(n);
+        }
+        let mut reports = flushed.reports;
+        self.publish(&mut reports);
+    }
+
+    /// One frame's outcome: counted, its reports published, its verdict
+    /// sent (held until the recording is flushed, when recording).
+    fn complete(&mut self, outcome: Outcome, sensor: &str) {
+        let Some((enqueued, done)) = self.waiting.pop_front() else {
+            tracing::error!(sensor = %sensor, "an outcome with no frame waiting for it");
+            return;
+        };
+        let verdict = match (outcome.panic, outcome.result) {
+            (Some(m), _) => Verdict::Panicked(m),
+            (None, Err(e)) => Verdict::Refused(e),
+            (None, Ok(())) => Verdict::Processed,
+        };
+        match &verdict {
+            Verdict::Processed => {
+                let st = &self.session.stats;
+                st.frames_processed.fetch_add(1, Ordering::Relaxed);
+                let latency = enqueued.elapsed();
+                st.last_latency_us.store(latency.as_micros() as u64, Ordering::Relaxed);
+                st.last_processed_unix_ms.store(unix_ms(), Ordering::Relaxed);
+                self.session.metrics.frame_processed(latency);
+            }
+            Verdict::Refused(e) => {
+                self.session
+                    .stats
+                    .frames_rejected
+                    .fetch_add(1, Ordering::Relaxed);
+                self.session.metrics.frames_rejected("pipeline", 1);
+                tracing::debug!(sensor = %sensor, error = %e, "pipeline refused frame");
+            }
+            Verdict::Panicked(m) => {
+                self.session
+                    .stats
+                    .frames_rejected
+                    .fetch_add(1, Ordering::Relaxed);
+                self.session.metrics.frames_rejected("panic", 1);
+                tracing::error!(sensor = %sensor, message = %m, "pipeline panicked; rebuilt");
+            }
+            // Only the recorder refuses this way (before the pipeline).
+            Verdict::Unrecorded(_) => {}
+        }
+        let mut reports = outcome.reports;
+        self.publish(&mut reports);
+        // Saved before the ack, so an ack after the period means a saved model.
+        self.persist_noise(false);
+        if self.recorder.is_some() {
+            self.unacked.push((done, verdict));
+        } else {
+            let _ = done.send(verdict);
+        }
+    }
+
     /// A pipeline for `scene`, observed by the dashboard when there is one.
-    fn build(&self, scene: &Scene) -> Result<Pipeline, String> {
-        let mut p = build_pipeline(scene, &self.session.sensor)?;
+    fn build(&self, scene: &Scene) -> Result<Staged, String> {
+        let mut p = Staged::new(scene, &self.session.sensor, self.workers);
         if let Some(s) = &self.snapshots {
             p.set_observer(s.observer());
         }
@@ -765,32 +813,6 @@ impl Worker {
             && let Err(e) = st.save_noise(&self.session.sensor, &n)
         {
             tracing::warn!(sensor = %self.session.sensor, error = %e, "noise model not saved");
-        }
-    }
-
-    /// Runs one frame; a panic in the pipeline costs this frame and the
-    /// pipeline's running state, not the session (the stream and the other
-    /// frames carry on).
-    fn process(&mut self, frame: Frame, reports: &mut Vec<Report>) -> Verdict {
-        let pipeline = &mut self.pipeline;
-        let run = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-            pipeline.push(frame, reports)
-        }));
-        match run {
-            Ok(Ok(())) => Verdict::Processed,
-            Ok(Err(e)) => Verdict::Refused(e),
-            Err(panic) => {
-                reports.clear();
-                let message = panic_message(panic.as_ref());
-                let scene = self.pipeline.scene().clone();
-                match self.build(&scene) {
-                    Ok(p) => self.pipeline = p,
-                    Err(e) => {
-                        tracing::error!(error = %e, "rebuilding the pipeline failed; keeping the old one")
-                    }
-                }
-                Verdict::Panicked(message)
-            }
         }
     }
 

@@ -1482,3 +1482,32 @@ async fn failed_recording_faults_its_sensor_and_health_goes_not_serving() {
     assert_eq!(&recorded[..accepted as usize], &(0..accepted).collect::<Vec<u64>>()[..]);
     assert_eq!(recorded_frames(&rec, "small"), vec![0, 1, 2, 3]);
 }
+
+/// `--workers-per-sensor`: one sensor's stages cut over 2 and 3 threads
+/// (past the 400-frame pilot, with averaging groups in flight) report
+/// exactly what the pipeline run directly does, in order.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_sensor_on_several_workers_reports_what_one_thread_does() {
+    let mut scene = Scene::default_scene();
+    scene.averaging.frames = 3;
+    let all = frames("wps", 0..720, 9);
+    let want = direct_reports(&scene, &all);
+    assert_eq!(want.len(), 240);
+    for workers in [2, 3] {
+        let config = ServerConfig { scene: scene.clone(), workers_per_sensor: workers, queue_frames: 256, ..ServerConfig::default() };
+        let server = TestServer::start(config).await;
+        let mut c = server.connect(None).await;
+        let sub = client::subscribe(&mut c.reports, Default::default()).await.unwrap();
+        let source = all.clone().into_iter().map(Ok::<_, std::convert::Infallible>);
+        let limits = BatchLimits { frames: 32, bytes: 1 << 22 };
+        let summary = client::replay(&mut c.ingest, source, Rate::Max, None, limits, |_| {}).await.unwrap();
+        assert_eq!((summary.accepted, summary.rejected), (720, 0), "{workers} workers: {summary}");
+        server.shutdown().await.unwrap();
+        let (reports, skipped) = collect_events(sub).await;
+        assert_eq!(skipped, 0);
+        assert_eq!(reports.len(), want.len(), "{workers} workers");
+        for (i, (a, b)) in reports.iter().zip(&want).enumerate() {
+            assert_eq!(a, b, "{workers} workers: report {i} differs from the direct run");
+        }
+    }
+}

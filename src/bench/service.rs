@@ -41,7 +41,33 @@ pub struct ServiceThroughput {
     pub latency_p50_s: f64,
     /// 99th-percentile send-to-report latency, s.
     pub latency_p99_s: f64,
+    /// Send-to-report latency at offered loads below the flood's rate.
+    pub latency_curve: Vec<LatencyPoint>,
 }
+
+/// Latency at one offered load: frames sent one per message on a fixed
+/// schedule (open loop), each timed from its scheduled send time, so a
+/// sender that falls behind shows as latency instead of hiding it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LatencyPoint {
+    /// Offered load as a fraction of the flood's frames/s.
+    pub load: f64,
+    /// Offered frames/s.
+    pub offered_frames_per_s: f64,
+    /// Frames timed (after the warm-up).
+    pub frames: usize,
+    /// Latency percentiles 50, 99 and 99.9, s.
+    pub p50_s: f64,
+    /// 99th percentile, s.
+    pub p99_s: f64,
+    /// 99.9th percentile, s.
+    pub p999_s: f64,
+}
+
+/// Offered loads of the latency curve, as fractions of the flood's rate.
+pub const LATENCY_LOADS: [f64; 4] = [0.25, 0.5, 0.75, 0.9];
+/// Frames sent per load before timing starts (a fresh sensor's start-up).
+pub const LATENCY_WARMUP_FRAMES: usize = 200;
 
 /// Pushes `frames` reference frames at `snr_db` (as sensor "bench", scene `scene`) through a server on
 /// 127.0.0.1 and measures ingest, processing and latency.
@@ -69,6 +95,7 @@ pub fn measure_service(
         })
         .collect();
     drop(domain);
+    let wire_again: Vec<proto::Frame> = wire.iter().take(2048).cloned().collect();
     let scene = scene.clone();
     rt.block_on(async move {
         let listener = TcpListener::bind("127.0.0.1:0")
@@ -141,9 +168,9 @@ pub fn measure_service(
         let last_report_s = got
             .last()
             .map_or(ingest_s, |(_, t)| t.duration_since(t0).as_secs_f64());
-        let _ = stop_tx.send(());
-        let _ = tokio::time::timeout(Duration::from_secs(30), server).await;
         if got.len() < count {
+            let _ = stop_tx.send(());
+            let _ = tokio::time::timeout(Duration::from_secs(30), server).await;
             return Err(BenchError::Service(format!(
                 "{} of {count} reports arrived (ingest acknowledged {summary:?})",
                 got.len()
@@ -167,6 +194,15 @@ pub fn measure_service(
                 .unwrap_or(f64::NAN)
         };
         let total_samples = (count * samples_per_frame * channels) as f64;
+        let flood_fps = count as f64 / last_report_s;
+        let mut latency_curve = Vec::new();
+        for (k, load) in LATENCY_LOADS.iter().enumerate() {
+            let sensor = format!("latency-{k}");
+            let point = latency_at(&url, &wire_again, &sensor, *load, flood_fps).await?;
+            latency_curve.push(point);
+        }
+        let _ = stop_tx.send(());
+        let _ = tokio::time::timeout(Duration::from_secs(30), server).await;
         Ok(ServiceThroughput {
             frames: count,
             samples_per_frame,
@@ -176,8 +212,59 @@ pub fn measure_service(
             frames_per_s: count as f64 / last_report_s,
             latency_p50_s: q(0.5),
             latency_p99_s: q(0.99),
+            latency_curve,
         })
     })
+}
+
+/// Sends `wire` (as `sensor`) one frame per message at `load` × `flood_fps`
+/// on a fixed schedule and times each report from its frame's scheduled send.
+async fn latency_at(url: &str, wire: &[proto::Frame], sensor: &str, load: f64, flood_fps: f64) -> Result<LatencyPoint, BenchError> {
+    let err = |e: &dyn std::fmt::Display| BenchError::Service(e.to_string());
+    let rate = (load * flood_fps).max(1.0);
+    // About a second of frames at this rate, at least 1000 timed.
+    let count = (rate as usize).max(1000) + LATENCY_WARMUP_FRAMES;
+    let mut clients = client::connect(url, &ClientOptions::default()).await.map_err(|e| err(&e))?;
+    let request = proto::SubscribeRequest { sensor_ids: vec![sensor.to_string()], ..Default::default() };
+    let mut events = client::subscribe(&mut clients.reports, request).await.map_err(|e| err(&e))?;
+    let frames: Vec<proto::Frame> = (0..count)
+        .map(|i| proto::Frame { sensor_id: sensor.to_string(), sequence: i as u64, ..wire[i % wire.len()].clone() })
+        .collect();
+    let (tx, rx) = mpsc::channel::<proto::FrameBatch>(64);
+    let t0 = tokio::time::Instant::now() + Duration::from_millis(20);
+    let due = move |i: usize| t0 + Duration::from_secs_f64(i as f64 / rate);
+    let producer = tokio::spawn(async move {
+        for (i, f) in frames.into_iter().enumerate() {
+            tokio::time::sleep_until(due(i)).await;
+            if tx.send(proto::FrameBatch { frames: vec![f] }).await.is_err() {
+                break;
+            }
+        }
+    });
+    let mut ingest = clients.ingest.clone();
+    let pusher = tokio::spawn(async move { client::push(&mut ingest, ReceiverStream::new(rx), |_| {}).await });
+    let mut lat = Vec::with_capacity(count);
+    let mut got = 0usize;
+    while got < count {
+        match tokio::time::timeout(Duration::from_secs(60), events.next()).await {
+            Ok(Some(Ok(ev))) => {
+                if let Some(Event::Report(r)) = ev.event {
+                    let now = tokio::time::Instant::now();
+                    got += 1;
+                    let i = r.seq_last as usize;
+                    if i >= LATENCY_WARMUP_FRAMES {
+                        lat.push(now.saturating_duration_since(due(i)).as_secs_f64());
+                    }
+                }
+            }
+            other => return Err(BenchError::Service(format!("latency at {load}: {got} of {count} reports arrived, then {other:?}"))),
+        }
+    }
+    let _ = producer.await;
+    let _ = pusher.await;
+    lat.sort_by(f64::total_cmp);
+    let q = |p: f64| lat.get(((lat.len() as f64 - 1.0) * p).round() as usize).copied().unwrap_or(f64::NAN);
+    Ok(LatencyPoint { load, offered_frames_per_s: rate, frames: lat.len(), p50_s: q(0.5), p99_s: q(0.99), p999_s: q(0.999) })
 }
 
 /// Sensors pushing at once in the dashboard-cost measurement.

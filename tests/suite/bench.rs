@@ -217,3 +217,27 @@ fn peer_ranges_agree_with_tofwave_within_a_tenth_of_sigma() {
         assert!(row.p99_over_sigma <= row.max_over_sigma, "{row:?}");
     }
 }
+
+/// The service's latency against offered load: measured below capacity (a
+/// paced sender, not a flood), so at a quarter of the flood's rate a frame
+/// waits for no queue and its latency is well below the flood's.
+#[test]
+fn service_latency_is_measured_at_loads_below_capacity() {
+    let s = bench::measure_service(&bench::reference_scene(), 20.0, 600).unwrap();
+    assert_eq!(s.latency_curve.len(), bench::LATENCY_LOADS.len());
+    for p in &s.latency_curve {
+        eprintln!(
+            "load {:.0} % ({:.0} frames/s): p50 {:.3} ms, p99 {:.3} ms, p99.9 {:.3} ms over {} frames",
+            100.0 * p.load,
+            p.offered_frames_per_s,
+            p.p50_s * 1e3,
+            p.p99_s * 1e3,
+            p.p999_s * 1e3,
+            p.frames
+        );
+        assert!(p.frames >= 1000, "{p:?}");
+        assert!(p.p50_s > 0.0 && p.p50_s <= p.p99_s && p.p99_s <= p.p999_s && p.p999_s.is_finite(), "{p:?}");
+    }
+    eprintln!("flood: {:.0} frames/s, p50 {:.3} ms", s.frames_per_s, s.latency_p50_s * 1e3);
+    assert!(s.latency_curve[0].p50_s < s.latency_p50_s, "a quarter load waits less than a flood: {s:?}");
+}

@@ -659,8 +659,8 @@ impl Worker {
                 }
                 Job::SetScene { scene, done } => {
                     let result = self.build(&scene).map(|p| {
-                        let old = std::mem::replace(&mut self.pipeline, p);
-                        self.finish(old, &sensor);
+                        self.finish(&sensor);
+                        self.pipeline = p;
                         tracing::info!(sensor = %sensor, scene = %scene.name, "scene applied");
                     });
                     self.flush_and_ack();
@@ -668,8 +668,7 @@ impl Worker {
                 }
             }
         }
-        let last = std::mem::replace(&mut self.pipeline, Staged::new(&Scene::default_scene(), &sensor, 1));
-        self.finish(last, &sensor);
+        self.finish(&sensor);
         self.flush_and_ack();
         if let Some(w) = self.recorder.take()
             && let Err(e) = w.finish()
@@ -679,15 +678,13 @@ impl Worker {
         tracing::info!(sensor = %sensor, "session drained");
     }
 
-    /// Ends `pipeline`: the outcomes of its frames, then what its flush completes.
-    fn finish(&mut self, mut pipeline: Staged, sensor: &str) {
+    /// Ends the pipeline: the outcomes of its frames, then what its flush
+    /// completes (it takes no frames after this).
+    fn finish(&mut self, sensor: &str) {
         let mut outcomes = Vec::new();
-        let flushed = pipeline.finish(&mut outcomes);
+        let flushed = self.pipeline.finish(&mut outcomes);
         for o in outcomes {
             self.complete(o, sensor);
-        }
-        if let Some(n) = pipeline.noise_model() {
-            *lock(&self.session.noise) = Some(n);
         }
         let mut reports = flushed.reports;
         self.publish(&mut reports);

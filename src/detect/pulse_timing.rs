@@ -121,16 +121,14 @@ impl ShapeFit {
 }
 
 /// Where a shape that does not fit the data is uncertain about the timing
-/// point: the constant-fraction crossing read off the samples against the
-/// fitted model's own fraction point, samples (0 when the crossing fails).
-/// For a fitting shape the two agree within the noise; the gap a mismatched
-/// one leaves changes with amplitude and sub-sample phase, and no noise-only
-/// sigma holds it.
-pub fn mismatch_gap(input: &TimingInput, fit: &ShapeFit) -> f64 {
-    match constant_fraction(input) {
-        Some(cf) => (cf.index - (fit.peak_index + input.pulse.fraction_offset(input.fraction))).abs(),
-        None => 0.0,
-    }
+/// point: the constant-fraction crossing read off the samples minus the
+/// fitted model's own fraction point, samples (`None` when the crossing
+/// fails). For a fitting shape the two agree within the noise (whose
+/// scatter of the gap [`ErrorTable::gap_noise`](crate::detect::error_table::ErrorTable::gap_noise)
+/// measures); the gap a mismatched one leaves changes with amplitude and
+/// sub-sample phase, and no noise-only sigma holds it.
+pub fn mismatch_gap(input: &TimingInput, fit: &ShapeFit) -> Option<f64> {
+    constant_fraction(input).map(|cf| cf.index - (fit.peak_index + input.pulse.fraction_offset(input.fraction)))
 }
 
 /// Standard deviations of χ² beyond its mean at which a fit is called a

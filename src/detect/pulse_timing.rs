@@ -72,6 +72,9 @@ pub struct ShapeFit {
     pub samples: usize,
     /// Fitted peak position, fractional sample index.
     pub peak_index: f64,
+    /// The least χ² lies at the edge of the searched positions: the fit found
+    /// no minimum there, and its position says nothing about the pulse.
+    pub at_edge: bool,
 }
 
 impl ShapeFit {
@@ -79,10 +82,12 @@ impl ShapeFit {
     /// position (searched within ±2 samples of `near`, in quarter samples)
     /// and measures the residual in units of `sigma_v`.
     pub fn measure(x: &[f64], mean_v: f64, sigma_v: f64, pulse: &Shape, near: f64) -> ShapeFit {
-        (-8..=8)
-            .map(|j| ShapeFit::at(x, mean_v, sigma_v, pulse, near + 0.25 * j as f64))
-            .min_by(|a, b| a.chi2.total_cmp(&b.chi2))
-            .expect("17 positions")
+        let (j, mut fit) = (-8i32..=8)
+            .map(|j| (j, ShapeFit::at(x, mean_v, sigma_v, pulse, near + 0.25 * j as f64)))
+            .min_by(|a, b| a.1.chi2.total_cmp(&b.1.chi2))
+            .expect("17 positions");
+        fit.at_edge = j.abs() == 8;
+        fit
     }
 
     /// The fit with the peak at `peak_index` (amplitude by least squares).
@@ -92,7 +97,7 @@ impl ShapeFit {
         let first = (peak_index + lo).ceil().max(0.0) as usize;
         let last = ((peak_index + hi).floor().max(0.0) as usize).min(n.saturating_sub(1));
         if first > last || !(sigma_v > 0.0) {
-            return ShapeFit { chi2: 0.0, samples: 0, peak_index };
+            return ShapeFit { chi2: 0.0, samples: 0, peak_index, at_edge: false };
         }
         let (mut ss, mut xs, mut xx) = (0.0, 0.0, 0.0);
         for (k, &v) in x.iter().enumerate().take(last + 1).skip(first) {
@@ -103,7 +108,7 @@ impl ShapeFit {
             xx += v * v;
         }
         let chi2 = if ss > 0.0 { (xx - xs * xs / ss).max(0.0) } else { xx } / (sigma_v * sigma_v);
-        ShapeFit { chi2, samples: last + 1 - first, peak_index }
+        ShapeFit { chi2, samples: last + 1 - first, peak_index, at_edge: false }
     }
 
     /// Residual degrees of freedom (amplitude and position fitted).
@@ -123,11 +128,16 @@ impl ShapeFit {
 /// Where a shape that does not fit the data is uncertain about the timing
 /// point: the constant-fraction crossing read off the samples minus the
 /// fitted model's own fraction point, samples (`None` when the crossing
-/// fails). For a fitting shape the two agree within the noise (whose
+/// fails, or when the fit's least χ² lies at the edge of its search, where
+/// its position is where the search stopped, not where the model fits).
+/// For a fitting shape the two agree within the noise (whose
 /// scatter of the gap [`ErrorTable::gap_noise`](crate::detect::error_table::ErrorTable::gap_noise)
 /// measures); the gap a mismatched one leaves changes with amplitude and
 /// sub-sample phase, and no noise-only sigma holds it.
 pub fn mismatch_gap(input: &TimingInput, fit: &ShapeFit) -> Option<f64> {
+    if fit.at_edge {
+        return None;
+    }
     constant_fraction(input).map(|cf| cf.index - (fit.peak_index + input.pulse.fraction_offset(input.fraction)))
 }
 

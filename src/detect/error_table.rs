@@ -21,7 +21,14 @@
 //!   and ±3σ at least 98 % even where the errors have heavy tails.
 //!
 //! The sub-sample phase scatter that a bias table cannot remove (the constant
-//! fraction's jumps) is inside the measured width. The table is deterministic
+//! fraction's jumps) is inside the measured width.
+//!
+//! The same trials measure how much the shape-mismatch gap
+//! ([`mismatch_gap`]: the samples' own constant-fraction crossing against
+//! the fitted model's fraction point) scatters when the model *is* the
+//! pulse: that scatter is noise (and the fit's position grid), already in
+//! the method's width, and the pipeline takes it out of the gap's swing on
+//! real data before the swing joins the sigma as a model-mismatch term. The table is deterministic
 //! (fixed seed) and cached per (method, shape, fraction, detector): building
 //! one costs tens of milliseconds.
 //!
@@ -31,7 +38,7 @@
 
 use crate::detect::kernels::DetectorPlan;
 use crate::detect::phase::PhaseBias;
-use crate::detect::pulse_timing::{time_pulse, TimingInput};
+use crate::detect::pulse_timing::{mismatch_gap, time_pulse, ShapeFit, TimingInput};
 use crate::dsp::pulse::{PulseShape, Shape};
 use crate::scene::TimingMethod;
 use rand::{Rng, SeedableRng};
@@ -69,10 +76,14 @@ pub struct ErrorTable {
     bias: Vec<f64>,
     /// One-sigma width at each, samples.
     sigma: Vec<f64>,
+    /// RMS of the mismatch gap about its mean at each, on the model shape
+    /// (noise only), samples.
+    gap: Vec<f64>,
 }
 
-/// One measured error: ln(measured SNR), error in samples.
-type Trial = (f64, f64);
+/// One measured trial: ln(measured SNR), error in samples, mismatch gap in
+/// samples (NaN where the crossing failed).
+type Trial = (f64, f64, f64);
 
 impl ErrorTable {
     /// The table of `method` on `shape` (with `fraction`; on the matched
@@ -133,26 +144,27 @@ impl ErrorTable {
             if !(y[peak] >= DETECTION_FLOOR) {
                 continue;
             }
-            let mut t = time_pulse(
-                method,
-                &TimingInput {
-                    x: &x,
-                    mean_v: 0.0,
-                    sigma_v: 1.0,
-                    y,
-                    norm,
-                    pulse: shape,
-                    peak,
-                    fraction,
-                    leading_edge_v: 0.5,
-                },
-            );
+            let input = TimingInput {
+                x: &x,
+                mean_v: 0.0,
+                sigma_v: 1.0,
+                y,
+                norm,
+                pulse: shape,
+                peak,
+                fraction,
+                leading_edge_v: 0.5,
+            };
+            let mut t = time_pulse(method, &input);
             if let Some(pb) = phase.as_ref().filter(|pb| pb.is_smooth()) {
                 t.index = pb.correct(t.index);
             }
             let measured = t.amplitude_v;
             if measured > 0.0 && t.index.is_finite() {
-                trials.push((measured.ln(), t.index - (peak_true + offset)));
+                // The gap as the pipeline measures it, on a shape that fits.
+                let fit = ShapeFit::measure(&x, 0.0, 1.0, shape, t.index - offset);
+                let gap = mismatch_gap(&input, &fit).unwrap_or(f64::NAN);
+                trials.push((measured.ln(), t.index - (peak_true + offset), gap));
             }
         }
         let mut table = ErrorTable::from_trials(trials)?;
@@ -169,6 +181,7 @@ impl ErrorTable {
             ln_snr: Vec::new(),
             bias: Vec::new(),
             sigma: Vec::new(),
+            gap: Vec::new(),
         };
         let mut start = 0;
         while start < trials.len() {
@@ -181,9 +194,19 @@ impl ErrorTable {
                 let bias = quantile(&mut e, 0.5);
                 let mut dev: Vec<f64> = e.iter().map(|v| (v - bias).abs()).collect();
                 let sigma = (quantile(&mut dev, 0.95) / 1.96).max(quantile(&mut dev, 0.98) / 3.0);
+                // The gap's plain RMS about its mean: the pipeline subtracts
+                // it from a running mean square, so like is taken from like.
+                let gaps: Vec<f64> = bin.iter().map(|t| t.2).filter(|g| g.is_finite()).collect();
+                let gap = if gaps.len() >= MIN_PER_BIN / 2 {
+                    let m = gaps.iter().sum::<f64>() / gaps.len() as f64;
+                    (gaps.iter().map(|g| (g - m) * (g - m)).sum::<f64>() / (gaps.len() - 1) as f64).sqrt()
+                } else {
+                    0.0
+                };
                 table.ln_snr.push(centre);
                 table.bias.push(bias);
                 table.sigma.push(sigma.max(f64::MIN_POSITIVE));
+                table.gap.push(gap.max(f64::MIN_POSITIVE));
             }
             start = end;
         }
@@ -217,24 +240,45 @@ impl ErrorTable {
     pub fn at(&self, snr: f64) -> (f64, f64) {
         let l = snr.max(f64::MIN_POSITIVE).ln();
         let n = self.ln_snr.len();
+        let bias = if !(l > self.ln_snr[0]) {
+            self.bias[0]
+        } else if l >= self.ln_snr[n - 1] {
+            self.bias[n - 1]
+        } else {
+            let i = self.ln_snr.partition_point(|&v| v <= l);
+            let w = (l - self.ln_snr[i - 1]) / (self.ln_snr[i] - self.ln_snr[i - 1]);
+            self.bias[i - 1] + w * (self.bias[i] - self.bias[i - 1])
+        };
+        (bias, self.width(&self.sigma, l))
+    }
+
+    /// RMS of the shape-mismatch gap ([`mismatch_gap`]) that noise alone
+    /// gives at measured SNR `snr` when the model is the pulse, samples;
+    /// interpolated as the width in [`ErrorTable::at`].
+    pub fn gap_noise(&self, snr: f64) -> f64 {
+        self.width(&self.gap, snr.max(f64::MIN_POSITIVE).ln())
+    }
+
+    /// A width column at ln SNR `l`: held below the lowest bin, linear in
+    /// ln width between bins, a²/SNR² + f² from the top two bins above.
+    fn width(&self, col: &[f64], l: f64) -> f64 {
+        let n = self.ln_snr.len();
         if !(l > self.ln_snr[0]) {
-            return (self.bias[0], self.sigma[0]);
+            return col[0];
         }
         if l >= self.ln_snr[n - 1] {
             // σ² = a²/snr² + f²: a noise part falling as 1/SNR and a floor
             // (phase scatter) that does not, solved from the top two bins.
             let (r1, r2) = (self.ln_snr[n - 2].exp(), self.ln_snr[n - 1].exp());
-            let (s1, s2) = (self.sigma[n - 2], self.sigma[n - 1]);
+            let (s1, s2) = (col[n - 2], col[n - 1]);
             let a2 = ((s1 * s1 - s2 * s2) / (1.0 / (r1 * r1) - 1.0 / (r2 * r2))).max(0.0);
             let f2 = (s2 * s2 - a2 / (r2 * r2)).max(0.0);
             let snr = l.exp();
-            return (self.bias[n - 1], (a2 / (snr * snr) + f2).sqrt().min(s2));
+            return (a2 / (snr * snr) + f2).sqrt().min(s2);
         }
         let i = self.ln_snr.partition_point(|&v| v <= l);
         let w = (l - self.ln_snr[i - 1]) / (self.ln_snr[i] - self.ln_snr[i - 1]);
-        let bias = self.bias[i - 1] + w * (self.bias[i] - self.bias[i - 1]);
-        let sigma = (self.sigma[i - 1].ln() + w * (self.sigma[i].ln() - self.sigma[i - 1].ln())).exp();
-        (bias, sigma)
+        (col[i - 1].ln() + w * (col[i].ln() - col[i - 1].ln())).exp()
     }
 
     /// (measured SNR, bias, one-sigma width) of every bin, for reports and plots.

@@ -72,6 +72,9 @@ pub struct ShapeFit {
     pub samples: usize,
     /// Fitted peak position, fractional sample index.
     pub peak_index: f64,
+    /// The least χ² lies at the edge of the searched positions: the fit found
+    /// no minimum there, and its position says nothing about the pulse.
+    pub at_edge: bool,
 }
 
 impl ShapeFit {
@@ -90,19 +93,21 @@ impl ShapeFit {
         let len = (4 * (k_max - k_min) + 17).max(0) as usize;
         let mut table = [f64::NAN; SHAPE_TABLE];
         let fit = |j: i64, values: Option<&mut [f64]>| ShapeFit::at(x, mean_v, sigma_v, pulse, near + 0.25 * j as f64, j, m_min, values);
-        if len <= SHAPE_TABLE {
+        let (j, mut fit) = if len <= SHAPE_TABLE {
             let values = &mut table[..len];
-            let mut best: Option<ShapeFit> = None;
+            let mut best: Option<(i64, ShapeFit)> = None;
             for j in -8..=8 {
                 let f = fit(j, Some(&mut *values));
-                if best.as_ref().is_none_or(|b| f.chi2 < b.chi2) {
-                    best = Some(f);
+                if best.as_ref().is_none_or(|b| f.chi2 < b.1.chi2) {
+                    best = Some((j, f));
                 }
             }
             best.expect("17 positions")
         } else {
-            (-8..=8).map(|j| fit(j, None)).min_by(|a, b| a.chi2.total_cmp(&b.chi2)).expect("17 positions")
-        }
+            (-8..=8).map(|j| (j, fit(j, None))).min_by(|a, b| a.1.chi2.total_cmp(&b.1.chi2)).expect("17 positions")
+        };
+        fit.at_edge = j.abs() == 8;
+        fit
     }
 
     /// The fit with the peak at `peak_index` = near + j/4 (amplitude by
@@ -115,7 +120,7 @@ impl ShapeFit {
         let first = (peak_index + lo).ceil().max(0.0) as usize;
         let last = ((peak_index + hi).floor().max(0.0) as usize).min(n.saturating_sub(1));
         if first > last || !(sigma_v > 0.0) {
-            return ShapeFit { chi2: 0.0, samples: 0, peak_index };
+            return ShapeFit { chi2: 0.0, samples: 0, peak_index, at_edge: false };
         }
         let (mut ss, mut xs, mut xx) = (0.0, 0.0, 0.0);
         for (k, &v) in x.iter().enumerate().take(last + 1).skip(first) {
@@ -134,7 +139,7 @@ impl ShapeFit {
             xx += v * v;
         }
         let chi2 = if ss > 0.0 { (xx - xs * xs / ss).max(0.0) } else { xx } / (sigma_v * sigma_v);
-        ShapeFit { chi2, samples: last + 1 - first, peak_index }
+        ShapeFit { chi2, samples: last + 1 - first, peak_index, at_edge: false }
     }
 
     /// Residual degrees of freedom (amplitude and position fitted).
@@ -152,16 +157,19 @@ impl ShapeFit {
 }
 
 /// Where a shape that does not fit the data is uncertain about the timing
-/// point: the constant-fraction crossing read off the samples against the
-/// fitted model's own fraction point, samples (0 when the crossing fails).
-/// For a fitting shape the two agree within the noise; the gap a mismatched
-/// one leaves changes with amplitude and sub-sample phase, and no noise-only
-/// sigma holds it.
-pub fn mismatch_gap(input: &TimingInput, fit: &ShapeFit) -> f64 {
-    match constant_fraction(input) {
-        Some(cf) => (cf.index - (fit.peak_index + input.pulse.fraction_offset(input.fraction))).abs(),
-        None => 0.0,
+/// point: the constant-fraction crossing read off the samples minus the
+/// fitted model's own fraction point, samples (`None` when the crossing
+/// fails, or when the fit's least χ² lies at the edge of its search, where
+/// its position is where the search stopped, not where the model fits).
+/// For a fitting shape the two agree within the noise (whose
+/// scatter of the gap [`ErrorTable::gap_noise`](crate::detect::error_table::ErrorTable::gap_noise)
+/// measures); the gap a mismatched one leaves changes with amplitude and
+/// sub-sample phase, and no noise-only sigma holds it.
+pub fn mismatch_gap(input: &TimingInput, fit: &ShapeFit) -> Option<f64> {
+    if fit.at_edge {
+        return None;
     }
+    constant_fraction(input).map(|cf| cf.index - (fit.peak_index + input.pulse.fraction_offset(input.fraction)))
 }
 
 /// Pulse values [`ShapeFit::measure`] caches on the stack (4 per sample of

@@ -364,7 +364,10 @@ impl Level<'_> {
 /// frame share that estimate, so the count is over-dispersed relative to a
 /// binomial one (see [`crossing_moments`]); the interval and the excess test
 /// use the quasi-binomial count (observed and cells divided by the
-/// dispersion). `excess` means the design lies below the 99.9 % interval.
+/// dispersion). `excess` means the design lies below the 99.8 % interval.
+/// With CFAR each gate cell is judged against its own threshold, from
+/// training cells that exclude it: the cells above it are counted against
+/// the design per-cell probability (see `exceedance_dispersion`).
 #[derive(Debug, Default)]
 struct FalseAlarmCounter {
     /// Noise-gate crossings since the pipeline started.
@@ -502,6 +505,23 @@ impl FalseAlarmCounter {
         };
         if m1 > 0.0 { 1.0 + cells * (m2 - m1 * m1).max(0.0) / m1 } else { 1.0 }
     }
+}
+
+/// Variance over binomial variance of the count of output cells above a
+/// level each exceeds with probability `p`, the output's lag-1 correlation
+/// being `rho1`: exceedances clump as the two-state Markov chain of the
+/// up-crossing model (leave the run with P(X₁ ≤ u | X₀ > u) = p_up/p, enter
+/// it with p_up/(1 − p), u = Q⁻¹(p)), whose indicator's lag-k correlation is
+/// λᵏ with λ = 1 − p_up/p − p_up/(1 − p); the count over many cells then has
+/// dispersion (1 + λ)/(1 − λ) (1 for white output, about twice the mean run
+/// length for a smooth one).
+fn exceedance_dispersion(p: f64, rho1: f64) -> f64 {
+    if !(p > 0.0 && p < 0.5) {
+        return 1.0;
+    }
+    let up = ln_upcrossing_prob(special::q_inv(p), rho1).exp();
+    let lambda = (1.0 - up / p - up / (1.0 - p)).clamp(0.0, 1.0 - 1e-9);
+    (1.0 + lambda) / (1.0 - lambda)
 }
 
 /// Most gate runs the noise colour is pooled over in one frame (a cleaned
@@ -741,12 +761,25 @@ impl Stage for Detect {
                         // training cells give the input's sigma; the output's
                         // is out_gain times it (1 for white or whitened noise).
                         let mean = if whitened { 0.0 } else { w.noise.summary.mean_v };
-                        cfar_thresholds(cp, input, mean, scale * out_gain, &mut cs.e, &mut cs.thresholds);
+                        // The gate mean's error δ is common to every cell: it
+                        // shifts the output by dc_gain·δ (variance dc²/m in
+                        // output variances, m the mean's effective samples)
+                        // and adds δ² to every training cell's power (g²/m in
+                        // input variances, g the output's gain on the
+                        // noise). The factors assume neither; the ratio of
+                        // the two inflations puts the design back.
+                        let kappa = if samples == 0 {
+                            1.0
+                        } else {
+                            let m = mean_samples as f64;
+                            ((1.0 + dc_gain * dc_gain / m) / (1.0 + out_gain * out_gain / m)).sqrt()
+                        };
+                        cfar_thresholds(cp, input, mean, scale * out_gain * kappa, &mut cs.e, &mut cs.thresholds);
                         // Pd and score: Student-t with the full window's cells.
                         let alpha = cp.factor(cp.full_window());
                         w.threshold.t = alpha;
-                        w.threshold.u = alpha;
-                        w.threshold.kappa = 1.0;
+                        w.threshold.u = alpha * kappa;
+                        w.threshold.kappa = kappa;
                         w.threshold.nu = cp.dof(cp.full_window());
                         w.report.stages.push(cs.kind.name());
                         true
@@ -800,12 +833,20 @@ impl Stage for Detect {
         };
         let dc_out = dc_gain * wh_dc * scale;
         let (observed, gate_cells, p_cell, dispersion) = match (&self.cfar, cfar_on) {
-            // Each cell's CFAR threshold comes from training cells that exclude
-            // it (and its guard cells): already independent of the cell.
+            // Each cell's CFAR threshold comes from training cells that
+            // exclude it (and its guard cells): already independent of the
+            // cell, which exceeds it with the design per-cell probability.
+            // Exceedances are counted, not up-crossings: a CFAR threshold
+            // moves from cell to cell with its training cells, so one
+            // excursion of the output crosses it more often than it would
+            // a fixed level (1.4x on whitened AR(1) noise, 1.5x with OS),
+            // and the fixed level's up-crossing rate is no expectation for
+            // that count. Neighbouring exceedances clump: see
+            // `exceedance_dispersion`.
             (Some(cs), true) => {
-                let level = Level::PerCell(&cs.thresholds);
-                let observed = gate_pos.iter().map(|r| level.upcrossings(y, r.clone())).sum();
-                (observed, gate_positions * per_position, t.p_cell, 1.0)
+                let thr = &cs.thresholds;
+                let observed = gate_pos.iter().flat_map(|r| r.clone()).filter(|&p| y[p] > thr[p]).count() as u64;
+                (observed, gate_positions, t.p_cell, exceedance_dispersion(t.p_cell, rho1))
             }
             _ => match self.held_out {
                 Some(h) if h.whitened == whitened && h.dt_s == dt && samples >= 2 => {
@@ -981,6 +1022,17 @@ mod tests {
             let cells = Level::PerCell(&per_cell).upcrossings(&y, range.clone());
             assert_eq!(cells, naive_upcrossings(&y, range.clone(), &|p| per_cell[p]), "{range:?}");
         }
+    }
+
+    #[test]
+    fn exceedance_dispersion_is_one_for_white_output_and_grows_with_correlation() {
+        // White: P(X₀ ≤ u < X₁) = p(1 − p), so λ = 0.
+        assert!((exceedance_dispersion(1e-3, 0.0) - 1.0).abs() < 1e-9);
+        let (a, b) = (exceedance_dispersion(1e-4, 0.5), exceedance_dispersion(1e-4, 0.99));
+        assert!(1.0 < a && a < b, "{a} {b}");
+        // Smooth output: 2r − 1 for mean run length r = p/p_up (geometric runs).
+        let run = 1e-4 / ln_upcrossing_prob(special::q_inv(1e-4), 0.99).exp();
+        assert!((b / (2.0 * run - 1.0) - 1.0).abs() < 1e-3, "{b} vs run {run}");
     }
 
     #[test]

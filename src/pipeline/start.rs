@@ -11,6 +11,7 @@ use crate::detect::error_table::ErrorTable;
 use crate::detect::pulse_timing::{time_pulse, mismatch_gap, ShapeFit, TimingInput, MISMATCH_Z};
 use crate::dsp::pulse::Shape;
 use crate::scene::{Scene, TimingMethod};
+use super::timing::MismatchSwing;
 use std::sync::Arc;
 
 /// Times the start pulse.
@@ -28,8 +29,8 @@ pub struct Start {
     errors: Option<Arc<ErrorTable>>,
     /// The same for the peak interpolation a failed crossing falls back to.
     fallback_errors: Option<Arc<ErrorTable>>,
-    /// Running mean of the mismatch gap and mean square of its swing, samples.
-    typical_gap: Option<(f64, f64)>,
+    /// The mismatch gap's swing beyond noise.
+    mismatch: MismatchSwing,
     volts: Vec<f64>,
     scratch: Vec<f64>,
 }
@@ -47,7 +48,7 @@ impl Start {
             plan: None,
             errors: None,
             fallback_errors: None,
-            typical_gap: None,
+            mismatch: MismatchSwing::default(),
             volts: Vec::new(),
             scratch: Vec::new(),
         }
@@ -161,14 +162,11 @@ impl Stage for Start {
         // point and the samples' own crossing.
         let fit = ShapeFit::measure(xw, baseline, sigma, pulse, timed.index - a as f64 - pulse.fraction_offset(self.fraction));
         if fit.mismatched(MISMATCH_Z, 1.0) {
-            // Its typical value is a constant the calibration absorbs.
-            let gap = mismatch_gap(&input, &fit);
-            // Running mean and mean square of its swing (one per sensor).
-            let (typical, swing2) = self.typical_gap.get_or_insert((gap, 0.0));
-            let d = gap - *typical;
-            *swing2 += super::timing::GAP_SMOOTHING * (d * d - *swing2);
-            *typical += super::timing::GAP_SMOOTHING * d;
-            timed.sigma_samples = timed.sigma_samples.hypot(swing2.sqrt());
+            // Its typical value is a constant the calibration absorbs; the
+            // swing noise gives on a fitting shape is in the method's width.
+            let noise = self.fallback_errors.as_ref().map_or(0.0, |e| e.gap_noise(timed.amplitude_v / sigma));
+            let swing = self.mismatch.update(mismatch_gap(&input, &fit), noise);
+            timed.sigma_samples = timed.sigma_samples.hypot(swing);
         }
         w.reference.t_ref_s = w.frame.sample_time_s(timed.index);
         w.reference.t_ref_sigma_s = timed.sigma_samples * dt;

@@ -18,7 +18,40 @@ use crate::scene::{DetectorKind, Scene, TimingMethod};
 const OVERLAP_FWHM: f64 = 2.0;
 
 /// Weight of each new mismatch gap in its running mean.
-pub(crate) const GAP_SMOOTHING: f64 = 0.05;
+const GAP_SMOOTHING: f64 = 0.05;
+
+/// The swing of the shape-mismatch gap (see `mismatch_gap`) beyond noise,
+/// one per sensor and channel: the uncertainty a pulse shape the model does
+/// not describe adds to the timing point.
+///
+/// The gap's typical value is a constant the calibration absorbs; its swing
+/// about that value holds two things: the noise of the two estimates it
+/// compares (the samples' crossing and the fitted model's position), which
+/// the method's own width already holds, and the mismatch's change with
+/// amplitude and sub-sample phase, which it does not. The first is the
+/// gap's scatter on the model shape at the same SNR (measured with the
+/// error table), so the running mean square keeps what is left after it.
+#[derive(Debug, Default, Clone, Copy)]
+pub(crate) struct MismatchSwing {
+    /// Running mean of the gap and of its squared swing less the noise
+    /// part, samples (None before the first mismatched pulse).
+    state: Option<(f64, f64)>,
+}
+
+impl MismatchSwing {
+    /// Adds a mismatched pulse's gap (none where the crossing failed), whose
+    /// noise-only RMS at this pulse's SNR is `noise` samples; returns the
+    /// mismatch's one-sigma, samples.
+    pub(crate) fn update(&mut self, gap: Option<f64>, noise: f64) -> f64 {
+        if let Some(gap) = gap.filter(|g| g.is_finite()) {
+            let (typical, excess2) = self.state.get_or_insert((gap, 0.0));
+            let d = gap - *typical;
+            *excess2 += GAP_SMOOTHING * (d * d - noise * noise - *excess2);
+            *typical += GAP_SMOOTHING * d;
+        }
+        self.state.map_or(0.0, |(_, excess2)| excess2.max(0.0).sqrt())
+    }
+}
 
 /// Timing points closer than this (samples) belong to one pulse.
 const SAME_PULSE_SAMPLES: f64 = 0.25;
@@ -51,8 +84,8 @@ pub struct Timing {
     /// Each pulse of the current frame: where the detector found it, how it
     /// was timed, how well the shape fitted (kept between frames).
     timed: Vec<(usize, Timed, f64)>,
-    /// Running mean of the mismatch gap (see `mismatch_gap`) and mean square of its swing, samples.
-    typical_gap: Option<(f64, f64)>,
+    /// The mismatch gap's swing beyond noise.
+    mismatch: MismatchSwing,
     /// Scratch for the joint Cramér–Rao bounds of resolved pulses.
     joint: JointScratch,
     /// (peak index, amplitude) of the resolved pulses, and their joint bounds.
@@ -111,7 +144,7 @@ impl Timing {
             joint_crlb: Vec::new(),
             slope: Vec::new(),
             acf: Vec::new(),
-            typical_gap: None,
+            mismatch: MismatchSwing::default(),
         }
     }
 }
@@ -188,15 +221,12 @@ impl Stage for Timing {
                 let gain = rho_squared_sum(&w.noise.rho);
                 let mismatched = fit.mismatched(MISMATCH_Z, gain);
                 if mismatched {
-                    // The gap's typical value is a constant the calibration
-                    // absorbs; its swing about that value is the uncertainty.
-                    let gap = mismatch_gap(&input, &fit);
-                    // Running mean and mean square of its swing (one per sensor).
-                    let (typical, swing2) = self.typical_gap.get_or_insert((gap, 0.0));
-                    let d = gap - *typical;
-                    *swing2 += GAP_SMOOTHING * (d * d - *swing2);
-                    *typical += GAP_SMOOTHING * d;
-                    t.sigma_samples = t.sigma_samples.hypot(swing2.sqrt());
+                    // What of the gap's swing noise would give on a fitting
+                    // shape at this SNR is already in the method's width.
+                    let snr = t.amplitude_v / w.noise.raw_sigma_v;
+                    let noise = self.fallback_errors.as_ref().map_or(0.0, |e| e.gap_noise(snr));
+                    let swing = self.mismatch.update(mismatch_gap(&input, &fit), noise);
+                    t.sigma_samples = t.sigma_samples.hypot(swing);
                 }
                 let misfit = if mismatched { f64::INFINITY } else { 0.0 };
                 // Two detector maxima on one pulse (a noisy double top) time

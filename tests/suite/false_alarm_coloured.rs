@@ -149,8 +149,9 @@ fn false_reports(s: &Scene, noise: Noise, gate: usize, frames: u64, seed: u64) -
     (hits, out.pop().unwrap())
 }
 
-/// The per-report rate's 99 % Clopper–Pearson interval holds the design.
-fn check_report_rate(s: &Scene, label: &str, noise: Noise, gate: usize, seed: u64) {
+/// The per-report rate's 99 % Clopper–Pearson interval holds the design;
+/// returns the last report.
+fn check_report_rate(s: &Scene, label: &str, noise: Noise, gate: usize, seed: u64) -> Report {
     let pfa = s.detector.pfa;
     let frames = (50.0 / pfa).round() as u64;
     let (hits, last) = false_reports(s, noise, gate, frames, seed);
@@ -167,6 +168,7 @@ fn check_report_rate(s: &Scene, label: &str, noise: Noise, gate: usize, seed: u6
     );
     assert_eq!(last.noise.samples as usize, gate, "the layout gives the gate asked for");
     assert!(lo <= pfa && pfa <= hi, "{label} {noise:?} gate {gate} pfa {pfa}: {hits} of {frames}");
+    last
 }
 
 #[test]
@@ -183,27 +185,69 @@ fn per_report_rate_holds_the_design_on_tia_noise() {
     }
 }
 
+fn whitened_cfar(kind: CfarKind) -> Scene {
+    let mut s = scene(1e-2);
+    s.detector.cfar = kind;
+    s.detector.whiten = true;
+    s
+}
+
 #[test]
 fn cfar_on_whitened_coloured_input_holds_the_design() {
     // CFAR on coloured input: whitening makes the training cells white, and
-    // the CA/OS factors exact again.
+    // the CA/OS factors exact again. The gate self-check counts cells above
+    // their CFAR threshold against the design per-cell probability: after
+    // 5 000 clean frames it must not call an excess.
     for (kind, seed) in [(CfarKind::Ca, 11), (CfarKind::Os, 12)] {
-        let mut s = scene(1e-2);
-        s.detector.cfar = kind;
-        s.detector.whiten = true;
-        check_report_rate(&s, &format!("{kind:?}-CFAR, whitened"), Noise::Ar1, 1400, seed);
+        let s = whitened_cfar(kind);
+        let last = check_report_rate(&s, &format!("{kind:?}-CFAR, whitened"), Noise::Ar1, 1400, seed);
+        assert!(!last.false_alarm.excess, "{kind:?}: {:?}", last.false_alarm);
     }
 }
 
 #[test]
-fn cfar_on_raw_coloured_input_is_within_a_factor_of_two() {
-    // Without whitening the training cells are correlated with each other
-    // (and, through the noise's memory, with the cell under test). The CA
-    // factors are solved on the training window's three-cumulant variance
-    // distribution (about 7 degrees of freedom from 64 cells of AR(1)
-    // φ = 0.9); what remains is measured, not designed: 1.7x at 1e-2 here
-    // (Student-t on the Satterthwaite degrees of freedom: 0.12x; on the
-    // cell count: far above). README says so and recommends `whiten`.
+fn cfar_self_check_is_quiet_on_clean_whitened_input() {
+    // Clean runs of 250 frames each: the flag's design rate is 0.1 % per
+    // run (the lower end of a 99.8 % interval) and the acceptance at most
+    // 1 %. CA: ≤ 2 flagged in 100 runs is what a 1 % rate gives with
+    // probability 0.92 (a true rate of 8 % passes with probability < 2 %).
+    // OS re-solves its factors by quadrature whenever the whitener is
+    // refitted (about 0.4 s a run): ≤ 1 in 30 runs, which a 1 % rate gives
+    // with probability 0.96 and a 15 % rate with probability < 5 %.
+    let frames = 250;
+    for (kind, runs, allowed) in [(CfarKind::Ca, 100, 2), (CfarKind::Os, 30, 1)] {
+        let s = whitened_cfar(kind);
+        let (pre, len) = frame_layout(&s, 1400);
+        let (mut flagged, mut ratio) = (0, 0.0);
+        let mut out = Vec::new();
+        for run in 0..runs {
+            let mut src = Source::new(Noise::Ar1, 3000 + run);
+            let mut p = Pipeline::new(&s, "fa");
+            for seq in 0..frames {
+                out.clear();
+                p.push(frame(src.samples(len, SIGMA), pre, seq), &mut out).unwrap();
+            }
+            let last = &out[0];
+            flagged += last.false_alarm.excess as u64;
+            ratio += last.false_alarm.rate / last.detector.pfa_cell / runs as f64;
+        }
+        eprintln!(
+            "{kind:?}-CFAR, whitened Ar1, gate 1400: excess in {flagged}/{runs} clean runs of {frames} frames; \
+             gate cells above their threshold {ratio:.2}x the design on average"
+        );
+        assert!(flagged <= allowed, "{kind:?}: {flagged} of {runs} clean runs flagged");
+    }
+}
+
+#[test]
+fn cfar_on_raw_coloured_input_holds_the_design() {
+    // Without whitening the training cells are correlated with each other:
+    // the CA factors are solved on the training window's three-cumulant
+    // variance distribution (about 7 degrees of freedom from 64 cells of
+    // AR(1) φ = 0.9), and the gate mean's error, which moves the
+    // matched filter's output far more than it moves the training cells'
+    // power on noise this slow, scales the thresholds. README still
+    // recommends `whiten`: it keeps more of the detection power.
     let mut s = scene(1e-2);
     s.detector.cfar = CfarKind::Ca;
     s.detector.cfar_training_cells = 32;
@@ -212,7 +256,7 @@ fn cfar_on_raw_coloured_input_is_within_a_factor_of_two() {
     let (hits, _) = false_reports(&s, Noise::Ar1, 400, frames, 11);
     let (lo, hi) = clopper_pearson(hits, frames, 0.99);
     eprintln!("CA-CFAR on raw AR(1) input: {hits} of {frames} reports ({:.2}x design; 99 % [{:.2}, {:.2}]x)", hits as f64 / frames as f64 / 1e-2, lo / 1e-2, hi / 1e-2);
-    assert!(lo <= 2.5e-2 && hi >= 0.4e-2, "within 2.5x of the design: {hits} of {frames}");
+    assert!(lo <= 1e-2 && 1e-2 <= hi, "design outside the 99 % interval: {hits} of {frames}");
 }
 
 /// Self-check runs: `runs` clean runs of `frames`/4 frames with each frame's

@@ -29,6 +29,8 @@ pub struct ThreadsCost {
     pub samples_per_frame: usize,
     /// How the N arm cut the stages (the last offline trial's).
     pub cut: String,
+    /// Each stage's time per frame in that trial's pilot, s.
+    pub stage_s: Vec<(&'static str, f64)>,
     /// Offline frames/s per trial, one thread.
     pub offline_1: Vec<f64>,
     /// Offline frames/s per trial, N threads.
@@ -76,6 +78,13 @@ impl ThreadsCost {
             100.0 * median(&self.service_1) / median(&self.offline_1),
             self.cut
         );
+        if !self.stage_s.is_empty() {
+            let total: f64 = self.stage_s.iter().map(|s| s.1).sum();
+            md += "\nStage times per frame on one thread (the pilot's timed frames):\n\n| stage | µs/frame | share |\n|---|---|---|\n";
+            for (name, t) in &self.stage_s {
+                md += &format!("| {name} | {:.1} | {:.0} % |\n", t * 1e6, 100.0 * t / total);
+            }
+        }
         md
     }
 }
@@ -100,6 +109,7 @@ pub fn measure_threads_cost(
         frames: frames.len(),
         samples_per_frame: frames[0].len(),
         cut: String::new(),
+        stage_s: Vec::new(),
         offline_1: Vec::new(),
         offline_n: Vec::new(),
         service_1: Vec::new(),
@@ -110,7 +120,8 @@ pub fn measure_threads_cost(
             let (fps, cut) = offline(scene, frames, n);
             into.push(fps);
             if n == threads {
-                cost.cut = cut;
+                cost.cut = cut.to_string();
+                cost.stage_s = cut.stage_s;
             }
         }
         for (n, into) in [(1, &mut cost.service_1), (threads, &mut cost.service_n)] {
@@ -131,7 +142,7 @@ pub fn measure_threads_cost(
 }
 
 /// Steady-state outcomes per second of `frames` on `threads` threads, and the cut.
-fn offline(scene: &Scene, frames: &[Frame], threads: usize) -> (f64, String) {
+fn offline(scene: &Scene, frames: &[Frame], threads: usize) -> (f64, threaded::Cut) {
     let (mut first, mut last, mut count) = (None, None, 0usize);
     let cut = threaded::run(scene, "bench", threads, frames.iter().cloned(), |o| {
         if o.reports.is_empty() && count == frames.len() {
@@ -146,5 +157,5 @@ fn offline(scene: &Scene, frames: &[Frame], threads: usize) -> (f64, String) {
         (Some(a), Some(b)) => b.duration_since(a).as_secs_f64().max(1e-9),
         _ => f64::INFINITY,
     };
-    ((count.saturating_sub(1)) as f64 / span, cut.to_string())
+    ((count.saturating_sub(1)) as f64 / span, cut)
 }

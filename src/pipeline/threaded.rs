@@ -72,6 +72,9 @@ pub struct Cut {
     pub segments: Vec<Vec<&'static str>>,
     /// Fraction of the pilot's time each segment took (sums to 1).
     pub shares: Vec<f64>,
+    /// Each stage's mean time per frame over the pilot's timed frames, s
+    /// (validate first; empty when no pilot ran).
+    pub stage_s: Vec<(&'static str, f64)>,
 }
 
 impl std::fmt::Display for Cut {
@@ -205,6 +208,7 @@ impl Staged {
         self.cut.clone().unwrap_or_else(|| Cut {
             segments: vec![Pipeline::new(&self.scene, &self.sensor).stage_names()],
             shares: vec![1.0],
+            stage_s: Vec::new(),
         })
     }
 
@@ -313,6 +317,7 @@ impl Staged {
         let cut = Cut {
             segments: bounds.windows(2).map(|b| names[b[0]..b[1]].to_vec()).collect(),
             shares: bounds.windows(2).map(|b| costs[b[0]..b[1]].iter().sum::<f64>() / total).collect(),
+            stage_s: if even { Vec::new() } else { names.iter().zip(&costs).map(|(n, c)| (*n, c / PILOT_TIMED as f64)).collect() },
         };
         tracing::info!(sensor = %self.sensor, threads = self.threads, cut = %cut, "stages cut over threads");
         self.cut = Some(cut);

@@ -32,6 +32,13 @@
 //!    (R: the noise correlation). z above the detector's threshold (in the
 //!    same noise units): a return that an event overlaps; else an event.
 //!
+//! 3. **Events that repeat** ([`EventTemplate`]): the frames' samples around
+//!    their event detections, aligned and averaged, give the event's
+//!    waveform; where it fits a frame, a detection that step 1 passed (a
+//!    weak lobe of the event's slow tail, far from its strong lobes, leaves
+//!    its window looking like noise) must stand above the threshold with the
+//!    event taken off.
+//!
 //! Both steps hold the model's columns by their inner products (an
 //! incremental Cholesky factor of their Gram matrix, pulse columns over their
 //! support only), so a judgement costs the pulses' supports, not passes over
@@ -715,7 +722,7 @@ pub struct EventTemplate {
 
 /// Frames of events before the template is used (its own noise, σ²/frames
 /// a sample, is allowed for wherever it is used).
-pub const TEMPLATE_MIN: usize = 4;
+pub const TEMPLATE_MIN: usize = 2;
 
 /// Largest shift, samples, between one of a frame's event detections and
 /// the template's anchor searched when adding or fitting (the strongest
@@ -782,8 +789,9 @@ impl EventTemplate {
 
     /// Adds the frame `x` (noise mean `mean_v`) around its event
     /// detections `anchors` (the strongest first): the first frame is
-    /// anchored on the strongest, later ones aligned on the template.
-    pub fn add(&mut self, x: &[f64], mean_v: f64, anchors: &[usize]) {
+    /// anchored on the strongest, later ones aligned on the template. The
+    /// samples `skip` says hold something else (a kept return) are left out.
+    pub fn add(&mut self, x: &[f64], mean_v: f64, anchors: &[usize], skip: &dyn Fn(usize) -> bool) {
         let Some(&first) = anchors.first() else { return };
         let start = if self.frames > 0 {
             match self.align(x, mean_v, anchors) {
@@ -795,7 +803,7 @@ impl EventTemplate {
         };
         for i in 0..self.sums.len() {
             let j = start + i as isize;
-            if j >= 0 && (j as usize) < x.len() {
+            if j >= 0 && (j as usize) < x.len() && !skip(j as usize) {
                 self.sums[i] += x[j as usize] - mean_v;
                 self.counts[i] += 1;
             }
@@ -925,7 +933,7 @@ mod tests {
         let top = |onset: f64| (0..2500).max_by(|&a, &b| burst(a, onset, 1.0, modes).total_cmp(&burst(b, onset, 1.0, modes))).unwrap();
         for k in 0..TEMPLATE_MIN as u64 + 4 {
             let onset = 400.0 + 13.0 * k as f64;
-            tpl.add(&frame(100 + k, onset, modes), 0.0, &[top(onset)]);
+            tpl.add(&frame(100 + k, onset, modes), 0.0, &[top(onset)], &|_| false);
         }
         // A new frame whose strongest detection is another lobe (about one
         // 3 MHz period on): every event detection is tried as the anchor.

@@ -1,6 +1,9 @@
 //! events: tells each detection's return from an interference event
 //! (`detect::events`), drops the events and marks the returns an event
-//! overlaps. Runs between detect and timing when `[events] enabled`.
+//! overlaps. Learns the waveform of events that repeat
+//! (`detect::events::EventTemplate`) and, where it fits a frame, drops the
+//! detections that no longer stand above the threshold once the event is
+//! taken off. Runs between detect and timing when `[events] enabled`.
 
 use super::{FrameError, Stage, Work};
 use crate::detect::events::{EventTemplate, EventTest, EventTestConfig, NoiseTerms, Verdict};
@@ -104,8 +107,7 @@ impl Stage for Events {
         // The frame's event, when it holds one: its detections (the one on
         // the highest sample first) anchor the learned waveform. Where the
         // waveform fits, the detections in its span that step 1 passed must
-        // stand above the threshold with the event taken off; frames whose
-        // span holds no return teach it.
+        // stand above the threshold with the event taken off.
         let x = &w.buffers.stop_v;
         let last = x.len().max(1) - 1;
         self.anchors.clear();
@@ -130,14 +132,14 @@ impl Stage for Events {
                     }
                 }
             }
-            let anchor = self.anchors[0] as f64;
-            let start = anchor - (TEMPLATE_BEFORE_S / dt).ceil();
-            let end = anchor + (TEMPLATE_AFTER_S / dt).ceil();
-            let clean = (0..self.peaks.len())
-                .all(|k| matches!(self.verdicts[k], Verdict::Event(_)) || self.peaks[k] < start || self.peaks[k] >= end);
-            if clean {
-                self.template.add(x, noise.mean_v, &self.anchors);
-            }
+            // Every event frame teaches it, less the supports of the
+            // detections kept as returns.
+            let (lo, hi) = shape.support();
+            let (peaks, verdicts) = (&self.peaks, &self.verdicts);
+            let kept = |j: usize| {
+                peaks.iter().zip(verdicts).any(|(&p, v)| !matches!(v, Verdict::Event(_)) && j as f64 >= p + lo && j as f64 <= p + hi)
+            };
+            self.template.add(x, noise.mean_v, &self.anchors, &kept);
         }
         let mut dropped = 0;
         let mut k = 0;

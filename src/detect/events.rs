@@ -32,6 +32,13 @@
 //!    (R: the noise correlation). z above the detector's threshold (in the
 //!    same noise units): a return that an event overlaps; else an event.
 //!
+//! 3. **Events that repeat** ([`EventTemplate`]): the frames' samples around
+//!    their event detections, aligned and averaged, give the event's
+//!    waveform; where it fits a frame, a detection that step 1 passed (a
+//!    weak lobe of the event's slow tail, far from its strong lobes, leaves
+//!    its window looking like noise) must stand above the threshold with the
+//!    event taken off.
+//!
 //! Both steps hold the model's columns by their inner products (an
 //! incremental Cholesky factor of their Gram matrix, pulse columns over their
 //! support only), so a judgement costs the pulses' supports, not passes over
@@ -256,6 +263,32 @@ impl EventTest {
         let (num, var) = basis.off_span(band, len, &self.xw, self.pulses.get(pulse, c), first, noise.rho, &mut self.col);
         let z = if var > 0.0 { num / (sigma * var.sqrt()) } else { 0.0 };
         if z > threshold { Verdict::ReturnWithEvent(z) } else { Verdict::Event(z) }
+    }
+
+    /// The matched filter's answer to the pulse at `p` on x − μ − `event`
+    /// (in the detector's units: qᵀy/(σ√(qᵀRq)), q the pulse): whether a
+    /// detection stands above the threshold once a known event is taken off.
+    pub fn pulse_z(&mut self, x: &[f64], noise: NoiseTerms, pulse: &Shape, p: f64, event: &dyn Fn(usize) -> f64) -> f64 {
+        let (a, values) = self.pulses.get(pulse, p);
+        let (mut num, mut qq) = (0.0, 0.0);
+        let mut col = std::mem::take(&mut self.col);
+        col.clear();
+        for (k, &(v, _)) in values.iter().enumerate() {
+            let j = a + k as i64;
+            if j >= 0 && (j as usize) < x.len() {
+                num += v * (x[j as usize] - noise.mean_v - event(j as usize));
+                qq += v * v;
+                col.push(v);
+            } else {
+                col.push(0.0);
+            }
+        }
+        let mut var = qq;
+        for (lag, r) in noise.rho.iter().enumerate().skip(1).take(col.len().saturating_sub(1)) {
+            var += 2.0 * r * dot(&col, &col[lag..]);
+        }
+        self.col = col;
+        if var > 0.0 && noise.sigma_v > 0.0 { num / (noise.sigma_v * var.sqrt()) } else { 0.0 }
     }
 
     /// Grows the scratch for windows of `pulse` with up to 16 pulses in one,
@@ -663,6 +696,171 @@ fn dof_from_spread(spread: f64) -> f64 {
 }
 
 
+/// A running estimate of the event waveform, for receivers whose events
+/// repeat (the same shape, at times that drift against the shots): the
+/// frames' samples around their strongest event detection, aligned on it
+/// and averaged. Once it has [`TEMPLATE_MIN`] frames it is fitted to every
+/// frame that holds an event ([`EventTemplate::fit`]); where it fits, the
+/// event it predicts is taken off before each detection of its span must
+/// stand above the detector's threshold again, so that lobes of the event
+/// too weak for the shape test (a slow tail far from the strong lobes) are
+/// judged with the rest of the event. Events that do not repeat (random
+/// phases) average away and never fit: nothing changes for them.
+#[derive(Debug, Clone, Default)]
+pub struct EventTemplate {
+    /// Samples before the anchor (the strongest event detection's peak).
+    before: usize,
+    /// Sum of the aligned samples (x − μ), `before + after` of them.
+    sums: Vec<f64>,
+    /// Frames that reached each sample.
+    counts: Vec<u32>,
+    /// Frames added.
+    frames: usize,
+    /// The mean waveform (refreshed when a frame is added).
+    mean: Vec<f64>,
+}
+
+/// Frames of events before the template is used (its own noise, σ²/frames
+/// a sample, is allowed for wherever it is used).
+pub const TEMPLATE_MIN: usize = 2;
+
+/// Largest shift, samples, between one of a frame's event detections and
+/// the template's anchor searched when adding or fitting (the strongest
+/// lobe is picked from noisy detections: another lobe of the event can win,
+/// so every event detection of the frame is tried as the anchor).
+const TEMPLATE_SHIFT: usize = 48;
+
+/// A fit of the template to one frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TemplateFit {
+    /// Frame index of the template's sample 0.
+    pub start: isize,
+    /// Amplitude of the template in the frame.
+    pub amplitude: f64,
+}
+
+impl EventTemplate {
+    /// An empty template spanning `before` samples before the anchor and
+    /// `after` from it.
+    pub fn new(before: usize, after: usize) -> EventTemplate {
+        let n = before + after;
+        EventTemplate { before, sums: vec![0.0; n], counts: vec![0; n], frames: 0, mean: vec![0.0; n] }
+    }
+
+    /// Frames added so far.
+    pub fn frames(&self) -> usize {
+        self.frames
+    }
+
+    /// Correlation ⟨x − μ, T⟩ and ⟨T, T⟩ over the frame with the template's sample 0 at `start`.
+    fn correlate(&self, x: &[f64], mean_v: f64, start: isize) -> (f64, f64) {
+        let (mut xt, mut tt) = (0.0, 0.0);
+        let lo = (-start).max(0) as usize;
+        let hi = (x.len() as isize - start).clamp(0, self.mean.len() as isize) as usize;
+        for i in lo..hi {
+            let t = self.mean[i];
+            xt += (x[(start + i as isize) as usize] - mean_v) * t;
+            tt += t * t;
+        }
+        (xt, tt)
+    }
+
+    /// The template's start (frame index), its anchor within
+    /// ±[`TEMPLATE_SHIFT`] of one of `anchors`, that correlates best with
+    /// the frame, with its amplitude.
+    fn align(&self, x: &[f64], mean_v: f64, anchors: &[usize]) -> Option<TemplateFit> {
+        let mut best: Option<(f64, TemplateFit)> = None;
+        let starts = anchors.iter().flat_map(|&a| {
+            let base = a as isize - self.before as isize;
+            (-(TEMPLATE_SHIFT as isize)..=TEMPLATE_SHIFT as isize).map(move |s| base + s)
+        });
+        for start in starts {
+            let (xt, tt) = self.correlate(x, mean_v, start);
+            if tt > 0.0 && xt > 0.0 {
+                // Energy explained by the fitted template at this shift.
+                let e = xt * xt / tt;
+                if best.is_none_or(|b| e > b.0) {
+                    best = Some((e, TemplateFit { start, amplitude: xt / tt }));
+                }
+            }
+        }
+        best.map(|b| b.1)
+    }
+
+    /// Adds the frame `x` (noise mean `mean_v`) around its event
+    /// detections `anchors` (the strongest first): the first frame is
+    /// anchored on the strongest, later ones aligned on the template. The
+    /// samples `skip` says hold something else (a kept return) are left out.
+    pub fn add(&mut self, x: &[f64], mean_v: f64, anchors: &[usize], skip: &dyn Fn(usize) -> bool) {
+        let Some(&first) = anchors.first() else { return };
+        let start = if self.frames > 0 {
+            match self.align(x, mean_v, anchors) {
+                Some(f) => f.start,
+                None => return,
+            }
+        } else {
+            first as isize - self.before as isize
+        };
+        for i in 0..self.sums.len() {
+            let j = start + i as isize;
+            if j >= 0 && (j as usize) < x.len() && !skip(j as usize) {
+                self.sums[i] += x[j as usize] - mean_v;
+                self.counts[i] += 1;
+            }
+        }
+        self.frames += 1;
+        for ((m, s), &c) in self.mean.iter_mut().zip(&self.sums).zip(&self.counts) {
+            *m = if c > 0 { s / c as f64 } else { 0.0 };
+        }
+    }
+
+    /// The template fitted near one of `anchors`, where it fits: after taking it
+    /// off, the energy left over its span (in units of σ², `n` samples)
+    /// stays below the upper `alpha` quantile of noise alone, so that events of another shape, and templates not yet
+    /// settled, are never taken off.
+    pub fn fit(&self, x: &[f64], noise: NoiseTerms, anchors: &[usize], alpha: f64) -> Option<TemplateFit> {
+        if self.frames < TEMPLATE_MIN || !(noise.sigma_v > 0.0) {
+            return None;
+        }
+        let f = self.align(x, noise.mean_v, anchors)?;
+        let lo = (-f.start).max(0) as usize;
+        let hi = (x.len() as isize - f.start).clamp(0, self.mean.len() as isize) as usize;
+        if hi <= lo {
+            return None;
+        }
+        let mut left = 0.0;
+        for i in lo..hi {
+            let r = x[(f.start + i as isize) as usize] - noise.mean_v - f.amplitude * self.mean[i];
+            left += r * r;
+        }
+        let n = (hi - lo) as f64;
+        // Noise alone: Σ r² ≈ σ² (1 + 1/frames) χ²ₙ (the template's own
+        // noise adds 1/frames), its variance scaled by Σρ² for coloured
+        // noise: a scaled χ² with the same mean and variance.
+        let rho_sq = 1.0 + 2.0 * noise.rho.iter().skip(1).map(|r| r * r).sum::<f64>();
+        let limit = (1.0 + 1.0 / self.frames as f64) * rho_sq * chi2_upper(n / rho_sq, alpha);
+        (left / (noise.sigma_v * noise.sigma_v) <= limit).then_some(f)
+    }
+
+    /// The fitted event at frame index `j` (zero off the template's span).
+    pub fn at(&self, f: TemplateFit, j: usize) -> f64 {
+        let i = j as isize - f.start;
+        if i >= 0 && (i as usize) < self.mean.len() { f.amplitude * self.mean[i as usize] } else { 0.0 }
+    }
+
+    /// Variance the fitted template adds to what is left once it is taken
+    /// off, in units of the noise's: its amplitude² over the frames averaged.
+    pub fn added_variance(&self, f: TemplateFit) -> f64 {
+        f.amplitude * f.amplitude / self.frames.max(1) as f64
+    }
+
+    /// Whether frame index `j` lies in the fitted template's span.
+    pub fn covers(&self, f: TemplateFit, j: f64) -> bool {
+        let i = j - f.start as f64;
+        i >= 0.0 && i < self.mean.len() as f64
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -709,6 +907,51 @@ mod tests {
             *v += 20.0 * s.value_and_slope(i as f64 - 310.0).0;
         }
         assert!(matches!(t.judge(&y, WHITE, &s, &[310.0], 0, 5.0), Verdict::ReturnWithEvent(_)));
+    }
+
+    /// A decaying two-mode burst of peak about `a` (σ units), onset at `onset`.
+    fn burst(i: usize, onset: f64, a: f64, modes: (f64, f64)) -> f64 {
+        let t = i as f64 - onset;
+        if t <= 0.0 {
+            return 0.0;
+        }
+        let tau = 150.0;
+        let w = |f: f64| (2.0 * std::f64::consts::PI * f * t).sin();
+        a * (t / tau) * (1.0 - t / tau).exp() * (w(modes.0) + w(modes.1))
+    }
+
+    #[test]
+    fn a_repeating_event_is_learned_and_taken_off_and_another_shape_is_not() {
+        let modes = (0.003, 0.007);
+        let mut tpl = EventTemplate::new(300, 1500);
+        let frame = |seed: u64, onset: f64, modes: (f64, f64)| {
+            let mut x = noise(2500, seed);
+            x.iter_mut().enumerate().for_each(|(i, v)| *v += burst(i, onset, 4.0, modes));
+            x
+        };
+        // The anchor: the burst's highest sample, noise aside.
+        let top = |onset: f64| (0..2500).max_by(|&a, &b| burst(a, onset, 1.0, modes).total_cmp(&burst(b, onset, 1.0, modes))).unwrap();
+        for k in 0..TEMPLATE_MIN as u64 + 4 {
+            let onset = 400.0 + 13.0 * k as f64;
+            tpl.add(&frame(100 + k, onset, modes), 0.0, &[top(onset)], &|_| false);
+        }
+        // A new frame whose strongest detection is another lobe (about one
+        // 3 MHz period on): every event detection is tried as the anchor.
+        let onset = 470.0;
+        let x = frame(7, onset, modes);
+        let fit = tpl.fit(&x, WHITE, &[top(onset) + 330, top(onset) + 3], 1e-3).expect("the learned burst fits");
+        assert!((fit.amplitude - 1.0).abs() < 0.1, "{fit:?}");
+        // Taken off, a lobe of its tail no longer stands out.
+        let s = shape();
+        let mut t = test();
+        let tail = onset + 900.0;
+        let (lobe, _) = (tail as usize..tail as usize + 200).map(|i| (i, burst(i, onset, 4.0, modes))).fold((0, f64::MIN), |b, v| if v.1 > b.1 { v } else { b });
+        let before = t.pulse_z(&x, WHITE, &s, lobe as f64, &|_| 0.0);
+        let after = t.pulse_z(&x, WHITE, &s, lobe as f64, &|j| tpl.at(fit, j)) / (1.0 + tpl.added_variance(fit)).sqrt();
+        assert!(after.abs() < 3.5 && after.abs() < before.abs(), "{before} {after}");
+        // A burst of other modes is not this event: no fit.
+        let y = frame(8, onset, (0.002, 0.009));
+        assert!(tpl.fit(&y, WHITE, &[top(onset)], 1e-3).is_none());
     }
 
     #[test]

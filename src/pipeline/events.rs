@@ -1,15 +1,25 @@
 //! events: tells each detection's return from an interference event
 //! (`detect::events`), drops the events and marks the returns an event
-//! overlaps. Runs between detect and timing when `[events] enabled`.
+//! overlaps. Learns the waveform of events that repeat
+//! (`detect::events::EventTemplate`) and, where it fits a frame, drops the
+//! detections that no longer stand above the threshold once the event is
+//! taken off. Runs between detect and timing when `[events] enabled`.
 
 use super::{FrameError, Stage, Work};
-use crate::detect::events::{EventTest, EventTestConfig, NoiseTerms, Verdict};
+use crate::detect::events::{EventTemplate, EventTest, EventTestConfig, NoiseTerms, Verdict};
 use crate::dsp::pulse::Shape;
 use crate::frame::FrameFlag;
 use crate::scene::{EventsConfig, PulseConfig, Scene};
 
 /// Scratch sized for this many detections a frame before any frame needs it.
 const MAX_DETECTIONS: usize = 64;
+
+/// Span of the learned event waveform before its strongest lobe, s.
+const TEMPLATE_BEFORE_S: f64 = 0.5e-6;
+
+/// Span of the learned event waveform from its strongest lobe on, s (the
+/// prototype's events last a fraction of its 2.5 µs frame).
+const TEMPLATE_AFTER_S: f64 = 2e-6;
 
 /// The events stage.
 #[derive(Debug)]
@@ -18,10 +28,15 @@ pub struct Events {
     pulse_cfg: PulseConfig,
     /// Shape and test for the current sampling period.
     plan: Option<(f64, Shape, EventTest)>,
+    /// The event waveform learned from the frames' events (see
+    /// [`EventTemplate`]), for the current sampling period.
+    template: EventTemplate,
     /// Peak indices of the frame's detections (scratch).
     peaks: Vec<f64>,
     /// Verdicts, one per detection (scratch).
     verdicts: Vec<Verdict>,
+    /// Sample indices of the frame's event detections (scratch).
+    anchors: Vec<usize>,
 }
 
 impl Events {
@@ -31,8 +46,10 @@ impl Events {
             cfg: scene.events.clone(),
             pulse_cfg: scene.return_pulse.clone(),
             plan: None,
+            template: EventTemplate::default(),
             peaks: Vec::new(),
             verdicts: Vec::new(),
+            anchors: Vec::new(),
         }
     }
 }
@@ -50,6 +67,7 @@ impl Events {
             let mut test = EventTest::new(cfg);
             test.reserve(&shape);
             self.plan = Some((dt, shape, test));
+            self.template = EventTemplate::new((TEMPLATE_BEFORE_S / dt).ceil() as usize, (TEMPLATE_AFTER_S / dt).ceil() as usize);
         }
     }
 }
@@ -64,6 +82,7 @@ impl Stage for Events {
         w.buffers.interfered.reserve(MAX_DETECTIONS);
         self.peaks.reserve(MAX_DETECTIONS);
         self.verdicts.reserve(MAX_DETECTIONS);
+        self.anchors.reserve(MAX_DETECTIONS);
         let dt = w.frame.sample_interval_s;
         self.refresh(dt);
         let (_, shape, test) = self.plan.as_mut().expect("set above");
@@ -84,6 +103,43 @@ impl Stage for Events {
         self.verdicts.clear();
         for k in 0..self.peaks.len() {
             self.verdicts.push(test.judge(&w.buffers.stop_v, noise, shape, &self.peaks, k, w.threshold.u));
+        }
+        // The frame's event, when it holds one: its detections (the one on
+        // the highest sample first) anchor the learned waveform. Where the
+        // waveform fits, the detections in its span that step 1 passed must
+        // stand above the threshold with the event taken off.
+        let x = &w.buffers.stop_v;
+        let last = x.len().max(1) - 1;
+        self.anchors.clear();
+        self.anchors.extend(
+            (0..self.peaks.len())
+                .filter(|&k| matches!(self.verdicts[k], Verdict::Event(_)))
+                .map(|k| self.peaks[k].round().clamp(0.0, last as f64) as usize),
+        );
+        if let Some(top) = (0..self.anchors.len()).max_by(|&a, &b| x[self.anchors[a]].total_cmp(&x[self.anchors[b]])) {
+            self.anchors.swap(0, top);
+            let template = &self.template;
+            if let Some(fit) = template.fit(x, noise, &self.anchors, self.cfg.fit_alpha) {
+                for k in 0..self.peaks.len() {
+                    // Detections step 2 kept already stand out of the event
+                    // subspace; those step 1 passed are judged again.
+                    if self.verdicts[k] == Verdict::Return && template.covers(fit, self.peaks[k]) {
+                        let z = test.pulse_z(x, noise, shape, self.peaks[k], &|j| template.at(fit, j))
+                            / (1.0 + template.added_variance(fit)).sqrt();
+                        if z <= w.threshold.u {
+                            self.verdicts[k] = Verdict::Event(z);
+                        }
+                    }
+                }
+            }
+            // Every event frame teaches it, less the supports of the
+            // detections kept as returns.
+            let (lo, hi) = shape.support();
+            let (peaks, verdicts) = (&self.peaks, &self.verdicts);
+            let kept = |j: usize| {
+                peaks.iter().zip(verdicts).any(|(&p, v)| !matches!(v, Verdict::Event(_)) && j as f64 >= p + lo && j as f64 <= p + hi)
+            };
+            self.template.add(x, noise.mean_v, &self.anchors, &kept);
         }
         let mut dropped = 0;
         let mut k = 0;

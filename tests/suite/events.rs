@@ -107,26 +107,49 @@ fn table(scene: &Scene) -> Vec<(String, Tally, Tally)> {
 
 /// The table of the issue: a 350 mV return at 1.83 m with events in a third
 /// of the frames (every event model), and the laser off with an event in
-/// every frame at pfa 1e-3. Prints the table; asserts the cases met today
-/// (the multi-mode events at random positions and the laser-off frames of
-/// the 350 mV events), and that without the events stage the same frames
-/// carry the spurious returns this stage removes.
+/// every frame at pfa 1e-3. Prints the table; asserts the acceptance (return
+/// in >= 99 % of frames, <= 1 spurious return per 100 frames, <= 1 % of
+/// laser-off reports with a return) for the models that meet it, every row
+/// against its measured numbers (found at least, spurious and laser-off
+/// reports at most: the runs are seeded, so a change that loses ground
+/// fails), and that without the events stage the same frames carry the
+/// spurious returns this stage removes.
 #[test]
 fn events_are_not_reported_as_returns() {
     let scene = Scene::default_scene();
     let rows = table(&scene);
-    // The acceptance (return in >= 99 % of frames, <= 1 spurious return per
-    // 100 frames, <= 1 % of laser-off reports with a return), asserted for
-    // the models that meet it today; the table prints the others.
-    let met = ["MultiMode 4 sigma, random position", "WavePacket 4 sigma, random position", "Doublet 4 sigma, random position"];
+    let met = [
+        "MultiMode 4 sigma, random position",
+        "WavePacket 4 sigma, random position",
+        "Doublet 4 sigma, random position",
+        "MultiMode 4 sigma, on the return",
+    ];
     for (name, on, dark) in rows.iter().filter(|r| met.contains(&r.0.as_str())) {
         assert!(on.found * 100 >= 99 * on.frames, "{name}: {on:?}");
         assert!(on.spurious * 100 <= on.frames, "{name}: {on:?}");
         assert!(dark.reports_with_returns * 100 <= dark.frames, "{name}: {dark:?}");
     }
-    // Every model: the return is found in at least 95 % of frames.
-    for (name, on, _) in &rows {
-        assert!(on.found * 100 >= 95 * on.frames, "{name}: {on:?}");
+    // Measured (300 frames each): found, spurious, laser-off reports with a
+    // return. The laser-off rows of the repeating (zero-phase) events rest
+    // on the learned event waveform: 142 of 300 reports carried a lobe of
+    // the event's slow tail before it, 2 now (both while it learns).
+    let measured: [(&str, usize, usize, usize); 10] = [
+        ("MultiMode 4 sigma, random position", 300, 0, 2),
+        ("MultiMode 350 mV, random position", 297, 2, 11),
+        ("Ringing 4 sigma, random position", 300, 4, 28),
+        ("Ringing 350 mV, random position", 295, 10, 32),
+        ("WavePacket 4 sigma, random position", 300, 0, 3),
+        ("WavePacket 350 mV, random position", 294, 0, 8),
+        ("Doublet 4 sigma, random position", 300, 0, 0),
+        ("Doublet 350 mV, random position", 292, 0, 0),
+        ("MultiMode 4 sigma, on the return", 300, 3, 2),
+        ("MultiMode 350 mV, on the return", 285, 9, 0),
+    ];
+    for (name, found, spurious, dark_reports) in measured {
+        let (_, on, dark) = rows.iter().find(|r| r.0 == name).expect("row");
+        assert!(on.found >= found, "{name}: {on:?}");
+        assert!(on.spurious <= spurious, "{name}: {on:?}");
+        assert!(dark.reports_with_returns <= dark_reports, "{name}: {dark:?}");
     }
     let mut off = scene.clone();
     off.events.enabled = false;

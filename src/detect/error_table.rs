@@ -110,6 +110,23 @@ impl ErrorTable {
         table
     }
 
+    /// The tables of `method` and of its fallback, peak parabolic
+    /// ([`ErrorTable::get`] each): measured on two threads at once when
+    /// neither is cached (each is the same table whichever thread measures
+    /// it), which halves a pipeline's start-up on a machine with a spare core.
+    pub fn get_with_fallback(method: TimingMethod, shape: &Shape, fraction: f64, matched: bool) -> (Option<Arc<ErrorTable>>, Option<Arc<ErrorTable>>) {
+        let fallback = TimingMethod::PeakParabolic;
+        if method == fallback || method == TimingMethod::LeadingEdge {
+            return (ErrorTable::get(method, shape, fraction, matched), ErrorTable::get(fallback, shape, fraction, matched));
+        }
+        std::thread::scope(|s| {
+            let other = s.spawn(|| ErrorTable::get(fallback, shape, fraction, matched));
+            let own = ErrorTable::get(method, shape, fraction, matched);
+            let other = other.join().unwrap_or_else(|_| ErrorTable::get(fallback, shape, fraction, matched));
+            (own, other)
+        })
+    }
+
     /// Measures the table (see the module documentation). Uncached: use
     /// [`ErrorTable::get`].
     pub fn measure(method: TimingMethod, shape: &Shape, fraction: f64, matched: bool) -> Option<ErrorTable> {

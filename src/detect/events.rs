@@ -718,6 +718,9 @@ pub struct EventTemplate {
     frames: usize,
     /// The mean waveform (refreshed when a frame is added).
     mean: Vec<f64>,
+    /// Σ mean² over samples 0..i, i = 0..=len (refreshed with `mean`): the
+    /// template's energy over any part of its span in one subtraction.
+    energy: Vec<f64>,
 }
 
 /// Frames of events before the template is used (its own noise, σ²/frames
@@ -744,7 +747,7 @@ impl EventTemplate {
     /// `after` from it.
     pub fn new(before: usize, after: usize) -> EventTemplate {
         let n = before + after;
-        EventTemplate { before, sums: vec![0.0; n], counts: vec![0; n], frames: 0, mean: vec![0.0; n] }
+        EventTemplate { before, sums: vec![0.0; n], counts: vec![0; n], frames: 0, mean: vec![0.0; n], energy: vec![0.0; n + 1] }
     }
 
     /// Frames added so far.
@@ -754,21 +757,23 @@ impl EventTemplate {
 
     /// Correlation ⟨x − μ, T⟩ and ⟨T, T⟩ over the frame with the template's sample 0 at `start`.
     fn correlate(&self, x: &[f64], mean_v: f64, start: isize) -> (f64, f64) {
-        let (mut xt, mut tt) = (0.0, 0.0);
         let lo = (-start).max(0) as usize;
         let hi = (x.len() as isize - start).clamp(0, self.mean.len() as isize) as usize;
-        for i in lo..hi {
-            let t = self.mean[i];
-            xt += (x[(start + i as isize) as usize] - mean_v) * t;
-            tt += t * t;
+        if hi <= lo {
+            return (0.0, 0.0);
         }
-        (xt, tt)
+        let first = (start + lo as isize) as usize;
+        let xt: f64 = x[first..first + (hi - lo)].iter().zip(&self.mean[lo..hi]).map(|(v, t)| (v - mean_v) * t).sum();
+        (xt, self.energy[hi] - self.energy[lo])
     }
 
     /// The template's start (frame index), its anchor within
     /// ±[`TEMPLATE_SHIFT`] of one of `anchors`, that correlates best with
     /// the frame, with its amplitude.
-    fn align(&self, x: &[f64], mean_v: f64, anchors: &[usize]) -> Option<TemplateFit> {
+    pub fn align(&self, x: &[f64], mean_v: f64, anchors: &[usize]) -> Option<TemplateFit> {
+        if self.frames == 0 {
+            return None;
+        }
         let mut best: Option<(f64, TemplateFit)> = None;
         let starts = anchors.iter().flat_map(|&a| {
             let base = a as isize - self.before as isize;
@@ -791,10 +796,11 @@ impl EventTemplate {
     /// detections `anchors` (the strongest first): the first frame is
     /// anchored on the strongest, later ones aligned on the template. The
     /// samples `skip` says hold something else (a kept return) are left out.
-    pub fn add(&mut self, x: &[f64], mean_v: f64, anchors: &[usize], skip: &dyn Fn(usize) -> bool) {
+    /// `aligned` is [`EventTemplate::align`]'s answer for this frame.
+    pub fn add(&mut self, x: &[f64], mean_v: f64, anchors: &[usize], aligned: Option<TemplateFit>, skip: &dyn Fn(usize) -> bool) {
         let Some(&first) = anchors.first() else { return };
         let start = if self.frames > 0 {
-            match self.align(x, mean_v, anchors) {
+            match aligned {
                 Some(f) => f.start,
                 None => return,
             }
@@ -812,17 +818,21 @@ impl EventTemplate {
         for ((m, s), &c) in self.mean.iter_mut().zip(&self.sums).zip(&self.counts) {
             *m = if c > 0 { s / c as f64 } else { 0.0 };
         }
+        for i in 0..self.mean.len() {
+            self.energy[i + 1] = self.energy[i] + self.mean[i] * self.mean[i];
+        }
     }
 
     /// The template fitted near one of `anchors`, where it fits: after taking it
     /// off, the energy left over its span (in units of σ², `n` samples)
     /// stays below the upper `alpha` quantile of noise alone, so that events of another shape, and templates not yet
     /// settled, are never taken off.
-    pub fn fit(&self, x: &[f64], noise: NoiseTerms, anchors: &[usize], alpha: f64) -> Option<TemplateFit> {
+    /// `aligned` is [`EventTemplate::align`]'s answer for this frame.
+    pub fn fit(&self, x: &[f64], noise: NoiseTerms, aligned: Option<TemplateFit>, alpha: f64) -> Option<TemplateFit> {
         if self.frames < TEMPLATE_MIN || !(noise.sigma_v > 0.0) {
             return None;
         }
-        let f = self.align(x, noise.mean_v, anchors)?;
+        let f = aligned?;
         let lo = (-f.start).max(0) as usize;
         let hi = (x.len() as isize - f.start).clamp(0, self.mean.len() as isize) as usize;
         if hi <= lo {
@@ -933,13 +943,16 @@ mod tests {
         let top = |onset: f64| (0..2500).max_by(|&a, &b| burst(a, onset, 1.0, modes).total_cmp(&burst(b, onset, 1.0, modes))).unwrap();
         for k in 0..TEMPLATE_MIN as u64 + 4 {
             let onset = 400.0 + 13.0 * k as f64;
-            tpl.add(&frame(100 + k, onset, modes), 0.0, &[top(onset)], &|_| false);
+            let (x, anchors) = (frame(100 + k, onset, modes), [top(onset)]);
+            let aligned = tpl.align(&x, 0.0, &anchors);
+            tpl.add(&x, 0.0, &anchors, aligned, &|_| false);
         }
         // A new frame whose strongest detection is another lobe (about one
         // 3 MHz period on): every event detection is tried as the anchor.
         let onset = 470.0;
         let x = frame(7, onset, modes);
-        let fit = tpl.fit(&x, WHITE, &[top(onset) + 330, top(onset) + 3], 1e-3).expect("the learned burst fits");
+        let anchors = [top(onset) + 330, top(onset) + 3];
+        let fit = tpl.fit(&x, WHITE, tpl.align(&x, 0.0, &anchors), 1e-3).expect("the learned burst fits");
         assert!((fit.amplitude - 1.0).abs() < 0.1, "{fit:?}");
         // Taken off, a lobe of its tail no longer stands out.
         let s = shape();
@@ -951,7 +964,7 @@ mod tests {
         assert!(after.abs() < 3.5 && after.abs() < before.abs(), "{before} {after}");
         // A burst of other modes is not this event: no fit.
         let y = frame(8, onset, (0.002, 0.009));
-        assert!(tpl.fit(&y, WHITE, &[top(onset)], 1e-3).is_none());
+        assert!(tpl.fit(&y, WHITE, tpl.align(&y, 0.0, &[top(onset)]), 1e-3).is_none());
     }
 
     #[test]

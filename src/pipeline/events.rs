@@ -119,7 +119,9 @@ impl Stage for Events {
         if let Some(top) = (0..self.anchors.len()).max_by(|&a, &b| x[self.anchors[a]].total_cmp(&x[self.anchors[b]])) {
             self.anchors.swap(0, top);
             let template = &self.template;
-            if let Some(fit) = template.fit(x, noise, &self.anchors, self.cfg.fit_alpha) {
+            // One alignment serves the fit and the learning (the template changes after both).
+            let aligned = template.align(x, noise.mean_v, &self.anchors);
+            if let Some(fit) = template.fit(x, noise, aligned, self.cfg.fit_alpha) {
                 for k in 0..self.peaks.len() {
                     // Detections step 2 kept already stand out of the event
                     // subspace; those step 1 passed are judged again.
@@ -139,7 +141,7 @@ impl Stage for Events {
             let kept = |j: usize| {
                 peaks.iter().zip(verdicts).any(|(&p, v)| !matches!(v, Verdict::Event(_)) && j as f64 >= p + lo && j as f64 <= p + hi)
             };
-            self.template.add(x, noise.mean_v, &self.anchors, &kept);
+            self.template.add(x, noise.mean_v, &self.anchors, aligned, &kept);
         }
         let mut dropped = 0;
         let mut k = 0;

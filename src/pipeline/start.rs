@@ -87,8 +87,7 @@ impl Stage for Start {
         if self.plan.as_ref().is_none_or(|p| p.0 != dt || p.2.len() > n + 1) {
             let pulse = self.pulse_cfg.shape(dt);
             let plan = DetectorPlan::matched_filter(&pulse, n);
-            self.errors = ErrorTable::get(self.method, &pulse, self.fraction, true);
-            self.fallback_errors = ErrorTable::get(TimingMethod::PeakParabolic, &pulse, self.fraction, true);
+            (self.errors, self.fallback_errors) = ErrorTable::get_with_fallback(self.method, &pulse, self.fraction, true);
             self.plan = Some((dt, pulse, plan));
         }
         let (lo, hi) = self.plan.as_ref().expect("built above").1.support();

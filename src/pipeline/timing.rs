@@ -163,8 +163,7 @@ impl Stage for Timing {
             } else {
                 1.0
             };
-            self.errors = ErrorTable::get(self.method, &shape, self.fraction, self.matched);
-            self.fallback_errors = ErrorTable::get(TimingMethod::PeakParabolic, &shape, self.fraction, self.matched);
+            (self.errors, self.fallback_errors) = ErrorTable::get_with_fallback(self.method, &shape, self.fraction, self.matched);
             self.pulse = Some((dt, shape, norm));
         }
         let (_, pulse, norm) = self.pulse.as_ref().expect("set above");

@@ -177,7 +177,7 @@ impl GateVariance {
 
     /// The threshold t (in units of σ̂) that a standard normal output sample
     /// crosses with probability Q(`u`) on average over the estimate: the
-    /// Student-t quantile for white noise, solved by bisection on the
+    /// Student-t quantile for white noise, solved by false position on the
     /// quadrature otherwise.
     pub fn t_for(&self, u: f64) -> f64 {
         if self.shift == 0.0 || !u.is_finite() || u <= 0.0 {

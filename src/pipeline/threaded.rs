@@ -135,6 +135,8 @@ pub struct Staged {
     mode: Mode,
     observer: Option<Observer>,
     last_noise: Option<NoiseSummary>,
+    /// Stage names, validate first.
+    names: Vec<&'static str>,
     cut: Option<Cut>,
 }
 
@@ -173,7 +175,8 @@ impl Staged {
     /// A pipeline for `scene` on up to `threads` threads (≤ 1: the calling thread only).
     pub fn new(scene: &Scene, sensor: &str, threads: usize) -> Staged {
         let pipeline = Box::new(Pipeline::new(scene, sensor));
-        let costs = vec![0.0; pipeline.stage_names().len()];
+        let names = pipeline.stage_names();
+        let costs = vec![0.0; names.len()];
         Staged {
             scene: scene.clone(),
             sensor: sensor.to_string(),
@@ -181,6 +184,7 @@ impl Staged {
             mode: Mode::Local { pipeline, seen: 0, costs },
             observer: None,
             last_noise: None,
+            names,
             cut: None,
         }
     }
@@ -206,7 +210,7 @@ impl Staged {
     /// How the stages are cut (one segment until the pilot has chosen).
     pub fn cut(&self) -> Cut {
         self.cut.clone().unwrap_or_else(|| Cut {
-            segments: vec![Pipeline::new(&self.scene, &self.sensor).stage_names()],
+            segments: vec![self.names.clone()],
             shares: vec![1.0],
             stage_s: Vec::new(),
         })
@@ -308,7 +312,7 @@ impl Staged {
         };
         let mut pipeline = *pipeline;
         self.observer = pipeline.observer.take();
-        let names = pipeline.stage_names();
+        let names = self.names.clone();
         // No stage took measurable time: cut evenly by count.
         let even = costs.iter().sum::<f64>() <= 0.0;
         let costs: Vec<f64> = if even { vec![1.0; costs.len()] } else { costs };

@@ -177,6 +177,12 @@ impl Session {
 
     /// Marks the sensor faulted (the first reason stays) and wakes the
     /// health watcher.
+    /// Counts one frame refused for `why` (the metric's label).
+    fn rejected(&self, why: &'static str) {
+        self.stats.frames_rejected.fetch_add(1, Ordering::Relaxed);
+        self.metrics.frames_rejected(why, 1);
+    }
+
     fn set_fault(&self, reason: String, signal: &watch::Sender<u64>) {
         {
             let mut f = lock(&self.fault);
@@ -634,11 +640,7 @@ impl Worker {
                         self.session.metrics.frame_recorded();
                     }
                     if let Some(reason) = &self.recording_failed {
-                        self.session
-                            .stats
-                            .frames_rejected
-                            .fetch_add(1, Ordering::Relaxed);
-                        self.session.metrics.frames_rejected("recording", 1);
+                        self.session.rejected("recording");
                         let _ = done.send(Verdict::Unrecorded(reason.clone()));
                         continue;
                     }
@@ -712,19 +714,11 @@ impl Worker {
                 self.session.metrics.frame_processed(latency);
             }
             Verdict::Refused(e) => {
-                self.session
-                    .stats
-                    .frames_rejected
-                    .fetch_add(1, Ordering::Relaxed);
-                self.session.metrics.frames_rejected("pipeline", 1);
+                self.session.rejected("pipeline");
                 tracing::debug!(sensor = %sensor, error = %e, "pipeline refused frame");
             }
             Verdict::Panicked(m) => {
-                self.session
-                    .stats
-                    .frames_rejected
-                    .fetch_add(1, Ordering::Relaxed);
-                self.session.metrics.frames_rejected("panic", 1);
+                self.session.rejected("panic");
                 tracing::error!(sensor = %sensor, message = %m, "pipeline panicked; rebuilt");
             }
             // Only the recorder refuses this way (before the pipeline).

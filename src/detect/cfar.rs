@@ -312,6 +312,8 @@ pub struct CfarPlan {
     scratch: Vec<f64>,
     /// The OS factor's integration grid (scratch).
     dens: Vec<f64>,
+    /// OS factors solved by quadrature at `p_cell`: (cells, rank, α).
+    os_solved: Vec<(usize, usize, f64)>,
 }
 
 impl CfarPlan {
@@ -354,6 +356,7 @@ impl CfarPlan {
             prefix: Vec::new(),
             scratch: Vec::with_capacity(2 * training),
             dens: Vec::new(),
+            os_solved: Vec::new(),
         };
         plan.factor(2 * training);
         Ok(plan)
@@ -372,6 +375,7 @@ impl CfarPlan {
         if p_cell.to_bits() != self.p_cell.to_bits() {
             self.p_cell = p_cell;
             self.factors.iter_mut().for_each(|f| *f = None);
+            self.os_solved.clear();
             self.factor(2 * self.training);
         }
         Ok(())
@@ -456,9 +460,20 @@ impl CfarPlan {
                 }
                 Some(_) => ca_factor_nu(self.p_cell, self.dof(n)),
             },
+            // Kept across colour changes and frames (a noise model refitted
+            // every frame moves the colour, and the cell count, every frame):
+            // the factor depends only on the cells and the rank.
             CfarMethod::OrderedStatistic { .. } => {
                 let m = (self.dof(n).round() as usize).max(1);
-                os_factor_with(self.p_cell, m, self.rank_for(m), &mut self.dens)
+                let k = self.rank_for(m);
+                match self.os_solved.iter().find(|e| (e.0, e.1) == (m, k)) {
+                    Some(e) => e.2,
+                    None => {
+                        let a = os_factor_with(self.p_cell, m, k, &mut self.dens);
+                        self.os_solved.push((m, k, a));
+                        a
+                    }
+                }
             }
         };
         self.factors[n] = Some(a);

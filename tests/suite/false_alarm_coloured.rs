@@ -249,14 +249,28 @@ fn cfar_on_raw_coloured_input_holds_the_design() {
     // power on noise this slow, scales the thresholds. README still
     // recommends `whiten`: it keeps more of the detection power.
     let mut s = scene(1e-2);
-    s.detector.cfar = CfarKind::Ca;
     s.detector.cfar_training_cells = 32;
     s.detector.cfar_guard_cells = 40;
     let frames = 5000;
-    let (hits, _) = false_reports(&s, Noise::Ar1, 400, frames, 11);
-    let (lo, hi) = clopper_pearson(hits, frames, 0.99);
-    eprintln!("CA-CFAR on raw AR(1) input: {hits} of {frames} reports ({:.2}x design; 99 % [{:.2}, {:.2}]x)", hits as f64 / frames as f64 / 1e-2, lo / 1e-2, hi / 1e-2);
-    assert!(lo <= 1e-2 && 1e-2 <= hi, "design outside the 99 % interval: {hits} of {frames}");
+    let mut fails = Vec::new();
+    for (kind, seed) in [(CfarKind::Ca, 11), (CfarKind::Os, 13)] {
+        s.detector.cfar = kind;
+        let (hits, _) = false_reports(&s, Noise::Ar1, 400, frames, seed);
+        let (lo, hi) = clopper_pearson(hits, frames, 0.99);
+        eprintln!("{kind:?}-CFAR on raw AR(1) input: {hits} of {frames} reports ({:.2}x design; 99 % [{:.2}, {:.2}]x)", hits as f64 / frames as f64 / 1e-2, lo / 1e-2, hi / 1e-2);
+        // CA holds the design from both sides. OS on correlated cells has
+        // no exact factor: its effective-cell approximation errs on the
+        // safe side (measured: 0 of 5000, far below the design), and is
+        // held to that side only.
+        let holds = match kind {
+            CfarKind::Os => lo <= 1e-2,
+            _ => lo <= 1e-2 && 1e-2 <= hi,
+        };
+        if !holds {
+            fails.push(format!("{kind:?}: design outside the 99 % interval: {hits} of {frames}"));
+        }
+    }
+    assert!(fails.is_empty(), "{fails:?}");
 }
 
 /// Self-check runs: `runs` clean runs of `frames`/4 frames with each frame's

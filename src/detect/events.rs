@@ -32,6 +32,24 @@
 //!    (R: the noise correlation). z above the detector's threshold (in the
 //!    same noise units): a return that an event overlaps; else an event.
 //!
+//!    **Events that start with a jump** (a switching transient: noise only
+//!    before the onset, a band-limited ringing from it) answer the pulse at
+//!    their onset as strongly as a return, and step 2 alone passes them. So
+//!    where z passes, the unit step up under the pulse's rise (`c + lo ..= c`,
+//!    its place searched as the detector searches the pulse's) that stands out
+//!    most of step 2's model, with answer t, is weighed against the pulse. It
+//!    is the event's onset when all three hold: the data ask for it (t ≥ z,
+//!    the likelier of the two, or it stands out by the threshold with the
+//!    pulse and its slope in the model too); the window before it holds noise
+//!    only (Σ(x − μ)²/σ² below the upper `fit_alpha` quantile of its χ²,
+//!    scaled for the noise colour: an onset has nothing before it, while a
+//!    return on an oscillating event has the event's lobes on both sides); and
+//!    the pulse does not stand out by the threshold of step 2's model plus
+//!    the step and its corner (a ramp from the onset: the jump of the
+//!    ringing's slope). The onset is in the model only where the data ask for
+//!    it: as standing columns of the event subspace, steps would absorb most
+//!    of every return's rise.
+//!
 //! 3. **Events that repeat** ([`EventTemplate`]): the frames' samples around
 //!    their event detections, aligned and averaged, give the event's
 //!    waveform; where it fits a frame, a detection that step 1 passed (a
@@ -262,7 +280,52 @@ impl EventTest {
         }
         let (num, var) = basis.off_span(band, len, &self.xw, self.pulses.get(pulse, c), first, noise.rho, &mut self.col);
         let z = if var > 0.0 { num / (sigma * var.sqrt()) } else { 0.0 };
-        if z > threshold { Verdict::ReturnWithEvent(z) } else { Verdict::Event(z) }
+        if !(z > threshold) {
+            return Verdict::Event(z);
+        }
+        // Step 2b: an event that starts with a jump up (a switching
+        // transient) answers the pulse at its onset. The step up under the
+        // pulse's rise that stands out most of the step-2 model (its place
+        // searched as the detector searches the pulse's) is that onset where
+        // the data ask for it, nothing comes before it, and the pulse does
+        // not stand out of the model with it (and its corner) by the threshold.
+        basis.prepare_steps(band, len, &self.xw);
+        let (from, to) = (((c + lo).ceil().max(0.0) as usize).saturating_sub(first), (c.floor().max(0.0) as usize + 1).saturating_sub(first).min(len));
+        let Some((step, t)) = basis.strongest_step(band, len, &self.xw, from..to) else {
+            return Verdict::ReturnWithEvent(z);
+        };
+        // In the pulse's units (white: the step's answer is compared as the
+        // pulse's would be without the noise colour).
+        let t = t / sigma;
+        // Asked for: the likelier of the two, or standing out by the
+        // threshold with the pulse (and its slope) in the model too.
+        if t < z {
+            basis.push_pulse(band, len, &self.xw, self.pulses.get(pulse, c), first);
+            let beyond = basis.answer(band, len, &self.xw, Col::Step(step)) / sigma;
+            if !(beyond > threshold) {
+                return Verdict::ReturnWithEvent(z);
+            }
+        }
+        // An onset has nothing before it: the window up to the step must
+        // hold noise only (at level `fit_alpha`), else the step is a part of
+        // something the window holds all along.
+        let before = dot(&self.xw[..step], &self.xw[..step]) / (sigma * sigma);
+        let rho_sq = 1.0 + 2.0 * noise.rho.iter().skip(1).map(|r| r * r).sum::<f64>();
+        if before > rho_sq * chi2_upper(step as f64 / rho_sq, cfg.fit_alpha) {
+            return Verdict::ReturnWithEvent(z);
+        }
+        basis.reset(band, len, &self.xw);
+        for j in 0..bands {
+            basis.push(band, len, &self.xw, Col::Band(j));
+        }
+        for &p in peaks.iter().filter(|&&p| p != c && reaches(p)) {
+            basis.push_pulse(band, len, &self.xw, self.pulses.get(pulse, p), first);
+        }
+        basis.push(band, len, &self.xw, Col::Step(step));
+        basis.push(band, len, &self.xw, Col::Ramp(step));
+        let (num, var) = basis.off_span(band, len, &self.xw, self.pulses.get(pulse, c), first, noise.rho, &mut self.col);
+        let z2 = if var > 0.0 { num / (sigma * var.sqrt()) } else { 0.0 };
+        if z2 > threshold { Verdict::ReturnWithEvent(z2) } else { Verdict::Event(z2) }
     }
 
     /// The matched filter's answer to the pulse at `p` on x − μ − `event`
@@ -302,6 +365,10 @@ impl EventTest {
         self.basis.y.reserve(CAP_COLS);
         self.basis.g.reserve(CAP_COLS);
         self.basis.bx.reserve(band);
+        self.basis.band_tails.reserve(band * (len + 1));
+        self.basis.x_tails.reserve(len + 1);
+        self.basis.band_moments.reserve(band * (len + 1));
+        self.basis.x_moments.reserve(len + 1);
         self.basis.l.resize(CAP_COLS * CAP_COLS, 0.0);
         self.col.reserve(len);
         self.xw.reserve(len);
@@ -455,6 +522,12 @@ enum Col {
     Band(usize),
     /// Values `vals[off..off + len]` at window samples `start..start + len`.
     Sparse { start: usize, off: usize, len: usize },
+    /// A unit step: 1 from window sample `start` to the window's end (the
+    /// onset of an event that starts with a jump). Needs [`Basis::prepare_steps`].
+    Step(usize),
+    /// A ramp from window sample `start` (t − start from there, 0 before):
+    /// the onset's corner. Needs [`Basis::prepare_steps`].
+    Ramp(usize),
 }
 
 /// The span of a judgement's columns, held by their inner products: an
@@ -476,6 +549,15 @@ struct Basis {
     bx: Vec<f64>,
     /// Scratch: the new column's inner products with the kept ones, then L⁻¹ of them.
     g: Vec<f64>,
+    /// Σ_{i ≥ s} of each band column, `len + 1` entries per column (s = 0..=len):
+    /// a step column's inner products with the band columns.
+    band_tails: Vec<f64>,
+    /// Σ_{i ≥ s} (x − μ)ᵢ, s = 0..=len.
+    x_tails: Vec<f64>,
+    /// Σ_{i ≥ s} i·bᵢ of each band column, as `band_tails` (ramp columns).
+    band_moments: Vec<f64>,
+    /// Σ_{i ≥ s} i·(x − μ)ᵢ, s = 0..=len.
+    x_moments: Vec<f64>,
 }
 
 /// Most columns one judgement holds (band columns plus a pulse and its slope
@@ -515,7 +597,72 @@ impl Basis {
                 }
                 dot(&self.vals[o1 + lo - s1..o1 + hi - s1], &self.vals[o2 + lo - s2..o2 + hi - s2])
             }
+            (Col::Band(j), Col::Step(s)) | (Col::Step(s), Col::Band(j)) => self.band_tails[j * (len + 1) + s],
+            (Col::Sparse { start, off, len: n }, Col::Step(s)) | (Col::Step(s), Col::Sparse { start, off, len: n }) => {
+                let from = s.saturating_sub(start).min(n);
+                self.vals[off + from..off + n].iter().sum()
+            }
+            (Col::Step(s1), Col::Step(s2)) => (len - s1.max(s2)) as f64,
+            (Col::Band(j), Col::Ramp(s)) | (Col::Ramp(s), Col::Band(j)) => {
+                self.band_moments[j * (len + 1) + s] - s as f64 * self.band_tails[j * (len + 1) + s]
+            }
+            (Col::Sparse { start, off, len: n }, Col::Ramp(s)) | (Col::Ramp(s), Col::Sparse { start, off, len: n }) => {
+                let from = s.saturating_sub(start).min(n);
+                self.vals[off + from..off + n].iter().enumerate().map(|(k, v)| v * (start + from + k - s) as f64).sum()
+            }
+            (Col::Step(a), Col::Ramp(b)) | (Col::Ramp(b), Col::Step(a)) => (a.max(b)..len).map(|i| (i - b) as f64).sum(),
+            (Col::Ramp(a), Col::Ramp(b)) => (a.max(b)..len).map(|i| ((i - a) * (i - b)) as f64).sum(),
         }
+    }
+
+    /// Makes step columns usable over the window `xw` (x − μ) with the band
+    /// basis `band` (`len` each): their inner products with the band columns and x − μ.
+    fn prepare_steps(&mut self, band: &[f64], len: usize, xw: &[f64]) {
+        let tails = |out: &mut Vec<f64>, v: &[f64]| {
+            let at = out.len();
+            out.resize(at + v.len() + 1, 0.0);
+            for i in (0..v.len()).rev() {
+                out[at + i] = out[at + i + 1] + v[i];
+            }
+        };
+        let moments = |out: &mut Vec<f64>, v: &[f64]| {
+            let at = out.len();
+            out.resize(at + v.len() + 1, 0.0);
+            for i in (0..v.len()).rev() {
+                out[at + i] = out[at + i + 1] + i as f64 * v[i];
+            }
+        };
+        self.band_tails.clear();
+        self.band_moments.clear();
+        for b in band.chunks_exact(len) {
+            tails(&mut self.band_tails, b);
+            moments(&mut self.band_moments, b);
+        }
+        self.x_tails.clear();
+        tails(&mut self.x_tails, xw);
+        self.x_moments.clear();
+        moments(&mut self.x_moments, xw);
+    }
+
+    /// Column `a` (not kept) off the span: its answer qᵀ(x − μ)/√(qᵀq), q
+    /// the column projected off the span (0 where it lies in the span).
+    fn answer(&mut self, band: &[f64], len: usize, xw: &[f64], a: Col) -> f64 {
+        let (d2, norm2) = self.project(band, len, a);
+        if d2 > DEPENDENT * DEPENDENT * norm2 { (self.with_x(xw, a) - dot(&self.g, &self.y)) / d2.sqrt() } else { 0.0 }
+    }
+
+    /// The unit step up starting in window samples `starts` that stands
+    /// out most of the span, and how far (qᵀ(x − μ)/√(qᵀq), q the step off
+    /// the span). Needs [`Basis::prepare_steps`].
+    fn strongest_step(&mut self, band: &[f64], len: usize, xw: &[f64], starts: std::ops::Range<usize>) -> Option<(usize, f64)> {
+        let mut best: Option<(usize, f64)> = None;
+        for s in starts.filter(|&s| s > 0 && s < len) {
+            let t = self.answer(band, len, xw, Col::Step(s));
+            if best.is_none_or(|b| t > b.1) {
+                best = Some((s, t));
+            }
+        }
+        best
     }
 
     /// Column `a`'s inner product with x − μ.
@@ -523,6 +670,8 @@ impl Basis {
         match a {
             Col::Band(j) => self.bx[j],
             Col::Sparse { start, off, len } => dot(&self.vals[off..off + len], &xw[start..start + len]),
+            Col::Step(s) => self.x_tails[s],
+            Col::Ramp(s) => self.x_moments[s] - s as f64 * self.x_tails[s],
         }
     }
 
@@ -618,6 +767,8 @@ impl Basis {
                 Col::Sparse { start, off, len: m } => {
                     q[start..start + m].iter_mut().zip(&self.vals[off..off + m]).for_each(|(v, b)| *v -= beta * b)
                 }
+                Col::Step(s) => q[s..].iter_mut().for_each(|v| *v -= beta),
+                Col::Ramp(s) => q[s..].iter_mut().enumerate().for_each(|(k, v)| *v -= beta * k as f64),
             }
         }
         let mut var = dot(q, q);
@@ -679,6 +830,8 @@ fn band_null_moments(len: usize, f_max: f64, rho: &[f64]) -> (f64, f64) {
     (mean, var)
 }
 
+
+
 /// Degrees of freedom ν of the χ² whose interquartile range over its median
 /// is `spread` (decreasing in ν; bisection in ln ν over [0.3, 10⁴]).
 fn dof_from_spread(spread: f64) -> f64 {
@@ -694,7 +847,6 @@ fn dof_from_spread(spread: f64) -> f64 {
     }
     (0.5 * (lo + hi)).exp()
 }
-
 
 /// A running estimate of the event waveform, for receivers whose events
 /// repeat (the same shape, at times that drift against the shots): the

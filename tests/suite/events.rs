@@ -136,8 +136,8 @@ fn events_are_not_reported_as_returns() {
     let measured: [(&str, usize, usize, usize); 10] = [
         ("MultiMode 4 sigma, random position", 300, 0, 2),
         ("MultiMode 350 mV, random position", 297, 2, 11),
-        ("Ringing 4 sigma, random position", 300, 4, 28),
-        ("Ringing 350 mV, random position", 295, 10, 32),
+        ("Ringing 4 sigma, random position", 300, 2, 17),
+        ("Ringing 350 mV, random position", 295, 2, 8),
         ("WavePacket 4 sigma, random position", 300, 0, 3),
         ("WavePacket 350 mV, random position", 294, 0, 8),
         ("Doublet 4 sigma, random position", 300, 0, 0),

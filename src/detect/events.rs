@@ -68,6 +68,7 @@
 //! only where the flanks show something that is not noise.
 
 use crate::dsp::pulse::{PulseShape, Shape};
+use crate::detect::finite_gate::rho_squared_sum;
 use crate::math::stats::chi2_upper;
 
 /// Pulses (each with its slope) whose columns one judgement reserves room
@@ -271,13 +272,8 @@ impl EventTest {
         }
         // Step 2: the event subspace and the other detections, then this
         // detection's pulse projected off them.
-        basis.reset(band, len, &self.xw);
-        for j in 0..bands {
-            basis.push(band, len, &self.xw, Col::Band(j));
-        }
-        for &p in peaks.iter().filter(|&&p| p != c && reaches(p)) {
-            basis.push_pulse(band, len, &self.xw, self.pulses.get(pulse, p), first);
-        }
+        let others = || peaks.iter().copied().filter(|&p| p != c && reaches(p));
+        basis.event_model(band, len, &self.xw, &mut self.pulses, pulse, others(), first);
         let (num, var) = basis.off_span(band, len, &self.xw, self.pulses.get(pulse, c), first, noise.rho, &mut self.col);
         let z = if var > 0.0 { num / (sigma * var.sqrt()) } else { 0.0 };
         if !(z > threshold) {
@@ -310,17 +306,11 @@ impl EventTest {
         // hold noise only (at level `fit_alpha`), else the step is a part of
         // something the window holds all along.
         let before = dot(&self.xw[..step], &self.xw[..step]) / (sigma * sigma);
-        let rho_sq = 1.0 + 2.0 * noise.rho.iter().skip(1).map(|r| r * r).sum::<f64>();
+        let rho_sq = rho_squared_sum(noise.rho);
         if before > rho_sq * chi2_upper(step as f64 / rho_sq, cfg.fit_alpha) {
             return Verdict::ReturnWithEvent(z);
         }
-        basis.reset(band, len, &self.xw);
-        for j in 0..bands {
-            basis.push(band, len, &self.xw, Col::Band(j));
-        }
-        for &p in peaks.iter().filter(|&&p| p != c && reaches(p)) {
-            basis.push_pulse(band, len, &self.xw, self.pulses.get(pulse, p), first);
-        }
+        basis.event_model(band, len, &self.xw, &mut self.pulses, pulse, others(), first);
         basis.push(band, len, &self.xw, Col::Step(step));
         basis.push(band, len, &self.xw, Col::Ramp(step));
         let (num, var) = basis.off_span(band, len, &self.xw, self.pulses.get(pulse, c), first, noise.rho, &mut self.col);
@@ -615,23 +605,32 @@ impl Basis {
         }
     }
 
+    /// Resets the span to step 2's model: the event subspace (every column
+    /// of `band`) and the pulses (with their slopes) of the detections at `others`.
+    #[allow(clippy::too_many_arguments)]
+    fn event_model(&mut self, band: &[f64], len: usize, xw: &[f64], pulses: &mut PulseCache, pulse: &Shape, others: impl Iterator<Item = f64>, first: usize) {
+        self.reset(band, len, xw);
+        for j in 0..band.len() / len {
+            self.push(band, len, xw, Col::Band(j));
+        }
+        for p in others {
+            self.push_pulse(band, len, xw, pulses.get(pulse, p), first);
+        }
+    }
+
     /// Makes step columns usable over the window `xw` (x − μ) with the band
     /// basis `band` (`len` each): their inner products with the band columns and x − μ.
     fn prepare_steps(&mut self, band: &[f64], len: usize, xw: &[f64]) {
-        let tails = |out: &mut Vec<f64>, v: &[f64]| {
+        // Appends Σ_{i ≥ s} w(i)·vᵢ for s = 0..=v.len().
+        fn suffix(out: &mut Vec<f64>, v: &[f64], w: impl Fn(usize) -> f64) {
             let at = out.len();
             out.resize(at + v.len() + 1, 0.0);
             for i in (0..v.len()).rev() {
-                out[at + i] = out[at + i + 1] + v[i];
+                out[at + i] = out[at + i + 1] + w(i) * v[i];
             }
-        };
-        let moments = |out: &mut Vec<f64>, v: &[f64]| {
-            let at = out.len();
-            out.resize(at + v.len() + 1, 0.0);
-            for i in (0..v.len()).rev() {
-                out[at + i] = out[at + i + 1] + i as f64 * v[i];
-            }
-        };
+        }
+        let tails = |out: &mut Vec<f64>, v: &[f64]| suffix(out, v, |_| 1.0);
+        let moments = |out: &mut Vec<f64>, v: &[f64]| suffix(out, v, |i| i as f64);
         self.band_tails.clear();
         self.band_moments.clear();
         for b in band.chunks_exact(len) {
@@ -830,8 +829,6 @@ fn band_null_moments(len: usize, f_max: f64, rho: &[f64]) -> (f64, f64) {
     (mean, var)
 }
 
-
-
 /// Degrees of freedom ν of the χ² whose interquartile range over its median
 /// is `spread` (decreasing in ν; bisection in ln ν over [0.3, 10⁴]).
 fn dof_from_spread(spread: f64) -> f64 {
@@ -999,7 +996,7 @@ impl EventTemplate {
         // Noise alone: Σ r² ≈ σ² (1 + 1/frames) χ²ₙ (the template's own
         // noise adds 1/frames), its variance scaled by Σρ² for coloured
         // noise: a scaled χ² with the same mean and variance.
-        let rho_sq = 1.0 + 2.0 * noise.rho.iter().skip(1).map(|r| r * r).sum::<f64>();
+        let rho_sq = rho_squared_sum(noise.rho);
         let limit = (1.0 + 1.0 / self.frames as f64) * rho_sq * chi2_upper(n / rho_sq, alpha);
         (left / (noise.sigma_v * noise.sigma_v) <= limit).then_some(f)
     }

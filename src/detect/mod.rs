@@ -29,6 +29,8 @@ pub mod empirical;
 pub mod whiten;
 /// CA- and OS-CFAR thresholds with factors solved from the design pfa.
 pub mod cfar;
+/// The OS-CFAR factor on correlated training cells (importance-sampled Monte Carlo).
+pub mod os_coloured;
 /// Leading-edge amplitude walk table: fit and interpolation.
 pub mod walk;
 /// Returns against interference events: flank fit and matched subspace test.

@@ -1,8 +1,9 @@
 //! Dense linear systems: the one Gaussian-elimination solver of the crate
 //! (Levenberg-Marquardt steps of the joint refit, the photodetector's
 //! state-space steady state and DC gain), and the eigenvalues of a small
-//! symmetric matrix (a CFAR training window's correlation). Small systems
-//! only (a few dozen unknowns): O(n³), no blocking.
+//! symmetric matrix (a CFAR training window's correlation) and the Cholesky
+//! factor of a small positive definite one (drawing correlated training
+//! windows). Small systems only (a few dozen unknowns): O(n³), no blocking.
 
 /// Solves `a x = b` in place by Gaussian elimination with partial pivoting.
 ///
@@ -110,6 +111,31 @@ pub fn symmetric_eigenvalues(a: &[f64], n: usize) -> Vec<f64> {
     ev
 }
 
+/// Lower-triangular Cholesky factor `l` (row-major `n × n`, zeros above the
+/// diagonal) with `l lᵀ = a` for the symmetric positive definite row-major
+/// `a` (only its lower triangle is read), or `None` when a pivot is not
+/// positive (not positive definite to working precision).
+///
+/// Panics if `a.len() < n * n`.
+pub fn cholesky(a: &[f64], n: usize) -> Option<Vec<f64>> {
+    let mut l = vec![0.0; n * n];
+    for i in 0..n {
+        for j in 0..=i {
+            let dot: f64 = (0..j).map(|k| l[i * n + k] * l[j * n + k]).sum();
+            let v = a[i * n + j] - dot;
+            if i == j {
+                if !(v > 0.0) {
+                    return None;
+                }
+                l[i * n + i] = v.sqrt();
+            } else {
+                l[i * n + j] = v / l[j * n + j];
+            }
+        }
+    }
+    Some(l)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -200,5 +226,24 @@ mod tests {
             assert!((v - want).abs() < 1e-12, "{k}: {v} vs {want}");
         }
         assert!(symmetric_eigenvalues(&[], 0).is_empty());
+    }
+
+    #[test]
+    fn cholesky_reproduces_the_matrix_and_refuses_indefinite_ones() {
+        // AR(1) correlation φ^|i−j|: l lᵀ = a, l lower triangular.
+        let n: usize = 12;
+        let a: Vec<f64> = (0..n * n).map(|k| 0.9f64.powi((k / n).abs_diff(k % n) as i32)).collect();
+        let l = cholesky(&a, n).expect("positive definite");
+        for i in 0..n {
+            for j in 0..n {
+                let v: f64 = (0..n).map(|k| l[i * n + k] * l[j * n + k]).sum();
+                assert!((v - a[i * n + j]).abs() < 1e-13, "({i}, {j}): {v}");
+                if j > i {
+                    assert_eq!(l[i * n + j], 0.0);
+                }
+            }
+        }
+        assert_eq!(cholesky(&[1.0, 2.0, 2.0, 1.0], 2), None);
+        assert_eq!(cholesky(&[f64::NAN], 1), None);
     }
 }

@@ -774,6 +774,8 @@ impl Stage for Detect {
                             let m = mean_samples as f64;
                             ((1.0 + dc_gain * dc_gain / m) / (1.0 + out_gain * out_gain / m)).sqrt()
                         };
+                        // Raw codes sit on the ADC's grid (the whitened input's grid is smeared).
+                        cp.set_grid(if whitened { 0.0 } else { w.source.lsb_v });
                         cfar_thresholds(cp, input, mean, scale * out_gain * kappa, &mut cs.e, &mut cs.thresholds);
                         // Pd and score: Student-t with the full window's cells.
                         let alpha = cp.factor(cp.full_window());

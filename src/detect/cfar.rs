@@ -64,7 +64,7 @@
 //! cells on the loud side see more false alarms, as with every CA/OS-CFAR.
 
 use crate::detect::finite_gate::GateVariance;
-use crate::detect::os_coloured::os_factor_coloured;
+use crate::detect::os_coloured::OsColoured;
 use crate::math::special::{ln_phi, ln_q};
 use crate::math::stats::beta_inc_reg;
 
@@ -314,6 +314,9 @@ pub struct CfarPlan {
     weights: Vec<f64>,
     /// The input's normalised autocorrelation on coloured input (empty: white).
     rho: Vec<f64>,
+    /// OS: the full window's drawn windows for the current colour (built on
+    /// first use after a colour change, kept across probability changes).
+    os_mc: Option<OsColoured>,
     /// Factor by training-cell count N (index N), solved on first use.
     factors: Vec<Option<f64>>,
     prefix: Vec<f64>,
@@ -364,6 +367,7 @@ impl CfarPlan {
             colour: None,
             weights: Vec::new(),
             rho: Vec::new(),
+            os_mc: None,
             factors: vec![None; 2 * training + 1],
             prefix: Vec::new(),
             scratch: Vec::with_capacity(2 * training),
@@ -424,6 +428,7 @@ impl CfarPlan {
             if !white {
                 self.rho.extend_from_slice(rho);
             }
+            self.os_mc = None;
             self.factors.iter_mut().for_each(|f| *f = None);
             self.factor(2 * self.training);
         }
@@ -498,9 +503,15 @@ impl CfarPlan {
             CfarMethod::OrderedStatistic { .. }
                 if self.colour.is_some()
                     && n == 2 * self.training
-                    && let Some(f) = os_factor_coloured(self.p_cell, 2, self.training, self.rank_for(n), &self.rho) =>
+                    && let Some(mc) = match &self.os_mc {
+                        Some(mc) => Some(mc),
+                        None => {
+                            self.os_mc = OsColoured::new(self.p_cell, 2, self.training, self.rank_for(n), &self.rho);
+                            self.os_mc.as_ref()
+                        }
+                    } =>
             {
-                f.alpha
+                mc.factor(self.p_cell).alpha
             }
             // White cells, or a partial window (frame ends) on coloured
             // input: as many white cells as the window's degrees of freedom,

@@ -41,14 +41,16 @@
 //!    case: the order statistic against the radius is all that varies).
 //!
 //! Seeds are fixed: a colour gives the same factor on every run and thread.
-//! One factor costs about 33 000 drawn windows (a few tens of ms); the CFAR
-//! plan solves it once per colour change.
+//! Drawing costs about 33 000 windows (a few tens of ms), once per colour
+//! change ([`OsColoured`]); the factor for a new per-cell probability is a
+//! root search over the kept draws (about ten passes, no allocation).
 
 use rand::SeedableRng;
 use rand_distr::{Distribution, StandardNormal};
 
-use crate::detect::cfar::ca_ln_pfa_nu;
+use crate::detect::cfar::{ca_ln_pfa_nu, solve_alpha};
 use crate::math::linalg::{cholesky, solve};
+use crate::math::roots::illinois_from;
 
 /// Draws per tilt in the pilot that chooses β.
 const PILOT: usize = 2048;
@@ -75,6 +77,7 @@ pub struct OsColouredFactor {
 /// ln S_N(t) = ln P(t_N > t), tabulated for t < `T_MAX` (linear in t between
 /// nodes 1/128 apart: the error in ln S is below h²/8 · |(ln S)''| ≈ 1e-5),
 /// exact beyond.
+#[derive(Debug, Clone)]
 struct TailTable {
     nu: f64,
     ln_s: Vec<f64>,
@@ -103,6 +106,7 @@ impl TailTable {
 }
 
 /// Drawn windows: c(v) and the importance weight's log, per draw.
+#[derive(Debug, Clone)]
 struct Draws {
     c: Vec<f64>,
     ln_w: Vec<f64>,
@@ -205,38 +209,70 @@ fn estimate(alpha: f64, d: &Draws, tab: &TailTable) -> (f64, f64, f64) {
     (top + (s1 / m).ln(), rse, s1 * s1 / s2)
 }
 
-/// The OS-CFAR factor for per-cell probability `p_cell` on `blocks`
-/// independent blocks of `len` training cells correlated as `rho` (ρ(0..),
-/// zero beyond), rank `k` (1-based) among all blocks·len cells. `None` when
-/// the correlation is not positive definite even with the ridge (the caller
-/// falls back to its approximation).
-pub fn os_factor_coloured(p_cell: f64, blocks: usize, len: usize, k: usize, rho: &[f64]) -> Option<OsColouredFactor> {
-    let cells = blocks * len;
-    if cells == 0 || !(1..=cells).contains(&k) || !(p_cell > 0.0 && p_cell < 0.5) {
-        return None;
-    }
-    let win = Window::new(len, rho)?;
-    let tab = TailTable::new(cells as f64);
-    let ln_p = p_cell.ln();
-    let mut best: Option<(f64, f64)> = None;
-    for (i, &beta) in TILTS.iter().enumerate() {
-        let Some(d) = win.draw(blocks, k, beta, PILOT, SEED + i as u64) else {
-            continue;
-        };
-        let a = crate::detect::cfar::solve_alpha(ln_p, |a| estimate(a, &d, &tab).0);
-        let ess = estimate(a, &d, &tab).2;
-        if best.is_none_or(|(_, e)| ess > e) {
-            best = Some((beta, ess));
+/// The drawn windows for one colour, window and rank: the factor for any
+/// per-cell probability near the one they were tilted for comes from them
+/// without drawing again (a CFAR plan's probability follows the noise model
+/// frame by frame; its colour changes far less often).
+#[derive(Debug, Clone)]
+pub struct OsColoured {
+    draws: Draws,
+    tab: TailTable,
+    tilt: f64,
+    /// The factor at the probability the tilt was chosen for (no margin):
+    /// the root search starts there.
+    alpha0: f64,
+}
+
+impl OsColoured {
+    /// Chooses the tilt at `p_cell` and draws the windows: `blocks`
+    /// independent blocks of `len` training cells correlated as `rho`
+    /// (ρ(0..), zero beyond), rank `k` (1-based) among all blocks·len cells.
+    /// `None` when the correlation is not positive definite even with the
+    /// ridge, or the arguments are out of range (the caller falls back to
+    /// its approximation).
+    pub fn new(p_cell: f64, blocks: usize, len: usize, k: usize, rho: &[f64]) -> Option<OsColoured> {
+        let cells = blocks * len;
+        if cells == 0 || !(1..=cells).contains(&k) || !(p_cell > 0.0 && p_cell < 0.5) {
+            return None;
         }
+        let win = Window::new(len, rho)?;
+        let tab = TailTable::new(cells as f64);
+        let ln_p = p_cell.ln();
+        let mut best: Option<(f64, f64)> = None;
+        for (i, &beta) in TILTS.iter().enumerate() {
+            let Some(d) = win.draw(blocks, k, beta, PILOT, SEED + i as u64) else {
+                continue;
+            };
+            let a = solve_alpha(ln_p, |a| estimate(a, &d, &tab).0);
+            let ess = estimate(a, &d, &tab).2;
+            if best.is_none_or(|(_, e)| ess > e) {
+                best = Some((beta, ess));
+            }
+        }
+        let (tilt, _) = best?;
+        let draws = win.draw(blocks, k, tilt, DRAWS, SEED + TILTS.len() as u64)?;
+        let alpha0 = solve_alpha(ln_p, |a| estimate(a, &draws, &tab).0);
+        Some(OsColoured { draws, tab, tilt, alpha0 })
     }
-    let (beta, _) = best?;
-    let d = win.draw(blocks, k, beta, DRAWS, SEED + TILTS.len() as u64)?;
-    let alpha = crate::detect::cfar::solve_alpha(ln_p, |a| {
-        let (ln_pfa, rse, _) = estimate(a, &d, &tab);
-        ln_pfa + (2.0 * rse).ln_1p()
-    });
-    let (_, rel_se, ess) = estimate(alpha, &d, &tab);
-    Some(OsColouredFactor { alpha, rel_se, ess, tilt: beta })
+
+    /// The factor for `p_cell`, held two standard errors to the safe side.
+    /// Allocates nothing; about ten passes over the draws.
+    pub fn factor(&self, p_cell: f64) -> OsColouredFactor {
+        let ln_p = p_cell.ln();
+        let f = |a: f64| {
+            let (ln_pfa, rse, _) = estimate(a, &self.draws, &self.tab);
+            ln_pfa + (2.0 * rse).ln_1p() - ln_p
+        };
+        let a0 = self.alpha0;
+        let alpha = illinois_from(a0, 0.05 * a0, 0.0, f64::MAX, 1e-10 * a0, f);
+        let (_, rel_se, ess) = estimate(alpha, &self.draws, &self.tab);
+        OsColouredFactor { alpha, rel_se, ess, tilt: self.tilt }
+    }
+}
+
+/// The OS-CFAR factor for per-cell probability `p_cell` (see [`OsColoured::new`]).
+pub fn os_factor_coloured(p_cell: f64, blocks: usize, len: usize, k: usize, rho: &[f64]) -> Option<OsColouredFactor> {
+    Some(OsColoured::new(p_cell, blocks, len, k, rho)?.factor(p_cell))
 }
 
 #[cfg(test)]

@@ -59,6 +59,9 @@ const SAME_PULSE_SAMPLES: f64 = 0.25;
 /// At most this many returns per report (the strongest).
 const MAX_RETURNS: usize = 32;
 
+/// A timing method's error table and its fallback's ([`ErrorTable::get_with_fallback`]).
+type ErrorTables = (Option<Arc<ErrorTable>>, Option<Arc<ErrorTable>>);
+
 /// Times detections and forms ranges.
 #[derive(Debug)]
 pub struct Timing {
@@ -73,10 +76,12 @@ pub struct Timing {
     pulse_cfg: crate::scene::PulseConfig,
     /// Shape and its template norm for the current sampling period.
     pulse: Option<(f64, Shape, f64)>,
-    /// Measured bias and width of the method by SNR (none for leading edge).
-    errors: Option<Arc<ErrorTable>>,
-    /// The same for the peak interpolation a failed crossing falls back to.
-    fallback_errors: Option<Arc<ErrorTable>>,
+    /// Measured bias and width of the method by SNR (none for leading edge),
+    /// and the same for the peak interpolation a failed crossing falls back
+    /// to; `None` until a frame's detections are timed one by one (measuring
+    /// them simulates thousands of pulses, and pulses the resolver fitted
+    /// jointly, as maximum likelihood times them, never read them).
+    errors: Option<ErrorTables>,
     /// The method fits the template (peak interpolation or maximum likelihood).
     template_timed: bool,
     /// Leading-edge walk table (leading-edge timing with a calibrated table only).
@@ -128,7 +133,6 @@ impl Timing {
             pulse_cfg: scene.return_pulse.clone(),
             pulse: None,
             errors: None,
-            fallback_errors: None,
             template_timed: matches!(
                 scene.timing.method,
                 TimingMethod::Ml | TimingMethod::PeakParabolic | TimingMethod::PeakGaussian
@@ -163,7 +167,7 @@ impl Stage for Timing {
             } else {
                 1.0
             };
-            (self.errors, self.fallback_errors) = ErrorTable::get_with_fallback(self.method, &shape, self.fraction, self.matched);
+            self.errors = None;
             self.pulse = Some((dt, shape, norm));
         }
         let (_, pulse, norm) = self.pulse.as_ref().expect("set above");
@@ -193,7 +197,9 @@ impl Stage for Timing {
                 };
                 timed.push((c.detected_at, t, c.misfit));
             }
-        } else {
+        } else if !w.buffers.detections.is_empty() {
+            let (errors, fallback_errors) =
+                self.errors.get_or_insert_with(|| ErrorTable::get_with_fallback(self.method, pulse, self.fraction, self.matched));
             for &p in w.buffers.detections.iter().take(MAX_RETURNS) {
                 let input = TimingInput {
                     x,
@@ -209,7 +215,7 @@ impl Stage for Timing {
                 let mut t = time_pulse(self.method, &input);
                 // The method's measured bias and width at the SNR it measured
                 // (a failed crossing falls back to the parabolic peak's table).
-                let table = if t.fallback { &self.fallback_errors } else { &self.errors };
+                let table = if t.fallback { &*fallback_errors } else { &*errors };
                 if let Some(table) = table {
                     (t.index, t.sigma_samples) = table.correct(t.index, t.amplitude_v / w.noise.raw_sigma_v);
                 }
@@ -223,7 +229,7 @@ impl Stage for Timing {
                     // What of the gap's swing noise would give on a fitting
                     // shape at this SNR is already in the method's width.
                     let snr = t.amplitude_v / w.noise.raw_sigma_v;
-                    let noise = self.fallback_errors.as_ref().map_or(0.0, |e| e.gap_noise(snr));
+                    let noise = fallback_errors.as_ref().map_or(0.0, |e| e.gap_noise(snr));
                     let swing = self.mismatch.update(mismatch_gap(&input, &fit), noise);
                     t.sigma_samples = t.sigma_samples.hypot(swing);
                 }

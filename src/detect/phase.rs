@@ -152,12 +152,8 @@ mod tests {
             (TimingMethod::PeakGaussian, true),
         ] {
             let pb = PhaseBias::measure(method, &shape, 0.5, matched).expect("measurable");
-            assert_eq!(pb.is_smooth(), method != TimingMethod::ConstantFraction, "{method:?}");
-            if !pb.is_smooth() {
-                // Carried as uncertainty instead: about a hundredth of a sample here.
-                assert!(pb.rms() > 0.005 && pb.rms() < 0.05, "{}", pb.rms());
-                continue;
-            }
+            assert!(pb.is_smooth(), "{method:?}");
+            let cf = method == TimingMethod::ConstantFraction;
             // Off-grid phases (not the 64 of the table): the corrected estimate is within 2e-3 samples.
             let mut plan = if matched { DetectorPlan::matched_filter(&shape, 200) } else { DetectorPlan::threshold(200) };
             let norm = if matched { plan.norm() } else { 1.0 };
@@ -178,8 +174,17 @@ mod tests {
                 ss += e * e;
             }
             let (rms_raw, rms) = ((ss_raw / 37.0).sqrt(), (ss / 37.0).sqrt());
-            eprintln!("{method:?}: phase bias rms {rms_raw:.4} -> {rms:.5} samples, worst after {worst:.4}");
-            assert!(rms < 0.25 * rms_raw, "{method:?}: rms {rms_raw} -> {rms}");
+            eprintln!("{method:?}: phase bias rms {rms_raw:.5} -> {rms:.5} samples, worst after {worst:.4}");
+            if cf {
+                // The crossing and the peak height are read off the model
+                // between samples (`pulse_timing::between_samples`): the
+                // estimator itself leaves almost nothing to the table (it
+                // left a hundredth of a sample, with jumps, when it read
+                // them by straight lines and a bare parabola).
+                assert!(rms_raw < 1e-3 && pb.rms() < 1e-3, "{method:?}: rms {rms_raw}, table {}", pb.rms());
+            } else {
+                assert!(rms < 0.25 * rms_raw, "{method:?}: rms {rms_raw} -> {rms}");
+            }
             assert!(worst < 2e-3, "{method:?}: corrected error {worst} samples");
             assert!(pb.rms() > 0.0);
         }

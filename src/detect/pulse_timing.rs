@@ -79,8 +79,8 @@ pub struct ShapeFit {
 
 impl ShapeFit {
     /// Fits `pulse` to `x − mean_v` by least squares in amplitude and peak
-    /// position (searched within ±2 samples of `near`, in quarter samples)
-    /// and measures the residual in units of `sigma_v`.
+    /// position (searched within ±2 samples of `near`, in quarter samples,
+    /// then between them) and measures the residual in units of `sigma_v`.
     pub fn measure(x: &[f64], mean_v: f64, sigma_v: f64, pulse: &Shape, near: f64) -> ShapeFit {
         // The 17 positions share the pulse's values: sample k at position
         // near + j/4 sits at offset (4k − j)/4 − near, so each value is
@@ -93,20 +93,32 @@ impl ShapeFit {
         let len = (4 * (k_max - k_min) + 17).max(0) as usize;
         let mut table = [f64::NAN; SHAPE_TABLE];
         let fit = |j: i64, values: Option<&mut [f64]>| ShapeFit::at(x, mean_v, sigma_v, pulse, near + 0.25 * j as f64, j, m_min, values);
-        let (j, mut fit) = if len <= SHAPE_TABLE {
-            let values = &mut table[..len];
-            let mut best: Option<(i64, ShapeFit)> = None;
-            for j in -8..=8 {
-                let f = fit(j, Some(&mut *values));
-                if best.as_ref().is_none_or(|b| f.chi2 < b.1.chi2) {
-                    best = Some((j, f));
-                }
+        let mut values = (len <= SHAPE_TABLE).then(|| &mut table[..len]);
+        let mut chi2 = [f64::NAN; 17];
+        let mut best: Option<(i64, ShapeFit)> = None;
+        for j in -8..=8 {
+            let f = fit(j, values.as_deref_mut());
+            chi2[(j + 8) as usize] = f.chi2;
+            if best.as_ref().is_none_or(|b| f.chi2 < b.1.chi2) {
+                best = Some((j, f));
             }
-            best.expect("17 positions")
-        } else {
-            (-8..=8).map(|j| (j, fit(j, None))).min_by(|a, b| a.1.chi2.total_cmp(&b.1.chi2)).expect("17 positions")
-        };
+        }
+        let (j, mut fit) = best.expect("17 positions");
         fit.at_edge = j.abs() == 8;
+        // Between grid positions: the parabola through the least χ² and its
+        // neighbours (χ² is quadratic in a small shift of the peak). A
+        // quarter-sample grid alone leaves (SNR·‖ṡ‖·δ)² of χ² at a shift δ ≤
+        // 1/8 sample: at high SNR far more than the noise, read as a misfit.
+        if !fit.at_edge {
+            let i = (j + 8) as usize;
+            let (l, c, r) = (chi2[i - 1], chi2[i], chi2[i + 1]);
+            let curvature = l - 2.0 * c + r;
+            if curvature > 0.0 {
+                let d = (0.5 * (l - r) / curvature).clamp(-0.5, 0.5);
+                fit.chi2 = (c - 0.25 * (l - r) * d).max(0.0);
+                fit.peak_index = near + 0.25 * (j as f64 + d);
+            }
+        }
         fit
     }
 
@@ -322,11 +334,49 @@ fn ml(input: &TimingInput, start: f64) -> Timed {
     finish(input, fit.delay, fit.amplitude, fit.delay + input.pulse.fraction_offset(input.fraction), None)
 }
 
-/// Raw-sample peak near the detector's peak: index and height above the mean.
-/// The height is a least-squares parabola over the samples near the top (those
-/// above 90 % of the largest), so the noise of a single sample does not bias
-/// the constant-fraction level upwards at low SNR.
-fn raw_peak(input: &TimingInput) -> (usize, f64) {
+/// The raw-sample peak near the detector's peak. Its height is a
+/// least-squares parabola over the samples near the top (those above 90 % of
+/// the largest), so the noise of a single sample does not bias the
+/// constant-fraction level upwards at low SNR.
+struct RawTop {
+    /// The largest sample near the detector's peak.
+    k: usize,
+    /// First and last sample of the parabola (both `k`: the height is `x[k]`).
+    a: usize,
+    b: usize,
+    /// The parabola's vertex, samples from `a` (none: the height is `x[k]`).
+    vertex: Option<f64>,
+    /// The height, volts.
+    height_v: f64,
+}
+
+impl RawTop {
+    /// The height the same samples give a unit pulse of the model peaking at
+    /// `peak_index` (below 1 where the samples straddle the peak; `None`
+    /// where the model does not describe the top: its peak, placed by the
+    /// crossing, more than a sample from the samples' own top).
+    fn model_height(&self, input: &TimingInput, peak_index: f64) -> Option<f64> {
+        let top = self.vertex.map_or(self.k as f64, |v| self.a as f64 + v);
+        if !((peak_index - top).abs() <= 1.0) {
+            return None;
+        }
+        let unit = |k: usize| input.pulse.value_and_slope(k as f64 - peak_index).0;
+        let h = match self.vertex {
+            Some(_) => {
+                let mut v = [0.0; 17];
+                let len = self.b - self.a + 1;
+                for (i, vi) in v.iter_mut().enumerate().take(len) {
+                    *vi = unit(self.a + i);
+                }
+                quadratic_peak(&v[..len], (self.k - self.a) as f64).map_or(unit(self.k), |q| q.0)
+            }
+            None => unit(self.k),
+        };
+        (h > 0.5 && h < 1.5).then_some(h)
+    }
+}
+
+fn raw_top(input: &TimingInput) -> RawTop {
     let x = input.x;
     let w = (input.pulse.fwhm() * 0.5).ceil().max(2.0) as usize;
     let lo = input.peak.saturating_sub(w);
@@ -343,13 +393,16 @@ fn raw_peak(input: &TimingInput) -> (usize, f64) {
     }
     let half = (k - a).max(b - k).max(1);
     let (a, b) = (k.saturating_sub(half), (k + half).min(x.len() - 1));
-    let h = if b - a >= 2 { quadratic_peak(&x[a..=b], (k - a) as f64).unwrap_or(x[k]) } else { x[k] };
-    (k, h - input.mean_v)
+    match (b - a >= 2).then(|| quadratic_peak(&x[a..=b], (k - a) as f64)).flatten() {
+        Some((height_v, vertex)) => RawTop { k, a, b, vertex: Some(vertex), height_v },
+        None => RawTop { k, a: k, b: k, vertex: None, height_v: x[k] },
+    }
 }
 
-/// Vertex height of the least-squares parabola through `y` (abscissae 0..n),
-/// if it opens downwards with its vertex within one sample of `near`.
-fn quadratic_peak(y: &[f64], near: f64) -> Option<f64> {
+/// Vertex height and position (from the first sample) of the least-squares
+/// parabola through `y` (abscissae 0..n), if it opens downwards with its
+/// vertex within one sample of `near`.
+fn quadratic_peak(y: &[f64], near: f64) -> Option<(f64, f64)> {
     let n = y.len() as f64;
     let c = (n - 1.0) / 2.0;
     let (mut s2, mut s4, mut sy, mut sxy, mut sx2y) = (0.0, 0.0, 0.0, 0.0, 0.0);
@@ -369,7 +422,71 @@ fn quadratic_peak(y: &[f64], near: f64) -> Option<f64> {
         return None;
     }
     let t = -a1 / (2.0 * a2);
-    ((t + c - near).abs() <= 1.0).then_some(a0 + a1 * t + a2 * t * t)
+    ((t + c - near).abs() <= 1.0).then_some((a0 + a1 * t + a2 * t * t, t + c))
+}
+
+/// Variance gain of coloured noise on a crossing method's error (1 for
+/// white noise, and for the other methods).
+///
+/// A crossing method's small-signal error is (n_c − q·δA)/slope: the noise
+/// n_c at the crossing (the two samples around it, weighted as the straight
+/// line weighs them) less the error δA of the peak height (a least-squares
+/// parabola over the samples near the top, whose weights are linear in the
+/// samples) times q, the level's fraction of the peak. Its width is
+/// measured on white noise; on a band-limited receiver's noise the crossing
+/// and the top, a few samples apart, share their slow excursions: the level
+/// moves with the crossing's noise, and the error shrinks (the lab set-up's
+/// 19.5 MHz receiver: about two thirds of the white-noise width). The gain
+/// is the ratio of cᵀRc + q²wᵀRw − 2q·cᵀRw to the same with R = I (`rho`
+/// the normalised autocorrelation from lag 0, zero beyond its last lag).
+pub fn crossing_colour_gain(method: TimingMethod, input: &TimingInput, timed: &Timed, rho: &[f64]) -> f64 {
+    let top = raw_top(input);
+    let a = top.height_v - input.mean_v;
+    let q = match method {
+        TimingMethod::ConstantFraction => input.fraction,
+        TimingMethod::LeadingEdge => input.leading_edge_v / a,
+        _ => return 1.0,
+    };
+    if rho.len() < 2 || !(a > 0.0) || !timed.index.is_finite() || timed.fallback {
+        return 1.0;
+    }
+    let r = |lag: f64| {
+        let lag = lag.abs();
+        let i = lag.floor() as usize;
+        let u = lag - i as f64;
+        let at = |k: usize| rho.get(k).copied().unwrap_or(0.0);
+        (1.0 - u) * at(i) + u * at(i + 1)
+    };
+    // The peak height's weights on samples a..=b (one sample where no parabola was fitted).
+    let mut w = [0.0; 17];
+    let len = top.b - top.a + 1;
+    match top.vertex {
+        Some(v) => {
+            let n = len as f64;
+            let c = (n - 1.0) / 2.0;
+            let (s2, s4) = (0..len).fold((0.0, 0.0), |(s2, s4), i| {
+                let t = i as f64 - c;
+                (s2 + t * t, s4 + t * t * t * t)
+            });
+            let t = v - c;
+            for (i, wi) in w.iter_mut().enumerate().take(len) {
+                let ti = i as f64 - c;
+                *wi = 1.0 / n + ti * t / s2 + (t * t - s2 / n) * (n * ti * ti - s2) / (n * s4 - s2 * s2);
+            }
+        }
+        None => w[0] = 1.0,
+    }
+    let w = &w[..len];
+    let j = timed.index.floor();
+    let u = timed.index - j;
+    let c = [(j, 1.0 - u), (j + 1.0, u)];
+    let at = |i: usize| (top.a + i) as f64;
+    let crc = c[0].1 * c[0].1 + c[1].1 * c[1].1 + 2.0 * c[0].1 * c[1].1 * r(1.0);
+    let wrw: f64 = (0..len).map(|i| (0..len).map(|k| w[i] * w[k] * r(at(i) - at(k))).sum::<f64>()).sum();
+    let crw: f64 = (0..len).map(|i| c.iter().map(|&(t, ci)| ci * w[i] * r(at(i) - t)).sum::<f64>()).sum();
+    let white = c[0].1 * c[0].1 + c[1].1 * c[1].1 + q * q * w.iter().map(|v| v * v).sum::<f64>();
+    let coloured = crc + q * q * wrw - 2.0 * q * crw;
+    if white > 0.0 && coloured > 0.0 { coloured / white } else { 1.0 }
 }
 
 fn search_start(input: &TimingInput, k: usize) -> usize {
@@ -378,18 +495,66 @@ fn search_start(input: &TimingInput, k: usize) -> usize {
 }
 
 fn constant_fraction(input: &TimingInput) -> Option<Timed> {
-    let (k, a) = raw_peak(input);
-    if !(a > 0.0) {
+    let top = raw_top(input);
+    let k = top.k;
+    let crossing = |a: f64| {
+        let t = crossing::rising_before(input.x, input.mean_v + input.fraction * a, search_start(input, k), k)?;
+        Some(between_samples(input.pulse, input.fraction, t))
+    };
+    let raw = top.height_v - input.mean_v;
+    if !(raw > 0.0) {
         return None;
     }
-    let level = input.mean_v + input.fraction * a;
-    let t = crossing::rising_before(input.x, level, search_start(input, k), k)?;
+    // The crossing places the pulse; where it falls between samples decides
+    // how far the top's samples are below its peak: the level follows the
+    // peak the model then implies (twice: the second place is the settled one).
+    let (mut a, mut t) = (raw, crossing(raw)?);
+    for _ in 0..2 {
+        let Some(h) = top.model_height(input, t - input.pulse.fraction_offset(input.fraction)) else { break };
+        a = raw / h;
+        t = crossing(a)?;
+    }
     // Small-signal σ: the noise at the crossing, plus the peak's scaled by
     // the fraction, over the model's slope there (a slope read from two noisy
     // samples would swing with the noise it is meant to scale).
     let slope = a * model_slope(input.pulse, input.fraction);
     let sigma = input.sigma_v * (1.0 + input.fraction * input.fraction).sqrt() / slope.max(f64::MIN_POSITIVE);
     Some(finish(input, k as f64, a, t, Some(sigma)))
+}
+
+/// Where the pulse crosses `fraction` of its peak, given `t`, the crossing
+/// read by straight-line interpolation between the two samples around it.
+///
+/// A leading edge is curved between samples, so the straight line misplaces
+/// the crossing by an amount that depends on where the samples fall on the
+/// edge (the sub-sample phase): a bias that averages over phases to a
+/// constant the calibration absorbs, but that scatters report to report
+/// once noise is averaged down, and that a calibration at one phase
+/// distribution does not remove at another. The model shape says what the
+/// straight line makes of a pulse crossing at t*: t* is moved until it makes
+/// `t` of it (a few fixed-point steps: the error changes slowly with t*). A
+/// shape that does not fit leaves the crossing where it was read (the
+/// mismatch is then in the sigma, see [`mismatch_gap`]).
+fn between_samples(pulse: &Shape, fraction: f64, t: f64) -> f64 {
+    let j = t.floor();
+    let offset = pulse.fraction_offset(fraction);
+    // The straight line's crossing for a unit pulse whose edge crosses
+    // `fraction` at `crossing`.
+    let straight = |crossing: f64| {
+        let peak = crossing - offset;
+        let (a, b) = (pulse.value_and_slope(j - peak).0, pulse.value_and_slope(j + 1.0 - peak).0);
+        (b > a).then(|| j + (fraction - a) / (b - a))
+    };
+    let mut crossing = t;
+    for _ in 0..4 {
+        let Some(s) = straight(crossing) else { return t };
+        let step = t - s;
+        crossing += step;
+        if step.abs() < 1e-9 {
+            break;
+        }
+    }
+    if (crossing - t).abs() < 1.0 && crossing.is_finite() { crossing } else { t }
 }
 
 /// Slope of the unit-peak shape where its leading edge crosses `fraction`, per sample.
@@ -402,18 +567,32 @@ fn model_slope(pulse: &Shape, fraction: f64) -> f64 {
 const LEADING_EDGE_MAX_FRACTION: f64 = 0.9;
 
 fn leading_edge(input: &TimingInput) -> Option<Timed> {
-    let (k, a) = raw_peak(input);
-    let r = input.leading_edge_v / a;
-    if !(a > 0.0 && r < LEADING_EDGE_MAX_FRACTION) {
+    let top = raw_top(input);
+    let k = top.k;
+    let raw = top.height_v - input.mean_v;
+    if !(raw > 0.0 && input.leading_edge_v / raw < LEADING_EDGE_MAX_FRACTION) {
         return None;
     }
     let level = input.mean_v + input.leading_edge_v;
-    let t = crossing::first_rising(input.x, level, search_start(input, k), k + 1)?;
+    let crossed = crossing::first_rising(input.x, level, search_start(input, k), k + 1)?;
     // A fixed level crosses a larger pulse earlier (walk): the model moves
     // the crossing to the timing fraction's point of a pulse of the fitted
     // amplitude, so every method reports the same point of the pulse. A
-    // calibrated walk table then removes what the model leaves.
-    let t = t + input.pulse.fraction_offset(input.fraction) - input.pulse.fraction_offset(r);
+    // calibrated walk table then removes what the model leaves. The
+    // amplitude is the top's height less what the samples' phase on the
+    // peak takes off it (the model's, at the peak the crossing implies):
+    // the walk correction turns an amplitude error into a timing error.
+    let at = |a: f64| {
+        let r = input.leading_edge_v / a;
+        between_samples(input.pulse, r, crossed) + input.pulse.fraction_offset(input.fraction) - input.pulse.fraction_offset(r)
+    };
+    let (mut a, mut t) = (raw, at(raw));
+    for _ in 0..2 {
+        let Some(h) = top.model_height(input, t - input.pulse.fraction_offset(input.fraction)) else { break };
+        a = raw / h;
+        t = at(a);
+    }
+    let r = input.leading_edge_v / a;
     // Small-signal σ: the noise at the crossing, plus the fitted amplitude's
     // (through the walk correction, scaled by the level's fraction), over
     // the model's slope at the crossing.
@@ -450,32 +629,40 @@ mod tests {
     #[test]
     fn noise_free_pulse_is_timed_at_its_fraction_crossing() {
         let pulse = Shape::Parametric(crate::dsp::pulse::Pulse { sigma_rise: 4.79, sigma_fall: 17.3 });
-        let peak = 300.37;
-        let x = synth(&pulse, peak, 0.8, 600);
         let mut plan = DetectorPlan::matched_filter(&pulse, 600);
-        let y = plan.run(&x, 0.01).to_vec();
-        let p = (0..y.len()).max_by(|&a, &b| y[a].total_cmp(&y[b])).unwrap();
-        let truth = peak + pulse.fraction_offset(0.5);
-        for (m, tol) in [
-            (TimingMethod::Ml, 1e-6),
-            (TimingMethod::PeakParabolic, 0.05),
-            (TimingMethod::PeakGaussian, 0.05),
-            (TimingMethod::ConstantFraction, 0.05),
-        ] {
-            let input = TimingInput {
-                x: &x,
-                mean_v: 0.01,
-                sigma_v: 0.01,
-                y: &y,
-                norm: plan.norm(),
-                pulse: &pulse,
-                peak: p,
-                fraction: 0.5,
-                leading_edge_v: 0.3,
-            };
-            let t = time_pulse(m, &input);
-            assert!((t.index - truth).abs() < tol, "{m:?}: {} vs {truth}", t.index);
-            assert!(!t.fallback);
+        // Every sub-sample phase a crossing can fall at.
+        for phase in [0.0, 0.13, 0.37, 0.5, 0.81] {
+            let peak = 300.0 + phase;
+            let x = synth(&pulse, peak, 0.8, 600);
+            let y = plan.run(&x, 0.01).to_vec();
+            let p = (0..y.len()).max_by(|&a, &b| y[a].total_cmp(&y[b])).unwrap();
+            let truth = peak + pulse.fraction_offset(0.5);
+            for (m, tol) in [
+                (TimingMethod::Ml, 1e-6),
+                (TimingMethod::PeakParabolic, 0.05),
+                (TimingMethod::PeakGaussian, 0.05),
+                // Crossings read off the model between samples, and the level
+                // from the model's peak: exact on a pulse of the model's shape
+                // (a straight line and a bare parabola were off by up to a
+                // hundredth of a sample, depending on the phase).
+                (TimingMethod::ConstantFraction, 1e-4),
+                (TimingMethod::LeadingEdge, 1e-4),
+            ] {
+                let input = TimingInput {
+                    x: &x,
+                    mean_v: 0.01,
+                    sigma_v: 0.01,
+                    y: &y,
+                    norm: plan.norm(),
+                    pulse: &pulse,
+                    peak: p,
+                    fraction: 0.5,
+                    leading_edge_v: 0.3,
+                };
+                let t = time_pulse(m, &input);
+                assert!((t.index - truth).abs() < tol, "{m:?} at phase {phase}: {} vs {truth}", t.index);
+                assert!(!t.fallback);
+            }
         }
     }
 }

@@ -1055,6 +1055,14 @@ impl Simulator {
         v
     }
 
+    /// The noise-free start channel at the sample instants, V (none without a start channel).
+    pub fn noise_free_start_v(&self) -> Option<Vec<f64>> {
+        let wave = self.start_wave.as_ref()?;
+        let mut v = vec![0.0; self.n_samples];
+        wave.sample_into(self.t_first_s, self.dt_s, &mut v);
+        Some(v)
+    }
+
     /// Stationary noise σ of the stop channel at the digitiser input (before quantisation), V.
     pub fn stop_noise_sigma_v(&self) -> f64 {
         self.stop_noise

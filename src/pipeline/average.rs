@@ -532,6 +532,7 @@ impl Average {
             w.reference.t_ref_s = r;
             w.report.t_start_s = r;
             w.reference.t_ref_sigma_s = t_var_sum.sqrt() / count as f64;
+            w.report.t_start_sigma_s = w.reference.t_ref_sigma_s;
         }
         w.report.frames_averaged = count;
         w.report.seq_last = seq_last;

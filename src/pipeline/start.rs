@@ -11,7 +11,7 @@ use crate::detect::error_table::ErrorTable;
 use crate::detect::pulse_timing::{time_pulse, mismatch_gap, ShapeFit, TimingInput, MISMATCH_Z};
 use crate::dsp::pulse::Shape;
 use crate::scene::{Scene, TimingMethod};
-use super::timing::MismatchSwing;
+use super::timing::{MismatchSwing, ModelFloor};
 use std::sync::Arc;
 
 /// Times the start pulse.
@@ -31,6 +31,8 @@ pub struct Start {
     fallback_errors: Option<Arc<ErrorTable>>,
     /// The mismatch gap's swing beyond noise.
     mismatch: MismatchSwing,
+    /// The start shape's error on the pulses it fits.
+    floor: ModelFloor,
     volts: Vec<f64>,
     scratch: Vec<f64>,
 }
@@ -49,6 +51,7 @@ impl Start {
             errors: None,
             fallback_errors: None,
             mismatch: MismatchSwing::default(),
+            floor: ModelFloor::default(),
             volts: Vec::new(),
             scratch: Vec::new(),
         }
@@ -160,13 +163,20 @@ impl Stage for Start {
         // puts the timing point is uncertain by the gap between its fraction
         // point and the samples' own crossing.
         let fit = ShapeFit::measure(xw, baseline, sigma, pulse, timed.index - a as f64 - pulse.fraction_offset(self.fraction));
-        if fit.mismatched(MISMATCH_Z, 1.0) {
+        // The shape's error on the pulses it fits (see `ModelFloor`), as
+        // learned before this pulse.
+        let floor = self.floor.floor(timed.sigma_samples, timed.amplitude_v / sigma);
+        let mismatched = fit.mismatched(MISMATCH_Z, 1.0);
+        if mismatched {
             // Its typical value is a constant the calibration absorbs; the
             // swing noise gives on a fitting shape is in the method's width.
             let noise = self.fallback_errors.as_ref().map_or(0.0, |e| e.gap_noise(timed.amplitude_v / sigma));
             let swing = self.mismatch.update(mismatch_gap(&input, &fit), noise);
-            timed.sigma_samples = timed.sigma_samples.hypot(swing);
+            timed.sigma_samples = timed.sigma_samples.hypot(floor).hypot(swing);
+        } else {
+            timed.sigma_samples = timed.sigma_samples.hypot(floor);
         }
+        self.floor.update(fit.chi2, fit.dof(), sigma, timed.amplitude_v, mismatched);
         w.reference.t_ref_s = w.frame.sample_time_s(timed.index);
         w.reference.t_ref_sigma_s = timed.sigma_samples * dt;
         if timed.fallback {

@@ -6,7 +6,7 @@ use super::{FrameError, Stage, Work};
 use crate::detect::finite_gate::{detection_probability, rho_squared_sum};
 use crate::detect::resolve::MISFIT_LIMIT;
 use crate::detect::error_table::ErrorTable;
-use crate::detect::pulse_timing::{crlb_samples, joint_crlb_samples, time_pulse, JointScratch, mismatch_gap, ShapeFit, Timed, TimingInput, MISMATCH_Z};
+use crate::detect::pulse_timing::{crlb_samples, crossing_colour_gain, joint_crlb_samples, time_pulse, JointScratch, mismatch_gap, ShapeFit, Timed, TimingInput, MISMATCH_Z};
 use crate::detect::walk::WalkTable;
 use std::sync::Arc;
 use crate::dsp::pulse::{PulseShape, Shape};
@@ -53,6 +53,65 @@ impl MismatchSwing {
     }
 }
 
+/// Weight of each new pulse in the running estimate of the shape's error.
+const FLOOR_SMOOTHING: f64 = 0.02;
+
+/// How far the shape in use is from the pulses it times, one per sensor and
+/// channel: the timing error a shape leaves that noise does not, and that
+/// no noise-only width holds.
+///
+/// A shape that fits within the noise of one shot can still be off by a
+/// fraction of a percent of the peak (a table sampled from a slightly
+/// different pulse, a pulse smoothed by averaging shots of random phase). Its
+/// error r shifts every method's timing point by an amount that changes
+/// with the sub-sample phase and that averaging shots does not reduce; it
+/// shows in the shape fit as χ² beyond its degrees of freedom. Its size per
+/// sample relative to the peak, ε² = Σ(χ² − dof)·σ² / Σ dof·A² (running sums
+/// over the pulses that pass the shape test, so the strong pulses, which
+/// see it, weigh most), gives the floor: a method's error from r is its
+/// response to noise with r's size, ε·(A/σ) times its noise-only width
+/// (r taken as of no particular direction against the method's weights: the
+/// share an error of norm ‖r‖ puts on any one direction of the dof).
+///
+/// It is a term for a shape that fits: where most pulses fail the shape
+/// test, the shape does not describe them, the fits that pass say little
+/// about the error of those that fail, and the mismatch swing
+/// ([`MismatchSwing`]) is the term; the floor is then not applied.
+#[derive(Debug, Default, Clone, Copy)]
+pub(crate) struct ModelFloor {
+    /// Running Σ(χ² − dof)·σ², V².
+    excess_v2: f64,
+    /// Running Σ dof·A², V².
+    energy_v2: f64,
+    /// Running share of the pulses that fail the shape test.
+    failing: f64,
+}
+
+impl ModelFloor {
+    /// Adds a pulse of amplitude `amplitude_v` whose fit left `chi2` over
+    /// `dof` (noise `sigma_v`); `failed`: it failed the shape test (it then
+    /// counts only towards the share that fails).
+    pub(crate) fn update(&mut self, chi2: f64, dof: f64, sigma_v: f64, amplitude_v: f64, failed: bool) {
+        self.failing += FLOOR_SMOOTHING * (f64::from(u8::from(failed)) - self.failing);
+        if failed || !(dof >= 4.0 && chi2.is_finite() && amplitude_v > 0.0 && sigma_v > 0.0) {
+            return;
+        }
+        self.excess_v2 += FLOOR_SMOOTHING * ((chi2 - dof) * sigma_v * sigma_v - self.excess_v2);
+        self.energy_v2 += FLOOR_SMOOTHING * (dof * amplitude_v * amplitude_v - self.energy_v2);
+    }
+
+    /// The shape's error per sample, as a fraction of the peak.
+    pub(crate) fn fraction(&self) -> f64 {
+        if self.energy_v2 > 0.0 { (self.excess_v2 / self.energy_v2).max(0.0).sqrt() } else { 0.0 }
+    }
+
+    /// The floor for a method whose noise-only width is `sigma` at peak SNR
+    /// `snr` (none where most pulses fail the shape test).
+    pub(crate) fn floor(&self, sigma: f64, snr: f64) -> f64 {
+        if self.failing < 0.5 { self.fraction() * snr.abs() * sigma } else { 0.0 }
+    }
+}
+
 /// Timing points closer than this (samples) belong to one pulse.
 const SAME_PULSE_SAMPLES: f64 = 0.25;
 
@@ -91,6 +150,8 @@ pub struct Timing {
     timed: Vec<(usize, Timed, f64)>,
     /// The mismatch gap's swing beyond noise.
     mismatch: MismatchSwing,
+    /// The shape's error on pulses it fits.
+    floor: ModelFloor,
     /// Scratch for the joint Cramér–Rao bounds of resolved pulses.
     joint: JointScratch,
     /// (peak index, amplitude) of the resolved pulses, and their joint bounds.
@@ -100,6 +161,80 @@ pub struct Timing {
     slope: Vec<f64>,
     /// See `slope`.
     acf: Vec<f64>,
+    /// The detector's unit-energy taps and peak tap (matched filter: the
+    /// return template; threshold detector: one tap), to answer the samples
+    /// with the neighbouring pulses taken off near a peak.
+    taps: (Vec<f64>, usize),
+    /// Pulses whose supports share samples: each is timed with the others'
+    /// fitted models taken off (see [`Neighbours`]).
+    neighbours: Neighbours,
+}
+
+/// Scratch for timing pulses that share samples.
+///
+/// A pulse's support (the lab set-up's returns have a 60 ns exponential tail)
+/// may hold the next pulse's rise, or lie on the previous pulse's tail. Timed
+/// alone, every method reads the neighbour's tail as part of its pulse: a
+/// sloped baseline under the crossing and the peak that biases each return by
+/// a fixed amount (many sigmas once frames are averaged), and a shape test
+/// that fails on the neighbour. So where supports overlap, the pulses are
+/// timed twice: first in time order, each with the earlier ones' models
+/// (fitted amplitude and position) taken off, which gives every pulse's
+/// model; then each with all the others' models taken off, samples and
+/// detector output alike. Pulses alone in their supports are timed on the
+/// samples as they are.
+#[derive(Debug, Default)]
+struct Neighbours {
+    /// The samples less the models of the pulses taken off.
+    x: Vec<f64>,
+    /// The detector output, refreshed near a peak with the same models off.
+    y: Vec<f64>,
+    /// Detections (their positions in the detection list) in time order.
+    order: Vec<usize>,
+    /// Each detection's model: (peak index, amplitude), in detection order.
+    models: Vec<(f64, f64)>,
+}
+
+/// Samples each side of a peak whose detector output is refreshed: the
+/// peak's local maximum is sought within two samples, and the interpolations
+/// read one more each side.
+const REFRESH: usize = 3;
+
+impl Neighbours {
+    /// Adds `sign` × the model (peak index, amplitude) to the samples.
+    fn add(&mut self, pulse: &Shape, (peak_index, amplitude_v): (f64, f64), sign: f64) {
+        let (lo, hi) = pulse.support();
+        let n = self.x.len();
+        let first = (peak_index + lo).ceil().max(0.0) as usize;
+        let last = ((peak_index + hi).floor().max(-1.0) + 1.0).min(n as f64) as usize;
+        for k in first..last.max(first) {
+            self.x[k] += sign * amplitude_v * pulse.value_and_slope(k as f64 - peak_index).0;
+        }
+    }
+
+    /// Refreshes the detector output near `p` from the samples as they now
+    /// are (`x` the original samples, `y` the original output, `taps` the
+    /// detector's unit-energy taps and peak tap); returns the output's local
+    /// maximum within two samples of `p`.
+    fn refresh(&mut self, x: &[f64], y: &[f64], (taps, peak_tap): (&[f64], usize), p: usize) -> usize {
+        let n = self.x.len();
+        let (a, b) = (p.saturating_sub(REFRESH), (p + REFRESH + 1).min(n));
+        for k in a..b {
+            // Output k is Σ taps[t]·(x[k − peak_tap + t] − mean): the models
+            // taken off change it by their share, x − self.x.
+            let mut d = 0.0;
+            for (t, &h) in taps.iter().enumerate() {
+                let Some(j) = (k + t).checked_sub(peak_tap) else { continue };
+                if j >= n {
+                    break;
+                }
+                d += h * (x[j] - self.x[j]);
+            }
+            self.y[k] = y[k] - d;
+        }
+        let (a, b) = (p.saturating_sub(REFRESH - 1), (p + REFRESH).min(n));
+        (a..b).fold(p, |best, k| if self.y[k] > self.y[best] { k } else { best })
+    }
 }
 
 /// Variance gain of coloured noise (normalised autocorrelation `rho`) on the
@@ -149,6 +284,9 @@ impl Timing {
             slope: Vec::new(),
             acf: Vec::new(),
             mismatch: MismatchSwing::default(),
+            floor: ModelFloor::default(),
+            taps: (Vec::new(), 0),
+            neighbours: Neighbours::default(),
         }
     }
 }
@@ -167,6 +305,12 @@ impl Stage for Timing {
             } else {
                 1.0
             };
+            self.taps = if self.matched {
+                let (taps, peak_tap) = shape.template();
+                (taps.iter().map(|v| v / norm).collect(), peak_tap)
+            } else {
+                (vec![1.0], 0)
+            };
             self.errors = None;
             self.pulse = Some((dt, shape, norm));
         }
@@ -176,6 +320,9 @@ impl Stage for Timing {
         let n = x.len();
         let (lo, hi) = pulse.support();
         let fwhm = pulse.fwhm();
+        // The shape's error as learned before this frame: a frame's pulses
+        // do not move each other's floor (each adds to it for later frames).
+        let known_floor = self.floor;
         // Each pulse: where the detector found it, how it was timed, how well the shape fitted.
         let timed = &mut self.timed;
         timed.clear();
@@ -187,11 +334,30 @@ impl Stage for Timing {
             joint_crlb_samples(pulse, n, &self.resolved, w.noise.raw_sigma_v, &mut self.joint, &mut self.joint_crlb);
             for (c, &joint) in w.buffers.components.iter().take(MAX_RETURNS).zip(&self.joint_crlb) {
                 let crlb = joint.max(crlb_samples(pulse, n, c.peak_index, c.amplitude_v, w.noise.raw_sigma_v));
+                // Fitted as if the noise were white: in coloured noise the
+                // variance is the sandwich σ²·ṡᵀRṡ / (A²(ṡᵀṡ)²), the white
+                // bound times the colour's gain on the normalised slope.
+                let gain = if w.noise.rho.is_empty() || !crlb.is_finite() {
+                    1.0
+                } else {
+                    slope_colour_gain(pulse, n, c.peak_index, &w.noise.rho, &mut self.slope, &mut self.acf)
+                };
+                // The shape's error beyond noise (see `ModelFloor`), learned
+                // from the pulses it fits (the misfit is the residual's RMS
+                // over the pulse's window, in noise sigmas).
+                let snr = c.amplitude_v / w.noise.raw_sigma_v;
+                let floor = known_floor.floor(crlb, snr);
+                // Only a fit the χ² test would pass teaches it (a gross
+                // misfit is the shape's mismatch, not its small error).
+                let len = ((c.peak_index + hi).ceil().min((n - 1) as f64) - (c.peak_index + lo).floor().max(0.0) + 1.0).max(0.0);
+                let fit = ShapeFit { chi2: c.misfit * c.misfit * len, samples: len as usize, peak_index: c.peak_index, at_edge: false };
+                let failed = fit.mismatched(MISMATCH_Z, rho_squared_sum(&w.noise.rho));
+                self.floor.update(fit.chi2, fit.dof(), w.noise.raw_sigma_v, c.amplitude_v, failed);
                 let t = Timed {
                     index: c.peak_index + pulse.fraction_offset(self.fraction),
                     peak_index: c.peak_index,
                     amplitude_v: c.amplitude_v,
-                    sigma_samples: crlb,
+                    sigma_samples: (crlb * gain.sqrt()).hypot(floor),
                     crlb_samples: crlb,
                     fallback: false,
                 };
@@ -200,46 +366,115 @@ impl Stage for Timing {
         } else if !w.buffers.detections.is_empty() {
             let (errors, fallback_errors) =
                 self.errors.get_or_insert_with(|| ErrorTable::get_with_fallback(self.method, pulse, self.fraction, self.matched));
-            for &p in w.buffers.detections.iter().take(MAX_RETURNS) {
-                let input = TimingInput {
-                    x,
-                    mean_v: w.noise.summary.mean_v,
-                    sigma_v: w.noise.raw_sigma_v,
-                    y: &w.buffers.detector_output,
-                    norm,
-                    pulse,
-                    peak: p,
-                    fraction: self.fraction,
-                    leading_edge_v: self.leading_edge_v,
-                };
-                let mut t = time_pulse(self.method, &input);
-                // The method's measured bias and width at the SNR it measured
-                // (a failed crossing falls back to the parabolic peak's table).
+            let dets = &w.buffers.detections[..w.buffers.detections.len().min(MAX_RETURNS)];
+            let y = &w.buffers.detector_output;
+            let (method, fraction, leading_edge_v) = (self.method, self.fraction, self.leading_edge_v);
+            let (mean_v, sigma_v) = (w.noise.summary.mean_v, w.noise.raw_sigma_v);
+            let base = TimingInput { x, mean_v, sigma_v, y, norm, pulse, peak: 0, fraction, leading_edge_v };
+            // The method, then its measured bias and width at the SNR it
+            // measured (a failed crossing falls back to the parabolic peak's table).
+            let time = |input: &TimingInput| {
+                let mut t = time_pulse(method, input);
                 let table = if t.fallback { &*fallback_errors } else { &*errors };
                 if let Some(table) = table {
-                    (t.index, t.sigma_samples) = table.correct(t.index, t.amplitude_v / w.noise.raw_sigma_v);
+                    (t.index, t.sigma_samples) = table.correct(t.index, t.amplitude_v / sigma_v);
+                }
+                t
+            };
+            let nb = &mut self.neighbours;
+            nb.order.clear();
+            nb.order.extend(0..dets.len());
+            nb.order.sort_by_key(|&i| dets[i]);
+            // Pulses share samples when their peaks are closer than the
+            // support is long. (A whitened detector output cannot be
+            // refreshed from the raw samples: there every pulse is timed as it is.)
+            let crowded = !w.report.stages.contains(&"whiten")
+                && nb.order.windows(2).any(|o| ((dets[o[1]] - dets[o[0]]) as f64) < hi - lo);
+            let taps = (&self.taps.0[..], self.taps.1);
+            let model_of = |t: &Timed| {
+                if t.amplitude_v > 0.0 && t.index.is_finite() {
+                    (t.index - pulse.fraction_offset(fraction), t.amplitude_v)
+                } else {
+                    (0.0, 0.0)
+                }
+            };
+            if crowded {
+                nb.x.clear();
+                nb.x.extend_from_slice(x);
+                nb.y.clear();
+                nb.y.extend_from_slice(y);
+                nb.models.clear();
+                nb.models.resize(dets.len(), (0.0, 0.0));
+                // Time order, the earlier pulses' models off: every pulse's model.
+                for k in 0..nb.order.len() {
+                    let i = nb.order[k];
+                    let peak = nb.refresh(x, y, taps, dets[i]);
+                    let model = model_of(&time(&TimingInput { x: &nb.x, y: &nb.y, peak, ..base }));
+                    nb.models[i] = model;
+                    nb.add(pulse, model, -1.0);
+                }
+            }
+            for (i, &p) in dets.iter().enumerate() {
+                // With neighbours: every other pulse's model off.
+                let (xs, ys, peak) = if crowded {
+                    let model = nb.models[i];
+                    nb.add(pulse, model, 1.0);
+                    let peak = nb.refresh(x, y, taps, p);
+                    (&nb.x[..], &nb.y[..], peak)
+                } else {
+                    (&x[..], &y[..], p)
+                };
+                let input = TimingInput { x: xs, y: ys, peak, ..base };
+                let mut t = time(&input);
+                // Two detector maxima on one pulse (a noisy double top) time
+                // the same timing point: it is one return, the stronger
+                // detection's (detections come strongest first).
+                if timed.iter().any(|o| (o.1.index - t.index).abs() < SAME_PULSE_SAMPLES) {
+                    if crowded {
+                        let model = nb.models[i];
+                        nb.add(pulse, model, -1.0);
+                    }
+                    continue;
+                }
+                // The shape's error beyond noise (see `ModelFloor`), at the
+                // method's noise-only width.
+                let snr = t.amplitude_v / sigma_v;
+                let floor = known_floor.floor(t.sigma_samples, snr);
+                // The widths are measured on white noise. Template-based
+                // estimators fit as if the noise were white; in coloured
+                // noise their variance is the sandwich σ²·ṡᵀRṡ / (A²(ṡᵀṡ)²):
+                // the white bound times the colour's gain on the normalised
+                // slope. A crossing's error compares the noise at the crossing
+                // with the peak height's, which colour correlates.
+                if !w.noise.rho.is_empty() && t.sigma_samples.is_finite() {
+                    let gain = if self.template_timed || t.fallback {
+                        slope_colour_gain(pulse, n, t.peak_index, &w.noise.rho, &mut self.slope, &mut self.acf)
+                    } else {
+                        crossing_colour_gain(method, &input, &t, &w.noise.rho)
+                    };
+                    t.sigma_samples *= gain.sqrt();
                 }
                 // A shape that does not fit the samples (χ² test) is flagged,
                 // and where it puts the timing point is uncertain by the gap
                 // between its fraction point and the samples' own crossing.
-                let fit = ShapeFit::measure(x, w.noise.summary.mean_v, w.noise.raw_sigma_v, pulse, t.index - pulse.fraction_offset(self.fraction));
+                let fit = ShapeFit::measure(xs, mean_v, sigma_v, pulse, t.index - pulse.fraction_offset(fraction));
                 let gain = rho_squared_sum(&w.noise.rho);
                 let mismatched = fit.mismatched(MISMATCH_Z, gain);
                 if mismatched {
                     // What of the gap's swing noise would give on a fitting
                     // shape at this SNR is already in the method's width.
-                    let snr = t.amplitude_v / w.noise.raw_sigma_v;
                     let noise = fallback_errors.as_ref().map_or(0.0, |e| e.gap_noise(snr));
                     let swing = self.mismatch.update(mismatch_gap(&input, &fit), noise);
-                    t.sigma_samples = t.sigma_samples.hypot(swing);
+                    t.sigma_samples = t.sigma_samples.hypot(floor).hypot(swing);
+                } else {
+                    t.sigma_samples = t.sigma_samples.hypot(floor);
+                }
+                self.floor.update(fit.chi2, fit.dof(), sigma_v, t.amplitude_v, mismatched);
+                if crowded {
+                    let model = nb.models[i];
+                    nb.add(pulse, model, -1.0);
                 }
                 let misfit = if mismatched { f64::INFINITY } else { 0.0 };
-                // Two detector maxima on one pulse (a noisy double top) time
-                // the same timing point: it is one return, the stronger
-                // detection's (detections come strongest first).
-                if timed.iter().any(|o| (o.1.index - t.index).abs() < SAME_PULSE_SAMPLES) {
-                    continue;
-                }
                 timed.push((p, t, misfit));
             }
         }
@@ -257,16 +492,7 @@ impl Stage for Timing {
             };
             let t_stop_s = w.frame.sample_time_s(one.index) - walk_s;
             let tof_s = t_stop_s - w.reference.t_ref_s - self.delay_s;
-            // Template-based estimators fit as if the noise were white; in
-            // coloured noise their variance is the sandwich
-            // σ²·ṡᵀRṡ / (A²(ṡᵀṡ)²): the white bound times the colour's gain on
-            // the normalised slope. (Crossing methods read one sample's noise,
-            // which colour does not change.)
-            let sigma_stop = if self.template_timed && !w.noise.rho.is_empty() && one.sigma_samples.is_finite() {
-                one.sigma_samples * slope_colour_gain(pulse, n, one.peak_index, &w.noise.rho, &mut self.slope, &mut self.acf).sqrt()
-            } else {
-                one.sigma_samples
-            };
+            let sigma_stop = one.sigma_samples;
             let sigma_t =
                 ((sigma_stop * dt).powi(2) + w.reference.t_ref_sigma_s.powi(2) + self.delay_sigma_s.powi(2)).sqrt();
             let amplitude_v = one.amplitude_v;

@@ -102,13 +102,12 @@ fn simulated_lab_ranges_match_the_truth_within_the_reported_uncertainty() {
     // within 3σ (Gaussian: 95.4 % and 99.7 %); with 1 500 returns the
     // binomial standard error near 0.95 is 0.006, so an honest sigma passes
     // by > 5 standard errors and a sigma 70 % of the true scatter (≈ 0.85 at
-    // 2σ) fails. The crossing methods' χ² test of the shape spans its whole
-    // support (63 ns of the single pole's tail), which holds the next
-    // target's pulse: every return but the last is flagged `shape_mismatch`,
-    // and the sigma holds the swing of the gap between the model's timing
-    // point and the samples' own crossing (without it, measured when the
-    // scene's shape was a bigaussian that did not fit the simulated pulse:
-    // 0.83 at 2σ, target 0 at 40 dB 0.64).
+    // 2σ) fails. Each return's support (63 ns of the single pole's tail)
+    // holds the next target's rise and lies on the previous one's tail: every
+    // return is timed, and its shape tested, with its neighbours' fitted
+    // pulses taken off (timed alone, each read the neighbour's tail as its own:
+    // every return but the last failed the shape test, and averaged frames
+    // were off by many sigmas).
     let all = [0, 1, 2, 3, 4];
     let ((c1, n), (c2, _), (c3, _)) = (coverage_of(&all, 1.0), coverage_of(&all, 2.0), coverage_of(&all, 3.0));
     eprintln!("coverage of the reported sigma over {n} returns: 1σ {c1:.3}, 2σ {c2:.3}, 3σ {c3:.3}");
@@ -123,11 +122,14 @@ fn simulated_lab_ranges_match_the_truth_within_the_reported_uncertainty() {
         .filter(|x| x["amplitude_v"].as_f64().unwrap() > 1.0)
         .collect();
     assert_eq!(strong.len(), frames, "one strong return per frame");
+    // The scene's shape is the simulated pulse: the χ² test (3 standard
+    // deviations, 1.3e-3 per pulse) flags the strong return in 0.4 of 300
+    // frames on average; 4 or more has probability below 1e-3.
     let flagged = strong
         .iter()
         .filter(|x| x["flags"].as_array().unwrap().iter().any(|f| f == "shape_mismatch"))
         .count();
-    assert_eq!(flagged, frames, "strong returns flagged shape_mismatch");
+    assert!(flagged <= 3, "{flagged} of {frames} strong returns flagged shape_mismatch");
 }
 
 #[test]

@@ -171,7 +171,7 @@ impl Stage for Start {
             // Its typical value is a constant the calibration absorbs; the
             // swing noise gives on a fitting shape is in the method's width.
             let noise = self.fallback_errors.as_ref().map_or(0.0, |e| e.gap_noise(timed.amplitude_v / sigma));
-            let swing = self.mismatch.update(mismatch_gap(&input, &fit), noise);
+            let swing = self.mismatch.update(mismatch_gap(&input, &fit), noise, self.floor.fits_mostly());
             timed.sigma_samples = timed.sigma_samples.hypot(floor).hypot(swing);
         } else {
             timed.sigma_samples = timed.sigma_samples.hypot(floor);

@@ -42,14 +42,25 @@ impl MismatchSwing {
     /// Adds a mismatched pulse's gap (none where the crossing failed), whose
     /// noise-only RMS at this pulse's SNR is `noise` samples; returns the
     /// mismatch's one-sigma, samples.
-    pub(crate) fn update(&mut self, gap: Option<f64>, noise: f64) -> f64 {
-        if let Some(gap) = gap.filter(|g| g.is_finite()) {
+    ///
+    /// `fits_mostly`: the shape fits most of the sensor's pulses (see
+    /// [`ModelFloor::fits_mostly`]). Then a pulse that fails is an odd one
+    /// (another pulse shape in a few shots): the calibration was made on
+    /// pulses whose gap is nil, and its own gap, beyond what noise gives, is
+    /// how far its timing point may be off. Otherwise the shape misses every
+    /// pulse alike and the gap's swing about its typical value is the term.
+    pub(crate) fn update(&mut self, gap: Option<f64>, noise: f64, fits_mostly: bool) -> f64 {
+        let gap = gap.filter(|g| g.is_finite());
+        if let Some(gap) = gap {
             let (typical, excess2) = self.state.get_or_insert((gap, 0.0));
             let d = gap - *typical;
             *excess2 += GAP_SMOOTHING * (d * d - noise * noise - *excess2);
             *typical += GAP_SMOOTHING * d;
         }
-        self.state.map_or(0.0, |(_, excess2)| excess2.max(0.0).sqrt())
+        match gap {
+            Some(gap) if fits_mostly => (gap * gap - noise * noise).max(0.0).sqrt(),
+            _ => self.state.map_or(0.0, |(_, excess2)| excess2.max(0.0).sqrt()),
+        }
     }
 }
 
@@ -105,10 +116,15 @@ impl ModelFloor {
         if self.energy_v2 > 0.0 { (self.excess_v2 / self.energy_v2).max(0.0).sqrt() } else { 0.0 }
     }
 
+    /// Most pulses lately passed the shape test.
+    pub(crate) fn fits_mostly(&self) -> bool {
+        self.failing < 0.5
+    }
+
     /// The floor for a method whose noise-only width is `sigma` at peak SNR
     /// `snr` (none where most pulses fail the shape test).
     pub(crate) fn floor(&self, sigma: f64, snr: f64) -> f64 {
-        if self.failing < 0.5 { self.fraction() * snr.abs() * sigma } else { 0.0 }
+        if self.fits_mostly() { self.fraction() * snr.abs() * sigma } else { 0.0 }
     }
 }
 
@@ -464,7 +480,7 @@ impl Stage for Timing {
                     // What of the gap's swing noise would give on a fitting
                     // shape at this SNR is already in the method's width.
                     let noise = fallback_errors.as_ref().map_or(0.0, |e| e.gap_noise(snr));
-                    let swing = self.mismatch.update(mismatch_gap(&input, &fit), noise);
+                    let swing = self.mismatch.update(mismatch_gap(&input, &fit), noise, known_floor.fits_mostly());
                     t.sigma_samples = t.sigma_samples.hypot(floor).hypot(swing);
                 } else {
                     t.sigma_samples = t.sigma_samples.hypot(floor);

@@ -18,7 +18,7 @@
 //! (the colour is a property of the receiver, slow to change) so that a single
 //! short gate does not make the threshold jitter.
 
-use crate::math::autocov::lag_product_sum;
+use crate::math::autocov::lag_product_sums;
 
 /// Pooled autocovariance of noise-gate samples, lags 0..=max_lag.
 #[derive(Debug, Clone)]
@@ -37,6 +37,9 @@ pub struct NoiseColour {
     added: f64,
     /// Changes whenever the sums do (callers cache what they derive).
     version: u64,
+    /// Scratch: one segment's lag sums, and its samples less the mean.
+    partial: Vec<f64>,
+    centred: Vec<f64>,
 }
 
 /// Pooled samples beyond which old sums are halved, so that the estimate
@@ -57,6 +60,8 @@ impl NoiseColour {
             frames: 0,
             added: 0.0,
             version: 0,
+            partial: vec![0.0; max_lag + 1],
+            centred: Vec::new(),
         }
     }
 
@@ -98,10 +103,11 @@ impl NoiseColour {
         let total = mean_samples.max(1.0);
         for seg in segments {
             let n = seg.len();
+            // Per-frame partial sums first: the pooled sum then adds values
+            // of similar size, frame after frame.
+            lag_product_sums(seg, mean, &mut self.partial, &mut self.centred);
             for k in 0..lags.min(n) {
-                // Per-frame partial sum first: the pooled sum then adds values
-                // of similar size, frame after frame.
-                self.sums[k] += lag_product_sum(seg, k, mean);
+                self.sums[k] += self.partial[k];
                 self.counts[k] += (n - k) as f64;
                 self.centring[k] += (n - k) as f64 / total;
             }

@@ -135,6 +135,11 @@ impl PulseValues {
 impl Resolver {
     /// Finds up to `max` pulses whose detector output exceeds `threshold`
     /// (output units) at peak positions in `range`, into `comps` (cleared first).
+    ///
+    /// `plan` must hold its run on `x` about `mean_v` (the detector's own
+    /// output, which the first pass reads); after each subtracted pulse only
+    /// the outputs that read its samples are recomputed, where the plan's
+    /// correlator can (bit for bit a full run; else the filter runs again).
     #[allow(clippy::too_many_arguments)]
     pub fn resolve(
         &mut self,
@@ -158,8 +163,14 @@ impl Resolver {
             let b = ((peak + hi).ceil().max(0.0) as usize + 1).min(n);
             a..b.max(a)
         };
+        debug_assert_eq!(plan.output().len(), n, "the plan ran on x");
+        // Samples of the residual changed since the plan's output (None: none).
+        let mut changed: Option<Range<usize>> = None;
         while comps.len() < max {
-            let y = plan.run(&self.residual, 0.0);
+            let y = match changed.take() {
+                Some(c) if !plan.rerun_part(&self.residual, 0.0, c.clone()) => plan.run(&self.residual, 0.0),
+                _ => plan.output(),
+            };
             let end = range.end.min(y.len());
             let Some(p) = (range.start.min(end)..end).max_by(|&a, &b| y[a].total_cmp(&y[b])) else {
                 break;
@@ -179,6 +190,7 @@ impl Resolver {
                 c.peak_index = start;
             }
             self.subtract(shape, &c, &window, -1.0);
+            changed = Some(window(c.peak_index));
             comps.push(c);
         }
         if comps.is_empty() {

@@ -144,6 +144,10 @@ pub struct TablePulse {
     values: Vec<f64>,
     /// d value / d t at the grid points, per sample.
     slopes: Vec<f64>,
+    /// 1/step where the step is a power of two (as a table learned at 8 or
+    /// measured at 4 points per sample is): multiplying by it is then the
+    /// very division, and costs a fraction of one.
+    inv_step: Option<f64>,
 }
 
 impl TablePulse {
@@ -157,7 +161,9 @@ impl TablePulse {
                 (values[b] - values[a]) / ((b - a).max(1) as f64 * step)
             })
             .collect();
-        TablePulse { step, first, values, slopes }
+        let inv = 1.0 / step;
+        let power_of_two = step.is_normal() && inv.is_normal() && step.to_bits() & ((1u64 << 52) - 1) == 0;
+        TablePulse { step, first, values, slopes, inv_step: power_of_two.then_some(inv) }
     }
 
     /// The values on the grid.
@@ -197,7 +203,24 @@ impl TablePulse {
 impl PulseShape for TablePulse {
     #[inline]
     fn value_and_slope(&self, t: f64) -> (f64, f64) {
-        let u = (t - self.first) / self.step;
+        self.eval(t)
+    }
+
+    fn fill_grid(&self, t0: f64, out: &mut [(f64, f64)]) {
+        for (i, o) in out.iter_mut().enumerate() {
+            *o = self.eval(t0 + i as f64);
+        }
+    }
+}
+
+impl TablePulse {
+    /// The spline's value and slope at `t` (inlined into the grid loop).
+    #[inline(always)]
+    fn eval(&self, t: f64) -> (f64, f64) {
+        let u = match self.inv_step {
+            Some(inv) => (t - self.first) * inv,
+            None => (t - self.first) / self.step,
+        };
         let n = self.values.len();
         if !(u >= 0.0) || u >= (n - 1) as f64 {
             return (0.0, 0.0);
@@ -209,7 +232,11 @@ impl PulseShape for TablePulse {
         let (s2, s3) = (s * s, s * s * s);
         let v = (2.0 * s3 - 3.0 * s2 + 1.0) * p0 + (s3 - 2.0 * s2 + s) * m0 + (-2.0 * s3 + 3.0 * s2) * p1 + (s3 - s2) * m1;
         let dv = (6.0 * s2 - 6.0 * s) * p0 + (3.0 * s2 - 4.0 * s + 1.0) * m0 + (-6.0 * s2 + 6.0 * s) * p1 + (3.0 * s2 - 2.0 * s) * m1;
-        (v, dv / self.step)
+        let slope = match self.inv_step {
+            Some(inv) => dv * inv,
+            None => dv / self.step,
+        };
+        (v, slope)
     }
 }
 
@@ -317,6 +344,37 @@ mod tests {
                     assert!((v - ve).abs() <= tol * ve.abs() + 1e-300, "{shape:?} t {t}: {v:e} vs {ve:e}");
                     assert!((dv - dve).abs() <= tol * dve.abs() + 1e-300, "{shape:?} t {t}: {dv:e} vs {dve:e}");
                 }
+            }
+        }
+    }
+
+    #[test]
+    fn a_power_of_two_step_multiplies_to_the_division_bit_for_bit() {
+        let values: Vec<f64> = (0..40).map(|i| (-(i as f64 - 12.0).powi(2) / 30.0).exp()).collect();
+        for step in [0.25, 0.125, 2.0, 0.3] {
+            let t = TablePulse::new(values.clone(), step, -3.0);
+            // The spline as written with divisions.
+            let divided = |x: f64| {
+                let u = (x - t.first) / t.step;
+                if !(u >= 0.0) || u >= (t.values.len() - 1) as f64 {
+                    return (0.0, 0.0);
+                }
+                let i = u as usize;
+                let s = u - i as f64;
+                let (p0, p1) = (t.values[i], t.values[i + 1]);
+                let (m0, m1) = (t.slopes[i] * t.step, t.slopes[i + 1] * t.step);
+                let (s2, s3) = (s * s, s * s * s);
+                let v = (2.0 * s3 - 3.0 * s2 + 1.0) * p0 + (s3 - 2.0 * s2 + s) * m0 + (-2.0 * s3 + 3.0 * s2) * p1 + (s3 - s2) * m1;
+                let dv = (6.0 * s2 - 6.0 * s) * p0 + (3.0 * s2 - 4.0 * s + 1.0) * m0 + (-6.0 * s2 + 6.0 * s) * p1 + (3.0 * s2 - 2.0 * s) * m1;
+                (v, dv / t.step)
+            };
+            let mut grid = vec![(0.0, 0.0); 50];
+            t.fill_grid(-4.37, &mut grid);
+            for (i, g) in grid.iter().enumerate() {
+                let x = -4.37 + i as f64;
+                let (a, b) = (t.value_and_slope(x), divided(x));
+                assert_eq!((a.0.to_bits(), a.1.to_bits()), (b.0.to_bits(), b.1.to_bits()), "step {step} t {x}");
+                assert_eq!(*g, a);
             }
         }
     }

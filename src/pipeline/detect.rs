@@ -466,7 +466,10 @@ impl FalseAlarmCounter {
         let trials = (self.cells / d).round() as u64;
         let successes = ((self.observed as f64 / d).round() as u64).min(trials);
         let (lo, hi) = clopper_pearson(successes, trials, 0.95);
-        let (lo_strict, _) = clopper_pearson(successes, trials, EXCESS_CONFIDENCE);
+        // The strict interval's lower end lies below the observed rate: where
+        // that rate is at or below the design it cannot flag, and is not solved.
+        let below = successes as f64 <= p_cell * trials as f64;
+        let lo_strict = if below { 0.0 } else { clopper_pearson(successes, trials, EXCESS_CONFIDENCE).0 };
         FalseAlarmStats {
             expected_per_frame: gate_cells * p_cell,
             observed: self.observed,

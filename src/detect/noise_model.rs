@@ -354,7 +354,7 @@ impl NoiseFitter {
         self.scratch.clear();
         self.skipped_nonfinite = 0;
         for p in parts {
-            if p.iter().all(|x| x.is_finite()) {
+            if sum::all_finite(p) {
                 self.scratch.extend_from_slice(p);
             } else {
                 let before = self.scratch.len();

@@ -95,6 +95,17 @@ impl ShapeFit {
         let fit = |j: i64, values: Option<&mut [f64]>| ShapeFit::at(x, mean_v, sigma_v, pulse, near + 0.25 * j as f64, j, m_min, values);
         let (j, mut fit) = if len <= SHAPE_TABLE {
             let values = &mut table[..len];
+            // Slot i holds the pulse at (i + m_min)/4 − near: four grids of
+            // whole samples, each filled at once (a Gaussian half by
+            // recurrence rather than an exponential per slot).
+            let mut grid = [(0.0, 0.0); SHAPE_TABLE / 4 + 1];
+            for r in 0..4usize.min(len) {
+                let g = &mut grid[..(len - r).div_ceil(4)];
+                pulse.fill_grid((r as i64 + m_min) as f64 * 0.25 - near, g);
+                for (q, &(v, _)) in g.iter().enumerate() {
+                    values[4 * q + r] = v;
+                }
+            }
             let mut best: Option<(i64, ShapeFit)> = None;
             for j in -8..=8 {
                 let f = fit(j, Some(&mut *values));

@@ -72,6 +72,12 @@ pub fn central_power_sums(x: &[f64], shift: f64, mean: f64) -> (f64, f64, f64) {
     (fold(a2), fold(a3), fold(a4))
 }
 
+/// Whether every value is finite (no NaN, no ±∞), checked a block at a
+/// time (an early exit per value does not vectorise).
+pub fn all_finite(x: &[f64]) -> bool {
+    x.chunks(64).all(|c| c.iter().fold(true, |ok, v| ok & v.is_finite()))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -96,6 +102,12 @@ mod tests {
         assert!((m4 - d(4)).abs() <= 1e-12 * d(4));
         assert!((sum_sq_dev(&x, mean) - m2).abs() <= 1e-12 * m2);
         assert_eq!(sum(&[]), -0.0);
+        assert!(all_finite(&x) && all_finite(&[]));
+        let mut y = x.clone();
+        y[700] = f64::NAN;
+        assert!(!all_finite(&y));
+        y[700] = f64::NEG_INFINITY;
+        assert!(!all_finite(&y));
         assert_eq!(sum(&[2.5]), 2.5);
     }
 }

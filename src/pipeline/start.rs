@@ -74,7 +74,7 @@ impl Stage for Start {
         w.frame.channels[s].volts_into(&mut self.volts);
         let x = &mut self.volts;
         // Keep the reference finite whatever the samples hold.
-        if !x.iter().all(|v| v.is_finite()) {
+        if !sum::all_finite(x) {
             let (sum, n) = x.iter().filter(|v| v.is_finite()).fold((0.0, 0usize), |(s, n), v| (s + v, n + 1));
             let finite_mean = if n > 0 { sum / n as f64 } else { 0.0 };
             x.iter_mut().filter(|v| !v.is_finite()).for_each(|v| *v = finite_mean);
@@ -84,7 +84,7 @@ impl Stage for Start {
         // measured on the samples well away from it (the median and MAD of
         // the whole channel when too few are left).
         let n = x.len();
-        let peak = (0..n).max_by(|&a, &b| x[a].total_cmp(&x[b])).unwrap_or(0);
+        let peak = crate::math::select::last_max_index(x).unwrap_or(0);
         if self.plan.as_ref().is_none_or(|p| p.0 != dt || p.2.len() > n + 1) {
             let pulse = self.pulse_cfg.shape(dt);
             let plan = DetectorPlan::matched_filter(&pulse, n);

@@ -23,7 +23,7 @@ use super::special::{phi, q_inv};
 /// A floating-point Euclid over the differences from the minimum: linear in
 /// `x.len()`, nothing allocated.
 pub fn grid_step(x: &[f64], min_step: f64) -> Option<f64> {
-    let (lo, hi) = x.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
+    let (lo, hi) = super::select::min_max(x);
     if !(hi > lo) || !hi.is_finite() || !lo.is_finite() {
         return None;
     }
@@ -152,7 +152,7 @@ pub fn quantised_sigma(x: &[f64], step: f64, counts: &mut Vec<u32>) -> Option<f6
     if x.len() < 2 || !(step > 0.0) {
         return None;
     }
-    let (lo, hi) = x.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
+    let (lo, hi) = super::select::min_max(x);
     let levels = round((hi - lo) / step) + 1.0;
     if !(levels.is_finite() && levels <= MAX_LEVELS as f64) {
         return None;
@@ -167,7 +167,8 @@ pub fn quantised_sigma(x: &[f64], step: f64, counts: &mut Vec<u32>) -> Option<f6
     // (A signed conversion: the unsigned one's saturation costs branches.)
     let top = levels as i64 - 1;
     for &v in x {
-        let k = (round((v - lo) * inv_step).max(0.0) as i64).min(top);
+        // v ≥ lo: the quotient is +0 or more, where `round` is this truncation.
+        let k = (((v - lo) * inv_step + 0.499_999_999_999_999_94) as i64).min(top);
         counts[k as usize] += 1;
     }
     let n = x.len() as f64;

@@ -223,11 +223,21 @@ pub fn output_gain(taps: &[f64], rho: &[f64]) -> OutputColour {
 /// [`output_gain`] with the taps' autocorrelation written to `acf` (scratch
 /// kept by the caller, so a per-frame call does not allocate).
 pub fn output_gain_with(taps: &[f64], rho: &[f64], acf: &mut Vec<f64>) -> OutputColour {
-    let len = taps.len() as isize;
-    // The taps' autocorrelation A_h(j), once.
+    taps_acf(taps, acf);
+    output_gain_from_acf(taps, rho, acf)
+}
+
+/// The taps' autocorrelation A_h(j), j = 0..taps.len(), into `acf` (cleared
+/// first): what [`output_gain_from_acf`] reads, kept by a caller whose taps
+/// do not change from frame to frame.
+pub fn taps_acf(taps: &[f64], acf: &mut Vec<f64>) {
     acf.clear();
     acf.extend((0..taps.len()).map(|j| taps[..taps.len() - j].iter().zip(&taps[j..]).map(|(x, y)| x * y).sum::<f64>()));
-    let acf = &*acf;
+}
+
+/// [`output_gain`] from the taps' autocorrelation `acf` ([`taps_acf`] of `taps`).
+pub fn output_gain_from_acf(taps: &[f64], rho: &[f64], acf: &[f64]) -> OutputColour {
+    let len = taps.len() as isize;
     let a = |j: isize| -> f64 { acf.get(j.unsigned_abs()).copied().unwrap_or(0.0) };
     let kmax = (rho.len() as isize - 1).min(len);
     let r = |m: isize| -> f64 {

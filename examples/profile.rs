@@ -4,7 +4,10 @@
 //!
 //! ```text
 //! cargo run --release --example profile -- SCENE METHOD [FRAMES] [PASSES]
-//!   SCENE:  ref | ref-learned | default | lab
+//!   SCENE:  ref | ref-learned | default | lab  (or `peer`: the numpy/scipy
+//!           peer comparison of `tofwave bench` alone, markdown; or `machine`:
+//!           this core's f64 FMA rate and the memory bandwidth yardstick; or
+//!           `limits`: the physical-limit table of `tofwave bench` alone)
 //!   METHOD: ml | peak_parabolic | constant_fraction | scene
 //! ```
 //!
@@ -23,6 +26,27 @@ use tofwave::scene::{Scene, TimingMethod};
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let which = args.first().map_or("ref", String::as_str);
+    if which == "machine" {
+        machine();
+        return;
+    }
+    if which == "limits" {
+        // The physical-limit table of `tofwave bench` alone (reference frames, ML).
+        let scene = reference_scene();
+        let (frames, _) = reference_frames(&scene, 20.0, 99, 2000);
+        println!("{}", tofwave::bench::measure_limits(&scene, &frames, 400).markdown());
+        return;
+    }
+    if which == "peer" {
+        // The numpy/scipy peer on the reference frames, as `tofwave bench` runs it.
+        let cfg = tofwave::bench::BenchConfig::default_run();
+        let root = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+        match tofwave::bench::run_peer(&reference_scene(), &cfg, &root, &root) {
+            tofwave::bench::PeerOutcome::Ran(c) => println!("{}", c.markdown()),
+            tofwave::bench::PeerOutcome::Failed(why) => println!("peer did not run: {why}"),
+        }
+        return;
+    }
     let method = args.get(1).map_or("scene", String::as_str);
     let count: usize = args.get(2).map_or(2000, |s| s.parse().expect("FRAMES"));
     let passes: usize = args.get(3).map_or(3, |s| s.parse().expect("PASSES"));
@@ -71,6 +95,12 @@ fn main() {
         returns = r;
     }
     println!("{which} {method}: {:.1} us/frame over {} frames ({returns} returns)", best / frames.len() as f64 * 1e6, frames.len());
+    if std::env::var_os("PROFILE_REPORT").is_some() {
+        let mut p = Pipeline::new(&scene, "bench");
+        let mut out = Vec::new();
+        p.push(frames[0].clone(), &mut out).expect("valid frames");
+        println!("{}", tofwave::pipeline::report_json(&out[0]));
+    }
     if std::env::var_os("PROFILE_STAGES").is_some() && frames.len() >= 400 {
         let cut = tofwave::pipeline::threaded::run(&scene, "bench", 2, frames.iter().take(400).cloned(), |_| {});
         for (name, s) in &cut.stage_s {
@@ -114,4 +144,70 @@ fn thread_cpu_s() -> f64 {
     let rc = unsafe { clock_gettime(CLOCK_THREAD_CPUTIME_ID, &mut t) };
     assert_eq!(rc, 0, "clock_gettime");
     t.tv_sec as f64 + t.tv_nsec as f64 * 1e-9
+}
+
+/// The machine's yardsticks for the physical-limit table: f64 fused
+/// multiply-adds per second on one core (independent chains, the widest
+/// vectors the CPU has) and the bench's copy / read bandwidth.
+fn machine() {
+    let fma = fma_rate();
+    println!("f64 FMA, one core: {:.2e} FMA/s ({:.1} GFLOP/s)", fma, 2.0 * fma / 1e9);
+    let bw = tofwave::bench::measure_bandwidth(2500, 4096);
+    println!(
+        "copy {:.1} GB/s (read + write), i16 accumulate {:.1} GB/s read (stream {} MB, wall time)",
+        bw.copy_bytes_per_s / 1e9,
+        bw.average_bytes_per_s / 1e9,
+        bw.stream_bytes / 1_000_000
+    );
+}
+
+/// Best of five CPU-timed runs of 64 independent FMA chains.
+fn fma_rate() -> f64 {
+    const ITER: usize = 20_000_000;
+    let mut best = 0.0f64;
+    for _ in 0..5 {
+        let t0 = thread_cpu_s();
+        std::hint::black_box(fma_chains(ITER, std::hint::black_box(1.000_000_1)));
+        let s = thread_cpu_s() - t0;
+        best = best.max((ITER * 64) as f64 / s);
+    }
+    best
+}
+
+fn fma_chains(iter: usize, m: f64) -> f64 {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx512f") && std::arch::is_x86_feature_detected!("fma") {
+            // SAFETY: AVX-512F and FMA checked just above.
+            return unsafe { fma_chains_avx512(iter, m) };
+        }
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+            // SAFETY: AVX2 and FMA checked just above.
+            return unsafe { fma_chains_avx2(iter, m) };
+        }
+    }
+    fma_chains_body(iter, m)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx2,fma")]
+fn fma_chains_avx512(iter: usize, m: f64) -> f64 {
+    fma_chains_body(iter, m)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn fma_chains_avx2(iter: usize, m: f64) -> f64 {
+    fma_chains_body(iter, m)
+}
+
+#[inline(always)]
+fn fma_chains_body(iter: usize, m: f64) -> f64 {
+    let mut acc = [0.5f64; 64];
+    for _ in 0..iter {
+        for a in acc.iter_mut() {
+            *a = a.mul_add(m, 1e-9);
+        }
+    }
+    acc.iter().sum()
 }

@@ -731,12 +731,20 @@ mod tests {
     fn i16_decode_is_the_scalar_formula_bit_for_bit() {
         let codes: Vec<i16> = (0..1037).map(|i| ((i * 7919) % 65536) as u16 as i16).collect();
         for (g, o) in [(1.0 / 4096.0, 0.0), (-3.1e-4, 0.0371), (0.7, -12.5)] {
-            let mut out = vec![42.0];
-            decode_i16(&codes, g, o, &mut out);
-            assert_eq!(out.len(), 1 + codes.len());
-            assert_eq!(out[0], 42.0);
-            for (v, &c) in out[1..].iter().zip(&codes) {
-                assert_eq!(v.to_bits(), (c as f64 * g + o).to_bits());
+            let mut paths: Vec<fn(&[i16], f64, f64, &mut Vec<f64>)> = vec![decode_i16, decode_i16_body];
+            #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("avx2") {
+                // SAFETY: AVX2 checked just above.
+                paths.push(|c, g, o, out| unsafe { decode_i16_avx2(c, g, o, out) });
+            }
+            for decode in paths {
+                let mut out = vec![42.0];
+                decode(&codes, g, o, &mut out);
+                assert_eq!(out.len(), 1 + codes.len());
+                assert_eq!(out[0], 42.0);
+                for (v, &c) in out[1..].iter().zip(&codes) {
+                    assert_eq!(v.to_bits(), (c as f64 * g + o).to_bits());
+                }
             }
         }
     }

@@ -374,13 +374,18 @@ impl Correlator {
 /// caller whose input changed over a few samples recompute only the outputs
 /// that read them. Requires what `correlate_valid` does and `part.end <= out.len()`.
 pub(crate) fn correlate_valid_part(taps: &[f64], x: &[f64], out: &mut [f64], part: std::ops::Range<usize>) {
+    part_on(direct_path(), taps, x, out, part);
+}
+
+/// [`correlate_valid_part`] on the given path (which the CPU must have).
+fn part_on(path: DirectPath, taps: &[f64], x: &[f64], out: &mut [f64], part: std::ops::Range<usize>) {
     assert!(!taps.is_empty() && out.len() + taps.len() - 1 <= x.len() && part.end <= out.len());
     let chains_end = out.len() - out.len() % 8;
     let chains = part.start.min(chains_end)..part.end.min(chains_end);
     let l = taps.len();
     let xs = &x[chains.start..chains.end + l - 1];
     let os = &mut out[chains.clone()];
-    match direct_path() {
+    match path {
         // SAFETY: direct_path() saw AVX-512F, AVX2 and FMA on this CPU.
         #[cfg(target_arch = "x86_64")]
         DirectPath::Avx512 => unsafe { chains_avx512(taps, xs, os) },
@@ -389,7 +394,7 @@ pub(crate) fn correlate_valid_part(taps: &[f64], x: &[f64], out: &mut [f64], par
         DirectPath::Avx2 => unsafe { chains_avx2(taps, xs, os) },
         _ => chains_body::<16, false>(taps, xs, os),
     }
-    let fma = direct_path() != DirectPath::Portable;
+    let fma = path != DirectPath::Portable;
     for k in part.start.max(chains_end)..part.end {
         out[k] = match fma {
             // SAFETY: direct_path() saw FMA on this CPU.
@@ -633,6 +638,35 @@ mod tests {
                     let same = out.iter().zip(&full).all(|(a, b)| a.to_bits() == b.to_bits());
                     assert!(same, "L={l} n={n} change {s}..{e}");
                 }
+            }
+        }
+        // Every path this CPU has, against its own full run.
+        let mut paths: Vec<(DirectPath, fn(&[f64], &[f64], &mut [f64]))> = vec![(DirectPath::Portable, |t, x, o| direct_body::<16, false>(t, x, o))];
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+                // SAFETY: AVX2 and FMA checked just above.
+                paths.push((DirectPath::Avx2, |t, x, o| unsafe { direct_avx2(t, x, o) }));
+            }
+            if std::arch::is_x86_feature_detected!("avx512f") {
+                // SAFETY: AVX-512F (and so AVX2, FMA) checked just above.
+                paths.push((DirectPath::Avx512, |t, x, o| unsafe { direct_avx512(t, x, o) }));
+            }
+        }
+        for (path, full) in paths {
+            for (l, n) in [(1usize, 9usize), (7, 100), (64, 2500), (70, 333)] {
+                let taps: Vec<f64> = (0..l).map(|_| rng.random_range(-1.0..1.0)).collect();
+                let x: Vec<f64> = (0..n).map(|_| rng.random_range(-1.0..1.0)).collect();
+                let mut want = vec![0.0; n - l + 1];
+                full(&taps, &x, &mut want);
+                let mut got = vec![f64::NAN; want.len()];
+                for p in [0..want.len().min(3), 5.min(want.len())..want.len()] {
+                    part_on(path, &taps, &x, &mut got, p);
+                }
+                if want.len() > 3 {
+                    part_on(path, &taps, &x, &mut got, 3..5.min(want.len()));
+                }
+                assert!(got.iter().zip(&want).all(|(a, b)| a.to_bits() == b.to_bits()), "{path:?} L={l} n={n}");
             }
         }
         let mut fft = Correlator::with_method(&[1.0, 2.0], 16, CorrelationMethod::Fft);

@@ -250,6 +250,20 @@ mod tests {
                 for (k, v) in out.iter().enumerate() {
                     assert_eq!(v.to_bits(), lag_product_sum(&x, k, centre).to_bits(), "n {n} lag {k} of {lags}");
                 }
+                // Every lane width, whichever path this CPU takes.
+                let used = lags.min(n);
+                for body in [lag_sums_body::<16> as fn(&[f64], &mut [f64]), lag_sums_body::<32>, lag_sums_body::<4>] {
+                    let mut o = vec![f64::NAN; used];
+                    body(&centred, &mut o);
+                    assert!(o.iter().zip(&out).all(|(a, b)| a.to_bits() == b.to_bits()), "n {n} lags {lags}");
+                }
+                #[cfg(target_arch = "x86_64")]
+                if std::arch::is_x86_feature_detected!("avx2") {
+                    let mut o = vec![f64::NAN; used];
+                    // SAFETY: AVX2 checked just above.
+                    unsafe { lag_sums_avx2(&centred, &mut o) };
+                    assert!(o.iter().zip(&out).all(|(a, b)| a.to_bits() == b.to_bits()), "avx2 n {n} lags {lags}");
+                }
             }
         }
     }

@@ -75,6 +75,7 @@ use crate::math::stats::chi2_upper;
 /// for up front; more still work, with a one-off allocation.
 const MAX_PULSE_COLS: usize = 32;
 
+
 /// Columns whose norm falls below this fraction of their own before
 /// orthogonalisation are dependent on the earlier ones and dropped.
 const DEPENDENT: f64 = 1e-6;

@@ -125,7 +125,10 @@ impl Stage for Noise {
                 Some(last) if last > 0.0 => last.min(noise.robust_sigma_v),
                 _ => noise.robust_sigma_v,
             };
-            let kept = self.cleaner.clean(&stop_v, quiet, median, start, dilate, block);
+            // Within a quarter step of a rail counts as clipped (as timing's saturation flag).
+            let margin = 0.25 * w.source.lsb_v;
+            let rails = w.source.clip_v.map(|(lo, hi)| (lo + margin, hi - margin));
+            let kept = self.cleaner.clean(&stop_v, quiet, median, start, dilate, block, rails);
             // Too little left to rest a noise model on (coloured noise whose
             // quiet blocks read low can clip nearly everything): the raw gates.
             let kept_samples: usize = kept.iter().map(|r| r.len()).sum();

@@ -121,7 +121,9 @@ fn events_are_not_reported_as_returns() {
     let met = [
         "MultiMode 4 sigma, random position",
         "WavePacket 4 sigma, random position",
+        "WavePacket 350 mV, random position",
         "Doublet 4 sigma, random position",
+        "Doublet 350 mV, random position",
         "MultiMode 4 sigma, on the return",
     ];
     for (name, on, dark) in rows.iter().filter(|r| met.contains(&r.0.as_str())) {
@@ -132,16 +134,21 @@ fn events_are_not_reported_as_returns() {
     // Measured (300 frames each): found, spurious, laser-off reports with a
     // return. The laser-off rows of the repeating (zero-phase) events rest
     // on the learned event waveform: 142 of 300 reports carried a lobe of
-    // the event's slow tail before it, 2 now (both while it learns).
+    // the event's slow tail before it, 2 now (both while it learns). The
+    // 350 mV events clip at the generator's bottom rail: a noise gate whose
+    // lobe sat on the rail had its sigma fitted 6-8 times too high (the
+    // cleaning started from the clipped block's zero spread) and lost the
+    // return (WavePacket 294, Doublet 292 found); with the rails known to the
+    // cleaning, 300 and 298.
     let measured: [(&str, usize, usize, usize); 10] = [
         ("MultiMode 4 sigma, random position", 300, 0, 2),
-        ("MultiMode 350 mV, random position", 297, 2, 11),
+        ("MultiMode 350 mV, random position", 298, 2, 13),
         ("Ringing 4 sigma, random position", 300, 2, 17),
-        ("Ringing 350 mV, random position", 295, 2, 8),
+        ("Ringing 350 mV, random position", 297, 2, 9),
         ("WavePacket 4 sigma, random position", 300, 0, 3),
-        ("WavePacket 350 mV, random position", 294, 0, 8),
+        ("WavePacket 350 mV, random position", 300, 0, 1),
         ("Doublet 4 sigma, random position", 300, 0, 0),
-        ("Doublet 350 mV, random position", 292, 0, 0),
+        ("Doublet 350 mV, random position", 298, 0, 0),
         ("MultiMode 4 sigma, on the return", 300, 3, 2),
         ("MultiMode 350 mV, on the return", 285, 9, 0),
     ];

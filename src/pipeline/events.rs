@@ -104,6 +104,26 @@ impl Stage for Events {
         for k in 0..self.peaks.len() {
             self.verdicts.push(test.judge(&w.buffers.stop_v, noise, shape, &self.peaks, k, w.threshold.u));
         }
+        // An event found in the frame reaches the detections around it (its
+        // tail lasts a good part of the frame): those step 1 passed must
+        // stand out of the event subspace too. Repeated while that finds
+        // more events.
+        let (before, after) = ((TEMPLATE_BEFORE_S / dt).ceil(), (TEMPLATE_AFTER_S / dt).ceil());
+        loop {
+            let mut found = false;
+            for k in 0..self.peaks.len() {
+                let p = self.peaks[k];
+                let reached = (0..self.peaks.len()).any(|e| matches!(self.verdicts[e], Verdict::Event(_)) && p >= self.peaks[e] - before && p <= self.peaks[e] + after);
+                if self.verdicts[k] == Verdict::Return && reached {
+                    let v = test.judge_near_event(&w.buffers.stop_v, noise, shape, &self.peaks, k, w.threshold.u);
+                    found |= matches!(v, Verdict::Event(_));
+                    self.verdicts[k] = v;
+                }
+            }
+            if !found {
+                break;
+            }
+        }
         // The frame's event, when it holds one: its detections (the one on
         // the highest sample first) anchor the learned waveform. Where the
         // waveform fits, the detections in its span that step 1 passed must

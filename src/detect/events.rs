@@ -26,7 +26,10 @@
 //!    Friedlander 1994). The event is modelled in the window as anything in
 //!    the band-limited subspace spanned by cos/sin(2π f t), f = 0, Δf, …,
 //!    ≤ `max_frequency` (Δf = 1/(2T), T the window's length), the other
-//!    detections as pulses with their slopes. The detection's pulse column
+//!    detections as pulses with their slopes (but for those closer than the
+//!    pulse's width: a return and an event's lobe under it peak the matched
+//!    filter at neighbouring samples, and as a known pulse the one would
+//!    take the other's energy). The detection's pulse column
 //!    projected off that subspace, q, gives z = qᵀ(x − μ)/(σ √(qᵀRq)),
 //!    standard normal under "event only" whatever the event's amplitudes
 //!    (R: the noise correlation). z above the detector's threshold (in the
@@ -304,7 +307,12 @@ impl EventTest {
         }
         // Step 2: the event subspace and the other detections, then this
         // detection's pulse projected off them.
-        let others = || peaks.iter().copied().filter(|&p| p != c && reaches(p));
+        // Detections closer than the pulse's width are one feature answered
+        // twice (a return and the event's lobe under it peak the matched
+        // filter at neighbouring samples): as known pulses they would split
+        // this one's energy between them.
+        let apart = pulse.fwhm();
+        let others = || peaks.iter().copied().filter(|&p| p != c && reaches(p) && (p - c).abs() >= apart);
         basis.event_model(band, len, &self.xw, &mut self.pulses, pulse, others(), first);
         let (num, var) = basis.off_span(band, len, &self.xw, self.pulses.get(pulse, c), first, noise.rho, &mut self.col);
         let z = if var > 0.0 { num / (sigma * var.sqrt()) } else { 0.0 };

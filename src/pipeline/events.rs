@@ -72,6 +72,12 @@ impl Events {
     }
 }
 
+/// Whether the detection at `p` lies from `before` samples before to
+/// `after` samples after a detection judged an event.
+fn reached(peaks: &[f64], verdicts: &[Verdict], p: f64, before: f64, after: f64) -> bool {
+    peaks.iter().zip(verdicts).any(|(&e, v)| matches!(v, Verdict::Event(_)) && p >= e - before && p <= e + after)
+}
+
 impl Stage for Events {
     fn name(&self) -> &'static str {
         "events"
@@ -112,9 +118,7 @@ impl Stage for Events {
         loop {
             let mut found = false;
             for k in 0..self.peaks.len() {
-                let p = self.peaks[k];
-                let reached = (0..self.peaks.len()).any(|e| matches!(self.verdicts[e], Verdict::Event(_)) && p >= self.peaks[e] - before && p <= self.peaks[e] + after);
-                if self.verdicts[k] == Verdict::Return && reached {
+                if self.verdicts[k] == Verdict::Return && reached(&self.peaks, &self.verdicts, self.peaks[k], before, after) {
                     let v = test.judge_near_event(&w.buffers.stop_v, noise, shape, &self.peaks, k, w.threshold.u);
                     found |= matches!(v, Verdict::Event(_));
                     self.verdicts[k] = v;

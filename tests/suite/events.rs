@@ -148,7 +148,12 @@ fn events_are_not_reported_as_returns() {
     // gate windows holding slow structure are now left out of the noise
     // model (Ringing 4 sigma laser-off 17 -> 10), and a detection within an
     // event's reach must stand out of the event subspace whatever step 1
-    // says (-> 1; Ringing 350 mV 8 -> 3, MultiMode 4 sigma 8 -> 0).
+    // says (-> 1; Ringing 350 mV 8 -> 3, MultiMode 4 sigma 8 -> 0). An
+    // event on the return: a detection of the event's lobe closer than the
+    // pulse's width, as a known pulse in step 2, split the return's energy
+    // with it (z -5.6 to 3.8); left out, 285 -> 288 found. Of the 12 still
+    // lost, 9 are reported but timed 3-4 m early (the event's lobe on the
+    // leading edge moves the half-maximum crossing): the 9 spurious.
     let measured: [(&str, usize, usize, usize); 10] = [
         ("MultiMode 4 sigma, random position", 300, 0, 0),
         ("MultiMode 350 mV, random position", 298, 2, 11),
@@ -159,7 +164,7 @@ fn events_are_not_reported_as_returns() {
         ("Doublet 4 sigma, random position", 300, 0, 0),
         ("Doublet 350 mV, random position", 298, 0, 0),
         ("MultiMode 4 sigma, on the return", 300, 0, 0),
-        ("MultiMode 350 mV, on the return", 285, 9, 0),
+        ("MultiMode 350 mV, on the return", 288, 9, 0),
     ];
     for (name, found, spurious, dark_reports) in measured {
         let (_, on, dark) = rows.iter().find(|r| r.0 == name).expect("row");

@@ -114,7 +114,8 @@ struct BenchArgs {
     /// With --dashboard-only: trials per arm (with and without the dashboard).
     #[arg(long, value_name = "N", default_value_t = 5, requires = "dashboard_only")]
     dashboard_trials: usize,
-    /// Skip the copy-loop and averaging bandwidth measurement (a 20 MB stream).
+    /// Skip the copy-loop and averaging bandwidth measurement (a 20 MB stream) and the
+    /// physical-limit table that uses it.
     #[arg(long)]
     no_bandwidth: bool,
     /// Time with the scene's parametric pulse shapes instead of shapes learned

@@ -9,6 +9,7 @@
 
 mod cluster;
 mod grid;
+mod limits;
 mod membw;
 mod output;
 mod peer;
@@ -22,6 +23,7 @@ pub use grid::{
     BenchConfig, CellStats, RocPoint, SnrSetting, Variant, analytic_crlb_range_m, bench_scene,
     offline_throughput, reference_frames, reference_scene, roc, run_grid, snr_scene, variants,
 };
+pub use limits::{Limits, StageLimit, Yardsticks, fma_rate, measure_limits};
 pub use membw::{Bandwidth, measure_bandwidth};
 pub use output::{CSV_COLUMNS, ROC_COLUMNS, write_csv, write_roc_csv};
 pub use peer::{FULL_STAGES, MINIMAL_STAGES, PeerComparison, PeerOutcome, PeerRow, REPEATS, run_peer};
@@ -76,7 +78,8 @@ pub struct RunOptions {
     pub peer: bool,
     /// Run the loopback gRPC throughput test.
     pub service: bool,
-    /// Measure copy and averaging bandwidth.
+    /// Measure copy and averaging bandwidth, and the physical-limit table
+    /// (each stage against its arithmetic or memory bound), which uses it.
     pub bandwidth: bool,
     /// Learn the return and start pulse shapes from simulated shots first
     /// (as `tofwave template` does) instead of timing with the scene's
@@ -127,6 +130,8 @@ pub struct BenchResults {
     /// Single-core offline pipeline throughput on the reference configuration
     /// (ML timing, N = 1, 2500-sample i16 frames), frames/s.
     pub offline_frames_per_s: f64,
+    /// Each stage's time on the reference frames against its physical limit.
+    pub limits: Option<Limits>,
 }
 
 /// Runs the whole bench on `base` and writes `report.md`, the CSVs and the
@@ -158,6 +163,12 @@ pub fn run(
     let reference = grid::reference_scene();
     let offline_frames_per_s =
         grid::offline_throughput(&reference, cfg.reference_snr_db, cfg.reference_frames)?;
+
+    let limits = opts.bandwidth.then(|| {
+        progress.set_message("physical limits");
+        let (frames, _) = reference_frames(&reference, cfg.reference_snr_db, 99, cfg.reference_frames.max(2));
+        measure_limits(&reference, &frames, (frames.len() / 5).min(400))
+    });
 
     let peer = if opts.peer {
         progress.set_message("numpy/scipy peer");
@@ -197,6 +208,7 @@ pub fn run(
         service: service_result,
         bandwidth,
         offline_frames_per_s,
+        limits,
     };
     output::write_all(&results, opts, out_dir)?;
     plot::write_all(&results, out_dir)?;

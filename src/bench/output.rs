@@ -246,6 +246,12 @@ pub fn markdown(res: &BenchResults, opts: &RunOptions) -> String {
     }
     md.push('\n');
 
+    if let Some(l) = &res.limits {
+        let _ = writeln!(md, "## Physical limits (reference frames, ML timing)\n");
+        md.push_str(&l.markdown());
+        md.push('\n');
+    }
+
     if let Some(peer) = &res.peer {
         let _ = writeln!(md, "## numpy/scipy peer\n");
         match peer {

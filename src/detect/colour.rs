@@ -18,7 +18,7 @@
 //! (the colour is a property of the receiver, slow to change) so that a single
 //! short gate does not make the threshold jitter.
 
-use crate::math::autocov::lag_product_sum;
+use crate::math::autocov::lag_product_sums;
 
 /// Pooled autocovariance of noise-gate samples, lags 0..=max_lag.
 #[derive(Debug, Clone)]
@@ -37,6 +37,9 @@ pub struct NoiseColour {
     added: f64,
     /// Changes whenever the sums do (callers cache what they derive).
     version: u64,
+    /// Scratch: one segment's lag sums, and its samples less the mean.
+    partial: Vec<f64>,
+    centred: Vec<f64>,
 }
 
 /// Pooled samples beyond which old sums are halved, so that the estimate
@@ -57,6 +60,8 @@ impl NoiseColour {
             frames: 0,
             added: 0.0,
             version: 0,
+            partial: vec![0.0; max_lag + 1],
+            centred: Vec::new(),
         }
     }
 
@@ -98,10 +103,11 @@ impl NoiseColour {
         let total = mean_samples.max(1.0);
         for seg in segments {
             let n = seg.len();
+            // Per-frame partial sums first: the pooled sum then adds values
+            // of similar size, frame after frame.
+            lag_product_sums(seg, mean, &mut self.partial, &mut self.centred);
             for k in 0..lags.min(n) {
-                // Per-frame partial sum first: the pooled sum then adds values
-                // of similar size, frame after frame.
-                self.sums[k] += lag_product_sum(seg, k, mean);
+                self.sums[k] += self.partial[k];
                 self.counts[k] += (n - k) as f64;
                 self.centring[k] += (n - k) as f64 / total;
             }
@@ -217,11 +223,21 @@ pub fn output_gain(taps: &[f64], rho: &[f64]) -> OutputColour {
 /// [`output_gain`] with the taps' autocorrelation written to `acf` (scratch
 /// kept by the caller, so a per-frame call does not allocate).
 pub fn output_gain_with(taps: &[f64], rho: &[f64], acf: &mut Vec<f64>) -> OutputColour {
-    let len = taps.len() as isize;
-    // The taps' autocorrelation A_h(j), once.
+    taps_acf(taps, acf);
+    output_gain_from_acf(taps, rho, acf)
+}
+
+/// The taps' autocorrelation A_h(j), j = 0..taps.len(), into `acf` (cleared
+/// first): what [`output_gain_from_acf`] reads, kept by a caller whose taps
+/// do not change from frame to frame.
+pub fn taps_acf(taps: &[f64], acf: &mut Vec<f64>) {
     acf.clear();
     acf.extend((0..taps.len()).map(|j| taps[..taps.len() - j].iter().zip(&taps[j..]).map(|(x, y)| x * y).sum::<f64>()));
-    let acf = &*acf;
+}
+
+/// [`output_gain`] from the taps' autocorrelation `acf` ([`taps_acf`] of `taps`).
+pub fn output_gain_from_acf(taps: &[f64], rho: &[f64], acf: &[f64]) -> OutputColour {
+    let len = taps.len() as isize;
     let a = |j: isize| -> f64 { acf.get(j.unsigned_abs()).copied().unwrap_or(0.0) };
     let kmax = (rho.len() as isize - 1).min(len);
     let r = |m: isize| -> f64 {

@@ -26,7 +26,10 @@
 //!    Friedlander 1994). The event is modelled in the window as anything in
 //!    the band-limited subspace spanned by cos/sin(2π f t), f = 0, Δf, …,
 //!    ≤ `max_frequency` (Δf = 1/(2T), T the window's length), the other
-//!    detections as pulses with their slopes. The detection's pulse column
+//!    detections as pulses with their slopes (but for those closer than the
+//!    pulse's width: a return and an event's lobe under it peak the matched
+//!    filter at neighbouring samples, and as a known pulse the one would
+//!    take the other's energy). The detection's pulse column
 //!    projected off that subspace, q, gives z = qᵀ(x − μ)/(σ √(qᵀRq)),
 //!    standard normal under "event only" whatever the event's amplitudes
 //!    (R: the noise correlation). z above the detector's threshold (in the
@@ -50,12 +53,31 @@
 //!    it: as standing columns of the event subspace, steps would absorb most
 //!    of every return's rise.
 //!
+//! **Within an event's reach.** Once a detection of the frame is judged an
+//! event, every detection from 0.5 µs before it to 2 µs after it that step
+//! 1 passed goes to step 2 all the same ([`EventTest::judge_near_event`];
+//! repeated while that finds more events): a weak lobe of the event's tail
+//! (under a sigma) lifts the matched filter over the threshold with the
+//! help of the noise while leaving its window's band energy near the null,
+//! and step 1's null holds for noise alone. A return there pays step 2's
+//! price (below), a return in a frame without an event never does.
+//!
 //! 3. **Events that repeat** ([`EventTemplate`]): the frames' samples around
 //!    their event detections, aligned and averaged, give the event's
 //!    waveform; where it fits a frame, a detection that step 1 passed (a
 //!    weak lobe of the event's slow tail, far from its strong lobes, leaves
 //!    its window looking like noise) must stand above the threshold with the
 //!    event taken off.
+//!
+//! **The noise gates** ([`GateScreen`], run by the noise stage where the
+//! scene tests for events): gate windows of the test's length whose band
+//! energy exceeds the upper `fit_alpha` quantile of its null (a scaled χ²
+//! fitted to the lower quartile and median of every window seen, which an
+//! event in a minority of windows does not move) are left out of the noise
+//! model. Sigma, the noise colour (pooled over frames, so it would
+//! remember every event's tail), the false-alarm self-check and step 1's
+//! learned null all read the gates, and all describe the receiver's noise
+//! then, not its events.
 //!
 //! Both steps hold the model's columns by their inner products (an
 //! incremental Cholesky factor of their Gram matrix, pulse columns over their
@@ -224,6 +246,19 @@ impl EventTest {
     /// already judged returns lets a strong event lobe judged first stand
     /// and mask the return under it).
     pub fn judge(&mut self, x: &[f64], noise: NoiseTerms, pulse: &Shape, peaks: &[f64], which: usize, threshold: f64) -> Verdict {
+        self.judge_from(x, noise, pulse, peaks, which, threshold, false)
+    }
+
+    /// As [`judge`](Self::judge) for a detection within the reach of an
+    /// event found elsewhere in the frame: it goes to step 2 whatever step 1
+    /// says (a weak lobe of the event's tail can leave its window looking
+    /// like noise, step 1's null holds for noise alone).
+    pub fn judge_near_event(&mut self, x: &[f64], noise: NoiseTerms, pulse: &Shape, peaks: &[f64], which: usize, threshold: f64) -> Verdict {
+        self.judge_from(x, noise, pulse, peaks, which, threshold, true)
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn judge_from(&mut self, x: &[f64], noise: NoiseTerms, pulse: &Shape, peaks: &[f64], which: usize, threshold: f64, near_event: bool) -> Verdict {
         let cfg = self.cfg();
         let n = x.len();
         let c = peaks[which];
@@ -267,12 +302,17 @@ impl EventTest {
                 scale * chi2_upper(mean / scale, cfg.fit_alpha)
             }
         };
-        if explained / (sigma * sigma) <= limit {
+        if !near_event && explained / (sigma * sigma) <= limit {
             return Verdict::Return;
         }
         // Step 2: the event subspace and the other detections, then this
         // detection's pulse projected off them.
-        let others = || peaks.iter().copied().filter(|&p| p != c && reaches(p));
+        // Detections closer than the pulse's width are one feature answered
+        // twice (a return and the event's lobe under it peak the matched
+        // filter at neighbouring samples): as known pulses they would split
+        // this one's energy between them.
+        let apart = pulse.fwhm();
+        let others = || peaks.iter().copied().filter(|&p| p != c && reaches(p) && (p - c).abs() >= apart);
         basis.event_model(band, len, &self.xw, &mut self.pulses, pulse, others(), first);
         let (num, var) = basis.off_span(band, len, &self.xw, self.pulses.get(pulse, c), first, noise.rho, &mut self.col);
         let z = if var > 0.0 { num / (sigma * var.sqrt()) } else { 0.0 };
@@ -435,7 +475,7 @@ impl EventTest {
         let c = -lo.floor() + cfg.flank as f64;
         let len = ((c + hi).ceil() + cfg.flank as f64) as usize + 1;
         self.q.clear();
-        self.push_band(len, cfg.max_frequency);
+        band_columns(len, cfg.max_frequency, &mut self.q, &mut self.col);
         self.col.clear();
         self.col.extend((0..len).map(|i| pulse.value_and_slope(i as f64 - c).0));
         let e0: f64 = self.col.iter().map(|v| v * v).sum();
@@ -451,7 +491,7 @@ impl EventTest {
             return;
         }
         self.q.clear();
-        self.push_band(len, f_max);
+        band_columns(len, f_max, &mut self.q, &mut self.col);
         match &mut self.band {
             Some((l, b)) => {
                 *l = len;
@@ -459,46 +499,6 @@ impl EventTest {
                 b.extend_from_slice(&self.q);
             }
             None => self.band = Some((len, self.q.clone())),
-        }
-    }
-
-    /// Appends cos and sin columns at f = 0, Δf, … ≤ `f_max` (cycles per
-    /// sample), Δf = 1/(2·len), about the window's middle: the band-limited
-    /// subspace over the window.
-    fn push_band(&mut self, len: usize, f_max: f64) {
-        let df = 0.5 / len as f64;
-        let mid = 0.5 * (len as f64 - 1.0);
-        let mut k = 0usize;
-        while k as f64 * df <= f_max * (1.0 + 1e-12) {
-            let w = 2.0 * std::f64::consts::PI * k as f64 * df;
-            for trig in 0..2 {
-                if k == 0 && trig == 1 {
-                    continue;
-                }
-                self.col.clear();
-                self.col.extend((0..len).map(|i| {
-                    let a = w * (i as f64 - mid);
-                    if trig == 0 { a.cos() } else { a.sin() }
-                }));
-                self.push_col();
-            }
-            k += 1;
-        }
-    }
-
-    /// Orthonormalises `col` against `q` (modified Gram–Schmidt, twice) and
-    /// appends it unless it depends on them.
-    fn push_col(&mut self) {
-        let len = self.col.len();
-        let e0 = self.col.iter().map(|v| v * v).sum::<f64>().sqrt();
-        if !(e0 > 0.0) {
-            return;
-        }
-        project_off(&self.q, len, &mut self.col);
-        project_off(&self.q, len, &mut self.col);
-        let e = self.col.iter().map(|v| v * v).sum::<f64>().sqrt();
-        if e > DEPENDENT * e0 {
-            self.q.extend(self.col.iter().map(|v| v / e));
         }
     }
 }
@@ -845,6 +845,229 @@ fn dof_from_spread(spread: f64) -> f64 {
     (0.5 * (lo + hi)).exp()
 }
 
+/// Noise-gate windows that hold slow structure (an event's lobes or its
+/// tail), found and left out of the noise model: the gates then describe
+/// the receiver's noise, not the events, for sigma, the noise colour, the
+/// false-alarm self-check and the step-1 null alike.
+///
+/// Each run of the gates is cut into windows of the events test's length
+/// (the last one aligned on the run's end); a window whose band-subspace
+/// energy (cos/sin up to the events' highest frequency, as step 1) exceeds
+/// the upper `alpha` quantile of its null is dropped. The null is learned
+/// from every window offered, pooled over frames (the last [`NULL_CAP`]):
+/// a scaled χ² fitted to its 5 % and 25 % quantiles, which stay put while
+/// up to three windows in four hold events (a receiver whose events come
+/// in every frame, with the laser off, still has most of its gate windows
+/// clean; the quartiles of step 1's own fit do not survive that). Until
+/// [`NULL_MIN`] windows are in, nothing is dropped. Nor is anything where
+/// the band is not slow against the window (more than a quarter of its
+/// dimensions: a capture sampled far slower than the events' band).
+#[derive(Debug, Clone, Default)]
+pub struct GateScreen {
+    /// Window length, samples.
+    len: usize,
+    /// Highest frequency of the band, cycles per sample.
+    f_max: f64,
+    /// Orthonormal band columns over a window, `len` each.
+    band: Vec<f64>,
+    /// Band energies (σ² units) of the windows offered, the last [`NULL_CAP`].
+    values: Vec<f64>,
+    /// Next slot of `values` to overwrite once full.
+    next: usize,
+    /// Windows offered since the last fit.
+    fresh: usize,
+    /// Scratch for the quantiles.
+    sorted: Vec<f64>,
+    /// The upper `alpha` quantile of the fitted null, σ² units.
+    limit: Option<f64>,
+    /// Probability that a clean window is dropped.
+    alpha: f64,
+    /// The runs kept by the last screening.
+    kept: Vec<std::ops::Range<usize>>,
+    /// Per window of the last screening (in order): its band energy, σ² units.
+    energies: Vec<f64>,
+    /// x − μ over a window (scratch).
+    xw: Vec<f64>,
+}
+
+/// Most runs a screening keeps (windows dropped split runs).
+const SCREEN_MAX_RUNS: usize = 64;
+
+impl GateScreen {
+    /// A screen with the events test's band and window (`cfg`, `pulse`);
+    /// `alpha`: the probability that a clean window is dropped.
+    pub fn new(cfg: EventTestConfig, pulse: &Shape, alpha: f64) -> GateScreen {
+        let len = EventTest::new(cfg).window_len(pulse);
+        let mut band = Vec::new();
+        band_columns(len, cfg.max_frequency, &mut band, &mut Vec::new());
+        GateScreen {
+            len,
+            f_max: cfg.max_frequency,
+            band,
+            values: Vec::with_capacity(NULL_CAP),
+            sorted: Vec::with_capacity(NULL_CAP),
+            alpha,
+            kept: Vec::with_capacity(SCREEN_MAX_RUNS),
+            energies: Vec::with_capacity(64),
+            xw: Vec::with_capacity(len),
+            ..GateScreen::default()
+        }
+    }
+
+    /// Window length, samples.
+    pub fn window_len(&self) -> usize {
+        self.len
+    }
+
+    /// The learned limit, σ² units (None until [`NULL_MIN`] windows are in).
+    pub fn limit(&self) -> Option<f64> {
+        self.limit
+    }
+
+    /// Highest frequency of the band, cycles per sample.
+    pub fn max_frequency(&self) -> f64 {
+        self.f_max
+    }
+
+    /// The windows (start indices) a run is tested by: consecutive, the
+    /// last aligned on the run's end; none for a run shorter than one.
+    fn windows(len: usize, r: &std::ops::Range<usize>) -> impl Iterator<Item = usize> {
+        let n = r.len();
+        let count = if n < len { 0 } else { n / len + usize::from(n % len != 0) };
+        let (start, end) = (r.start, r.end);
+        (0..count).map(move |k| if (k + 1) * len <= n { start + k * len } else { end - len })
+    }
+
+    /// Screens the runs `runs` of `x` (noise mean `mean_v`, sigma `sigma_v`):
+    /// learns the null from every window and, once it is learned, returns
+    /// the runs left after dropping the windows that hold slow structure
+    /// (None when none does, or when less than one window's samples would
+    /// be left).
+    pub fn screen(&mut self, x: &[f64], mean_v: f64, sigma_v: f64, runs: &[std::ops::Range<usize>]) -> Option<&[std::ops::Range<usize>]> {
+        let len = self.len;
+        if len == 0 || !(sigma_v > 0.0) || 4 * (self.band.len() / len) > len {
+            return None;
+        }
+        self.energies.clear();
+        let s2 = sigma_v * sigma_v;
+        for r in runs {
+            for start in Self::windows(len, r) {
+                self.xw.clear();
+                self.xw.extend(x[start..start + len].iter().map(|v| v - mean_v));
+                let e = energy(&self.band, len, &self.xw) / s2;
+                if self.values.len() < NULL_CAP {
+                    self.values.push(e);
+                } else {
+                    self.values[self.next] = e;
+                }
+                self.next = (self.next + 1) % NULL_CAP;
+                self.fresh += 1;
+                self.energies.push(e);
+            }
+        }
+        // This frame's windows are in the null they are judged by (its
+        // lower quantiles do not move for the events among them).
+        self.refit();
+        let Some(limit) = self.limit else { return None };
+        if !self.energies.iter().any(|&e| e > limit) {
+            return None;
+        }
+        // The kept runs: each run less its dropped windows.
+        self.kept.clear();
+        let mut w = 0;
+        for r in runs {
+            let mut from = r.start;
+            for start in Self::windows(len, r) {
+                let drop = self.energies[w] > limit;
+                w += 1;
+                if drop {
+                    if start > from && self.kept.len() < SCREEN_MAX_RUNS {
+                        self.kept.push(from..start);
+                    }
+                    from = from.max(start + len);
+                }
+            }
+            if r.end > from && self.kept.len() < SCREEN_MAX_RUNS {
+                self.kept.push(from..r.end);
+            }
+        }
+        // Less than one window left: too little to rest a noise model on
+        // (a burst filling the gates is the noise of its frame).
+        (self.kept.iter().map(|r| r.len()).sum::<usize>() >= len).then_some(&self.kept[..])
+    }
+
+    /// Refits the null from the 5 % and 25 % quantiles when enough windows are new.
+    fn refit(&mut self) {
+        if self.values.len() < NULL_MIN {
+            return;
+        }
+        if self.fresh < NULL_REFIT && self.limit.is_some() {
+            return;
+        }
+        self.fresh = 0;
+        self.sorted.clear();
+        self.sorted.extend_from_slice(&self.values);
+        self.sorted.sort_unstable_by(f64::total_cmp);
+        let at = |p: f64| self.sorted[((self.sorted.len() - 1) as f64 * p).round() as usize];
+        let (q25, q50) = (at(0.25), at(0.5));
+        if q25 > 0.0 && q50 > q25 {
+            let nu = dof_from_lower(q25 / q50);
+            let a = q50 / chi2_upper(nu, 0.5);
+            self.limit = Some(a * chi2_upper(nu, self.alpha));
+        }
+    }
+}
+
+/// Degrees of freedom ν of the χ² whose 25 % quantile over its median is
+/// `ratio` (increasing in ν; bisection in ln ν over [0.3, 10⁴]).
+fn dof_from_lower(ratio: f64) -> f64 {
+    let f = |nu: f64| chi2_upper(nu, 0.75) / chi2_upper(nu, 0.5);
+    let (mut lo, mut hi) = (0.3f64.ln(), 1e4f64.ln());
+    for _ in 0..60 {
+        let mid = 0.5 * (lo + hi);
+        if f(mid.exp()) < ratio {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    (0.5 * (lo + hi)).exp()
+}
+
+/// Appends to `out` the orthonormal band columns of a window of `len`
+/// samples: cos and sin at f = 0, Δf, … ≤ `f_max` (cycles per sample),
+/// Δf = 1/(2·len), about the window's middle (modified Gram–Schmidt,
+/// twice; a column dependent on the earlier ones is left out). `col`: scratch.
+fn band_columns(len: usize, f_max: f64, out: &mut Vec<f64>, col: &mut Vec<f64>) {
+    let df = 0.5 / len as f64;
+    let mid = 0.5 * (len as f64 - 1.0);
+    let mut k = 0usize;
+    while k as f64 * df <= f_max * (1.0 + 1e-12) {
+        let w = 2.0 * std::f64::consts::PI * k as f64 * df;
+        for trig in 0..2 {
+            if k == 0 && trig == 1 {
+                continue;
+            }
+            col.clear();
+            col.extend((0..len).map(|i| {
+                let a = w * (i as f64 - mid);
+                if trig == 0 { a.cos() } else { a.sin() }
+            }));
+            let e0 = col.iter().map(|v| v * v).sum::<f64>().sqrt();
+            if !(e0 > 0.0) {
+                continue;
+            }
+            project_off(out, len, col);
+            project_off(out, len, col);
+            let e = col.iter().map(|v| v * v).sum::<f64>().sqrt();
+            if e > DEPENDENT * e0 {
+                out.extend(col.iter().map(|v| v / e));
+            }
+        }
+        k += 1;
+    }
+}
+
 /// A running estimate of the event waveform, for receivers whose events
 /// repeat (the same shape, at times that drift against the shots): the
 /// frames' samples around their strongest event detection, aligned on it
@@ -1114,6 +1337,56 @@ mod tests {
         // A burst of other modes is not this event: no fit.
         let y = frame(8, onset, (0.002, 0.009));
         assert!(tpl.fit(&y, WHITE, tpl.align(&y, 0.0, &[top(onset)]), 1e-3).is_none());
+    }
+
+    #[test]
+    fn the_screen_drops_event_windows_and_few_clean_ones() {
+        let s = shape();
+        let cfg = EventTestConfig { max_frequency: 0.01, flank: 60, fit_alpha: 1e-3 };
+        let mut screen = GateScreen::new(cfg, &s, 1e-3);
+        let len = screen.window_len();
+        let runs = [0..230usize, 1300..2500];
+        let (mut clean_windows, mut clean_dropped, mut event_windows, mut event_dropped) = (0, 0, 0, 0);
+        for frame in 0..300u64 {
+            let mut x = noise(2500, 1000 + frame);
+            // A 2 sigma, 4 MHz event lobe train in one frame of five, in the later gate.
+            let event = frame % 5 == 0;
+            let at = 1400 + (frame as usize * 37) % 800;
+            if event {
+                for (i, v) in x.iter_mut().enumerate().skip(at).take(300) {
+                    *v += 2.0 * (2.0 * std::f64::consts::PI * 0.004 * (i - at) as f64).sin();
+                }
+            }
+            let ready = screen.limit().is_some();
+            let kept = screen.screen(&x, 0.0, 1.0, &runs).map(|k| k.to_vec()).unwrap_or_else(|| runs.to_vec());
+            if !ready {
+                continue;
+            }
+            for r in &runs {
+                for start in GateScreen::windows(len, r) {
+                    let dropped = !kept.iter().any(|k| k.start <= start && start + len <= k.end);
+                    // Clean: no event sample in it or in a window it overlaps.
+                    let holds = event && start < at + 300 + len && start + 2 * len > at;
+                    let strong = event && start + 40 >= at && start + len <= at + 340;
+                    if holds {
+                        event_windows += usize::from(strong);
+                        event_dropped += usize::from(strong && dropped);
+                    } else {
+                        clean_windows += 1;
+                        clean_dropped += usize::from(dropped);
+                    }
+                }
+            }
+        }
+        // Every window with most of the event in it goes (its band energy is
+        // about 400 against a limit near 28).
+        assert_eq!(event_dropped, event_windows, "{event_dropped}/{event_windows}");
+        assert!(event_windows > 20);
+        // Clean windows go at about alpha = 1e-3: of some 2000, at most 10
+        // (Poisson with mean 2 exceeds 10 with probability < 1e-4; the
+        // fitted limit's own error is allowed for by the factor).
+        eprintln!("clean windows dropped {clean_dropped}/{clean_windows}, event windows {event_dropped}/{event_windows}");
+        assert!(clean_dropped <= 10, "{clean_dropped}/{clean_windows}");
     }
 
     #[test]

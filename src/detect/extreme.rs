@@ -126,9 +126,9 @@ pub fn max_exceed_prob(u: f64, n: usize, rho1: f64) -> f64 {
 /// Threshold whose per-report false-alarm probability over `n` cells with
 /// lag-1 correlation `rho1` is `p_report`.
 ///
-/// Solves `ln P(max > u) = ln p_report` by bisection in u between the
+/// Solves `ln P(max > u) = ln p_report` by Illinois false position in u between the
 /// single-cell bound Q⁻¹(P) and the union bound Q⁻¹(P/n) (P(max > u) lies
-/// between Q(u) and n·Q(u)), to ~1e-13 relative; ~1 ms. Robust for
+/// between Q(u) and n·Q(u)), to ~1e-13 relative; ~0.3 ms. Robust for
 /// p_report in [1e-300, 0.5], n from 1 to 1e9, rho1 in [−1, 1) (values
 /// outside are clamped; rho1 ≥ 1 means one effective cell). Defined edges:
 /// n = 0 is treated as 1; p_report ≤ 0 gives u = +∞, p_report ≥ 1 gives
@@ -163,19 +163,9 @@ pub fn threshold_for_report(p_report: f64, n: usize, rho1: f64) -> ReportThresho
     } else {
         let u_union = ln_q_inv(ln_p - (cells as f64).ln());
         let f = |u: f64| ln_max_exceed_prob(u, cells, rho1) - ln_p;
-        let (mut lo, mut hi) = (u_single, u_union.max(u_single));
-        for _ in 0..200 {
-            let mid = 0.5 * (lo + hi);
-            if mid <= lo || mid >= hi || hi - lo <= 1e-14 * mid.abs().max(1.0) {
-                break;
-            }
-            if f(mid) > 0.0 {
-                lo = mid;
-            } else {
-                hi = mid;
-            }
-        }
-        0.5 * (lo + hi)
+        // Illinois false position on the bracket: 6–10 evaluations of the
+        // quadrature (each ~40 µs) to its last ulps, where halving took ~50.
+        crate::math::roots::illinois(u_single, u_union.max(u_single), 0.0, f)
     };
     let p_cell = q(u);
     let cells_effective = if p_cell >= 1e-250 {

@@ -113,6 +113,29 @@ impl DetectorPlan {
         &self.output
     }
 
+    /// After [`run`](Self::run) on an input of `x.len()` samples that has
+    /// since changed only at `changed` (sample indices): brings the output up
+    /// to date by recomputing just the outputs whose template reads those
+    /// samples, bit for bit what `run(x, mean)` would give. False (nothing
+    /// done; call `run`) where the correlator cannot recompute part of its
+    /// output (the FFT method) or the last run was on another length.
+    pub fn rerun_part(&mut self, x: &[f64], mean: f64, changed: Range<usize>) -> bool {
+        let len = self.len();
+        if self.padded.len() != x.len() + len - 1 || self.output.len() != x.len() || changed.end > x.len() {
+            return false;
+        }
+        if changed.is_empty() {
+            return true;
+        }
+        let pt = self.peak_tap;
+        for (p, v) in self.padded[pt + changed.start..pt + changed.end].iter_mut().zip(&x[changed.clone()]) {
+            *p = v - mean;
+        }
+        // Output p reads padded[p .. p + len], i.e. samples p − peak_tap .. p − peak_tap + len.
+        let part = (changed.start + pt + 1).saturating_sub(len)..(changed.end + pt).min(x.len());
+        self.correlator.correlate_part(&self.padded, &mut self.output, part)
+    }
+
     /// The last output of [`run`](Self::run).
     pub fn output(&self) -> &[f64] {
         &self.output
@@ -227,6 +250,28 @@ mod tests {
         assert_eq!(m, vec![6, 3, 1]);
         assert_eq!(upcrossings(&y, 0..7, 1.5), 3);
         assert_eq!(upcrossings(&y, 4..7, 1.5), 2);
+    }
+
+    #[test]
+    fn a_partial_rerun_equals_a_full_run_bit_for_bit() {
+        let pulse = Shape::Parametric(crate::dsp::pulse::Pulse { sigma_rise: 3.0, sigma_fall: 5.0 });
+        let mut plan = DetectorPlan::matched_filter(&pulse, 400);
+        let mut x: Vec<f64> = (0..400).map(|i| ((i * 31 % 97) as f64 * 0.13).sin()).collect();
+        plan.run(&x, 0.25);
+        for (s, e) in [(0, 3), (100, 140), (390, 400), (0, 400)] {
+            for (i, v) in x[s..e].iter_mut().enumerate() {
+                *v -= 0.3 * (i as f64 * 0.2).cos();
+            }
+            if !plan.rerun_part(&x, 0.25, s..e) {
+                // Only the FFT method (chosen on a CPU without a fast direct loop) cannot.
+                assert_eq!(plan.correlator.method(), crate::dsp::correlate::CorrelationMethod::Fft);
+                return;
+            }
+            let part = plan.output().to_vec();
+            let full = plan.run(&x, 0.25).to_vec();
+            assert!(part.iter().zip(&full).all(|(a, b)| a.to_bits() == b.to_bits()), "change {s}..{e}");
+        }
+        assert!(!plan.rerun_part(&x[..300], 0.25, 0..3), "another length needs a full run");
     }
 
     #[test]

@@ -91,13 +91,27 @@ impl ShapeFit {
         let k_max = (near + 2.0 + hi).floor() as i64;
         let m_min = 4 * k_min - 8;
         let len = (4 * (k_max - k_min) + 17).max(0) as usize;
-        let mut table = [f64::NAN; SHAPE_TABLE];
-        let fit = |j: i64, values: Option<&mut [f64]>| ShapeFit::at(x, mean_v, sigma_v, pulse, near + 0.25 * j as f64, j, m_min, values);
-        let mut values = (len <= SHAPE_TABLE).then(|| &mut table[..len]);
+        let mut table = [0.0; SHAPE_TABLE];
+        let fit = |j: i64, values: Option<&[f64]>| ShapeFit::at(x, mean_v, sigma_v, pulse, near + 0.25 * j as f64, j, m_min, values);
+        let values = (len <= SHAPE_TABLE).then(|| {
+            let values = &mut table[..len];
+            // Slot i holds the pulse at (i + m_min)/4 − near: four grids of
+            // whole samples, each filled at once (a Gaussian half by
+            // recurrence rather than an exponential per slot).
+            let mut grid = [(0.0, 0.0); SHAPE_TABLE / 4 + 1];
+            for r in 0..4usize.min(len) {
+                let g = &mut grid[..(len - r).div_ceil(4)];
+                pulse.fill_grid((r as i64 + m_min) as f64 * 0.25 - near, g);
+                for (q, &(v, _)) in g.iter().enumerate() {
+                    values[4 * q + r] = v;
+                }
+            }
+            &*values
+        });
         let mut chi2 = [f64::NAN; 17];
         let mut best: Option<(i64, ShapeFit)> = None;
         for j in -8..=8 {
-            let f = fit(j, values.as_deref_mut());
+            let f = fit(j, values);
             chi2[(j + 8) as usize] = f.chi2;
             if best.as_ref().is_none_or(|b| f.chi2 < b.1.chi2) {
                 best = Some((j, f));
@@ -123,10 +137,11 @@ impl ShapeFit {
     }
 
     /// The fit with the peak at `peak_index` = near + j/4 (amplitude by
-    /// least squares); `values`, when given, caches the pulse's values by
-    /// 4k − j − `m_min`.
+    /// least squares); `values`, when given, holds the pulse's values by
+    /// 4k − j − `m_min` (read every fourth slot from the first sample's),
+    /// else the pulse is evaluated at each sample.
     #[allow(clippy::too_many_arguments)]
-    fn at(x: &[f64], mean_v: f64, sigma_v: f64, pulse: &Shape, peak_index: f64, j: i64, m_min: i64, mut values: Option<&mut [f64]>) -> ShapeFit {
+    fn at(x: &[f64], mean_v: f64, sigma_v: f64, pulse: &Shape, peak_index: f64, j: i64, m_min: i64, values: Option<&[f64]>) -> ShapeFit {
         let (lo, hi) = pulse.support();
         let n = x.len();
         let first = (peak_index + lo).ceil().max(0.0) as usize;
@@ -135,20 +150,24 @@ impl ShapeFit {
             return ShapeFit { chi2: 0.0, samples: 0, peak_index, at_edge: false };
         }
         let (mut ss, mut xs, mut xx) = (0.0, 0.0, 0.0);
-        for (k, &v) in x.iter().enumerate().take(last + 1).skip(first) {
-            let slot = values.as_deref_mut().and_then(|t| t.get_mut((4 * k as i64 - j - m_min) as usize));
-            let s = match slot {
-                Some(c) if !c.is_nan() => *c,
-                Some(c) => {
-                    *c = pulse.value_and_slope(k as f64 - peak_index).0;
-                    *c
-                }
-                None => pulse.value_and_slope(k as f64 - peak_index).0,
-            };
+        let mut add = |v: f64, s: f64| {
             let v = v - mean_v;
             ss += s * s;
             xs += v * s;
             xx += v * v;
+        };
+        let base = 4 * first as i64 - j - m_min;
+        match values {
+            Some(t) if base >= 0 && (base as usize) + 4 * (last - first) < t.len() => {
+                for (&v, &s) in x[first..=last].iter().zip(t[base as usize..].iter().step_by(4)) {
+                    add(v, s);
+                }
+            }
+            _ => {
+                for (k, &v) in x.iter().enumerate().take(last + 1).skip(first) {
+                    add(v, pulse.value_and_slope(k as f64 - peak_index).0);
+                }
+            }
         }
         let chi2 = if ss > 0.0 { (xx - xs * xs / ss).max(0.0) } else { xx } / (sigma_v * sigma_v);
         ShapeFit { chi2, samples: last + 1 - first, peak_index, at_edge: false }

@@ -70,16 +70,12 @@ struct RefitScratch {
     jtj: Vec<f64>,
     /// Jᵀr.
     jtr: Vec<f64>,
-    /// One row of J.
-    row: Vec<f64>,
     /// JᵀJ with the damped diagonal; destroyed by the solver.
     aug: Vec<f64>,
     /// The step (Jᵀr on entry to the solver).
     step: Vec<f64>,
     /// The components after the step.
     trial: Vec<Component>,
-    /// The components whose windows hold the current sample.
-    live: Vec<usize>,
     /// The data less the pulses held fixed, over the refit's region.
     base: Vec<f64>,
     /// Pulse values of the current components...
@@ -135,6 +131,11 @@ impl PulseValues {
 impl Resolver {
     /// Finds up to `max` pulses whose detector output exceeds `threshold`
     /// (output units) at peak positions in `range`, into `comps` (cleared first).
+    ///
+    /// `plan` must hold its run on `x` about `mean_v` (the detector's own
+    /// output, which the first pass reads); after each subtracted pulse only
+    /// the outputs that read its samples are recomputed, where the plan's
+    /// correlator can (bit for bit a full run; else the filter runs again).
     #[allow(clippy::too_many_arguments)]
     pub fn resolve(
         &mut self,
@@ -158,8 +159,14 @@ impl Resolver {
             let b = ((peak + hi).ceil().max(0.0) as usize + 1).min(n);
             a..b.max(a)
         };
+        debug_assert_eq!(plan.output().len(), n, "the plan ran on x");
+        // Samples of the residual changed since the plan's output (None: none).
+        let mut changed: Option<Range<usize>> = None;
         while comps.len() < max {
-            let y = plan.run(&self.residual, 0.0);
+            let y = match changed.take() {
+                Some(c) if !plan.rerun_part(&self.residual, 0.0, c.clone()) => plan.run(&self.residual, 0.0),
+                _ => plan.output(),
+            };
             let end = range.end.min(y.len());
             let Some(p) = (range.start.min(end)..end).max_by(|&a, &b| y[a].total_cmp(&y[b])) else {
                 break;
@@ -179,6 +186,7 @@ impl Resolver {
                 c.peak_index = start;
             }
             self.subtract(shape, &c, &window, -1.0);
+            changed = Some(window(c.peak_index));
             comps.push(c);
         }
         if comps.is_empty() {
@@ -408,7 +416,7 @@ impl Resolver {
         let m = 2 * k;
         let mut lambda = 1e-3;
         let mut ws = std::mem::take(&mut self.refit);
-        let RefitScratch { jtj, jtr, row, aug, step, trial, live, base, cur, next } = &mut ws;
+        let RefitScratch { jtj, jtr, aug, step, trial, base, cur, next } = &mut ws;
         // The data less the held pulses, over the region: computed once.
         self.residual_span(x, mean_v, shape, &[others], window, a, b);
         base.clear();
@@ -419,34 +427,48 @@ impl Resolver {
         cur.fill(shape, comps, window, a, b);
         let mut cost = cur.residual(base, comps, &mut self.residual[a..b], a);
         for _it in 0..iterations {
-            for v in [&mut *jtj, &mut *jtr, &mut *row] {
+            for v in [&mut *jtj, &mut *jtr] {
                 v.clear();
             }
             jtj.resize(m * m, 0.0);
             jtr.resize(m, 0.0);
-            row.resize(m, 0.0);
-            // JᵀJ is banded: a sample feeds only the pulses whose windows
-            // hold it (the others' rows are zero there), so each sample costs
-            // its active pulses, not the whole cluster.
-            let (fa, fb) = cur.wins.iter().fold((b, a), |(lo, hi), w| (lo.min(w.start), hi.max(w.end)));
-            for t in fa..fb.max(fa) {
-                live.clear();
-                live.extend((0..k).filter(|&i| cur.wins[i].contains(&t)));
-                for &i in live.iter() {
-                    let (v, dv) = cur.vals[cur.offsets[i] + t - cur.wins[i].start];
-                    row[2 * i] = v;
-                    row[2 * i + 1] = -comps[i].amplitude_v * dv;
+            // J's rows for pulse i are (value, −amplitude·slope) over its
+            // window and zero elsewhere, so JᵀJ is banded: each 2 × 2 block
+            // (i, j) sums over the overlap of the two windows only, and each
+            // entry is summed in sample order, as a sample-by-sample sweep
+            // would add it.
+            for i in 0..k {
+                let wi = cur.wins[i].clone();
+                let vi = &cur.vals[cur.offsets[i]..cur.offsets[i] + wi.len()];
+                let na_i = -comps[i].amplitude_v;
+                let (mut r0, mut r1) = (0.0, 0.0);
+                for (&(v, dv), &r) in vi.iter().zip(&self.residual[wi.clone()]) {
+                    r0 += v * r;
+                    r1 += na_i * dv * r;
                 }
-                let r = self.residual[t];
-                for &i in live.iter() {
-                    for p in [2 * i, 2 * i + 1] {
-                        jtr[p] += row[p] * r;
-                        for &j in live.iter() {
-                            for q in [2 * j, 2 * j + 1] {
-                                jtj[p * m + q] += row[p] * row[q];
-                            }
-                        }
+                jtr[2 * i] = r0;
+                jtr[2 * i + 1] = r1;
+                for j in 0..k {
+                    let wj = &cur.wins[j];
+                    let (s, e) = (wi.start.max(wj.start), wi.end.min(wj.end));
+                    if s >= e {
+                        continue;
                     }
+                    let vj = &cur.vals[cur.offsets[j] + s - wj.start..cur.offsets[j] + e - wj.start];
+                    let na_j = -comps[j].amplitude_v;
+                    let (mut a00, mut a01, mut a10, mut a11) = (0.0, 0.0, 0.0, 0.0);
+                    for (&(v_i, dv_i), &(v_j, dv_j)) in vi[s - wi.start..e - wi.start].iter().zip(vj) {
+                        let (g_i, g_j) = (na_i * dv_i, na_j * dv_j);
+                        a00 += v_i * v_j;
+                        a01 += v_i * g_j;
+                        a10 += g_i * v_j;
+                        a11 += g_i * g_j;
+                    }
+                    let (p, q) = (2 * i, 2 * j);
+                    jtj[p * m + q] = a00;
+                    jtj[p * m + q + 1] = a01;
+                    jtj[(p + 1) * m + q] = a10;
+                    jtj[(p + 1) * m + q + 1] = a11;
                 }
             }
             let mut improved = false;

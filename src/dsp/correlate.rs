@@ -330,6 +330,23 @@ impl Correlator {
         self.fft.as_ref().map(|p| p.n)
     }
 
+    /// Recomputes `out[part]` of an earlier [`correlate`](Self::correlate)
+    /// of an input of `x.len()` samples, from `x` (the input since changed
+    /// only where those outputs read it): bit for bit what `correlate(x, out)`
+    /// would write there. Only the direct method can (an FFT block's outputs
+    /// depend on the whole block): false, and nothing done, for the FFT method
+    /// or when `out` does not have the length `correlate(x, out)` gives.
+    pub fn correlate_part(&mut self, x: &[f64], out: &mut [f64], part: std::ops::Range<usize>) -> bool {
+        let l = self.taps.len();
+        if self.fft.is_some() || l == 0 || x.len() < l || out.len() != x.len() - l + 1 || part.end > out.len() {
+            return false;
+        }
+        if !part.is_empty() {
+            correlate_valid_part(&self.taps, x, out, part);
+        }
+        true
+    }
+
     /// `out[k] = Σ_j taps[j] * x[k + j]` for `k` in `0..=x.len() - taps.len()`;
     /// `out` is cleared (and left empty when `x` is shorter than the template).
     pub fn correlate(&mut self, x: &[f64], out: &mut Vec<f64>) {
@@ -347,6 +364,72 @@ impl Correlator {
             }
         }
     }
+}
+
+/// Direct valid correlation of part of the output: `out[k]` for `k` in
+/// `part` only, each bit for bit what [`correlate_valid`] writes there for
+/// the whole of `out` (which sets the block structure: outputs before the
+/// last `out.len() % 8` are one fused multiply-add chain each, in tap order,
+/// whatever block computes them; the last few are dot products). Lets a
+/// caller whose input changed over a few samples recompute only the outputs
+/// that read them. Requires what `correlate_valid` does and `part.end <= out.len()`.
+pub(crate) fn correlate_valid_part(taps: &[f64], x: &[f64], out: &mut [f64], part: std::ops::Range<usize>) {
+    part_on(direct_path(), taps, x, out, part);
+}
+
+/// [`correlate_valid_part`] on the given path (which the CPU must have).
+fn part_on(path: DirectPath, taps: &[f64], x: &[f64], out: &mut [f64], part: std::ops::Range<usize>) {
+    assert!(!taps.is_empty() && out.len() + taps.len() - 1 <= x.len() && part.end <= out.len());
+    let chains_end = out.len() - out.len() % 8;
+    let chains = part.start.min(chains_end)..part.end.min(chains_end);
+    let l = taps.len();
+    let xs = &x[chains.start..chains.end + l - 1];
+    let os = &mut out[chains.clone()];
+    match path {
+        // SAFETY: direct_path() saw AVX-512F, AVX2 and FMA on this CPU.
+        #[cfg(target_arch = "x86_64")]
+        DirectPath::Avx512 => unsafe { chains_avx512(taps, xs, os) },
+        // SAFETY: direct_path() saw AVX2 and FMA on this CPU.
+        #[cfg(target_arch = "x86_64")]
+        DirectPath::Avx2 => unsafe { chains_avx2(taps, xs, os) },
+        _ => chains_body::<16, false>(taps, xs, os),
+    }
+    let fma = path != DirectPath::Portable;
+    for k in part.start.max(chains_end)..part.end {
+        out[k] = match fma {
+            // SAFETY: direct_path() saw FMA on this CPU.
+            #[cfg(target_arch = "x86_64")]
+            true => unsafe { dot_fma(taps, &x[k..k + l]) },
+            _ => dot::<false>(taps, &x[k..k + l]),
+        };
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx2,fma")]
+fn chains_avx512(taps: &[f64], x: &[f64], out: &mut [f64]) {
+    chains_body::<64, true>(taps, x, out);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn chains_avx2(taps: &[f64], x: &[f64], out: &mut [f64]) {
+    chains_body::<32, true>(taps, x, out);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn dot_fma(a: &[f64], b: &[f64]) -> f64 {
+    dot::<true>(a, b)
+}
+
+/// Every output of `out` as one chain in tap order (blocks of `B`, of 8,
+/// then single chains): what [`blocks`] computes for each of its lanes.
+#[inline(always)]
+fn chains_body<const B: usize, const FMA: bool>(taps: &[f64], x: &[f64], out: &mut [f64]) {
+    let k = blocks::<B, FMA>(taps, x, out, 0);
+    let k = blocks::<8, FMA>(taps, x, out, k);
+    blocks::<1, FMA>(taps, x, out, k);
 }
 
 /// Direct valid correlation into a slice: `out[k] = Σ_j taps[j]·x[k + j]` for
@@ -528,5 +611,66 @@ mod tests {
                 assert!((a - b).abs() < 1e-12, "{m:?}: {a} vs {b}");
             }
         }
+    }
+
+    #[test]
+    fn a_part_recomputed_after_a_local_change_is_bit_identical_to_a_full_run() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        for l in [1usize, 5, 8, 33, 64, 70] {
+            let taps: Vec<f64> = (0..l).map(|_| rng.random_range(-1.0..1.0)).collect();
+            for n in [l, l + 7, l + 64, 333, 2500] {
+                let mut x: Vec<f64> = (0..n).map(|_| rng.random_range(-1.0..1.0)).collect();
+                let mut c = Correlator::with_method(&taps, n, CorrelationMethod::Direct);
+                let mut out = Vec::new();
+                c.correlate(&x, &mut out);
+                for _ in 0..20 {
+                    // Change a window of the input, then recompute the outputs that read it.
+                    let s = rng.random_range(0..n);
+                    let e = (s + rng.random_range(1..40)).min(n);
+                    for v in &mut x[s..e] {
+                        *v += rng.random_range(-0.5..0.5);
+                    }
+                    let part = s.saturating_sub(l - 1)..e.min(out.len());
+                    assert!(c.correlate_part(&x, &mut out, part));
+                    let mut full = Vec::new();
+                    c.correlate(&x, &mut full);
+                    let same = out.iter().zip(&full).all(|(a, b)| a.to_bits() == b.to_bits());
+                    assert!(same, "L={l} n={n} change {s}..{e}");
+                }
+            }
+        }
+        // Every path this CPU has, against its own full run.
+        let mut paths: Vec<(DirectPath, fn(&[f64], &[f64], &mut [f64]))> = vec![(DirectPath::Portable, |t, x, o| direct_body::<16, false>(t, x, o))];
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+                // SAFETY: AVX2 and FMA checked just above.
+                paths.push((DirectPath::Avx2, |t, x, o| unsafe { direct_avx2(t, x, o) }));
+            }
+            if std::arch::is_x86_feature_detected!("avx512f") {
+                // SAFETY: AVX-512F (and so AVX2, FMA) checked just above.
+                paths.push((DirectPath::Avx512, |t, x, o| unsafe { direct_avx512(t, x, o) }));
+            }
+        }
+        for (path, full) in paths {
+            for (l, n) in [(1usize, 9usize), (7, 100), (64, 2500), (70, 333)] {
+                let taps: Vec<f64> = (0..l).map(|_| rng.random_range(-1.0..1.0)).collect();
+                let x: Vec<f64> = (0..n).map(|_| rng.random_range(-1.0..1.0)).collect();
+                let mut want = vec![0.0; n - l + 1];
+                full(&taps, &x, &mut want);
+                let mut got = vec![f64::NAN; want.len()];
+                for p in [0..want.len().min(3), 5.min(want.len())..want.len()] {
+                    part_on(path, &taps, &x, &mut got, p);
+                }
+                if want.len() > 3 {
+                    part_on(path, &taps, &x, &mut got, 3..5.min(want.len()));
+                }
+                assert!(got.iter().zip(&want).all(|(a, b)| a.to_bits() == b.to_bits()), "{path:?} L={l} n={n}");
+            }
+        }
+        let mut fft = Correlator::with_method(&[1.0, 2.0], 16, CorrelationMethod::Fft);
+        let mut out = vec![0.0; 15];
+        assert!(!fft.correlate_part(&[0.0; 16], &mut out, 0..3), "FFT blocks cannot be recomputed in part");
     }
 }

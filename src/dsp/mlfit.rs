@@ -79,10 +79,10 @@ impl Default for FitOptions {
 
 /// Fits amplitude and delay over `x[window]`, starting from `delay0` (samples),
 /// with the default [`FitOptions`]. A window reaching past `x` is cut to `x`.
-pub fn fit_delay(
+pub fn fit_delay<S: PulseShape + ?Sized>(
     x: &[f64],
     baseline: f64,
-    shape: &dyn PulseShape,
+    shape: &S,
     delay0: f64,
     window: std::ops::Range<usize>,
     max_iter: u32,
@@ -115,10 +115,10 @@ struct Sums {
 
 /// [`fit_delay`] with explicit options. `max_iter` bounds the Gauss-Newton
 /// iterations (the coarse scan is not counted).
-pub fn fit_delay_with(
+pub fn fit_delay_with<S: PulseShape + ?Sized>(
     x: &[f64],
     baseline: f64,
-    shape: &dyn PulseShape,
+    shape: &S,
     delay0: f64,
     window: std::ops::Range<usize>,
     max_iter: u32,
@@ -216,14 +216,11 @@ pub fn fit_delay_with(
     let s = yw.sums(first, shape, delay);
     let amplitude = if s.ss > 0.0 { s.sy / s.ss } else { 0.0 };
     // Summed directly: Σy² − 2aΣsy + a²Σs² would cancel catastrophically for a good fit.
-    let rss: f64 = yw
-        .iter()
-        .enumerate()
-        .map(|(i, yk)| {
-            let r = yk - amplitude * shape.value_and_slope((first + i) as f64 - delay).0;
-            r * r
-        })
-        .sum();
+    let mut rss = 0.0;
+    yw.on_grid(first, shape, delay, |yk, v, _| {
+        let r = yk - amplitude * v;
+        rss += r * r;
+    });
     let has_signal = amplitude != 0.0 && s.gg > 0.0;
     MlFit {
         amplitude,
@@ -254,31 +251,44 @@ struct Centered<'a> {
     baseline: f64,
 }
 
+/// Shape values evaluated per call of [`PulseShape::fill_grid`].
+const GRID_CHUNK: usize = 64;
+
 impl Centered<'_> {
-    fn iter(&self) -> impl Iterator<Item = f64> + '_ {
-        self.x.iter().map(move |v| v - self.baseline)
+    /// Calls `f(y_k, value, slope)` for every sample of the window in order,
+    /// the shape at `k − delay` evaluated on the grid a chunk at a time (a
+    /// Gaussian half by recurrence, not an exponential per sample).
+    #[inline(always)]
+    fn on_grid<S: PulseShape + ?Sized>(&self, first: usize, shape: &S, delay: f64, mut f: impl FnMut(f64, f64, f64)) {
+        let mut grid = [(0.0, 0.0); GRID_CHUNK];
+        for (c, xs) in self.x.chunks(GRID_CHUNK).enumerate() {
+            let start = c * GRID_CHUNK;
+            let g = &mut grid[..xs.len()];
+            shape.fill_grid((first + start) as f64 - delay, g);
+            for (x, &(v, dv)) in xs.iter().zip(g.iter()) {
+                f(x - self.baseline, v, dv);
+            }
+        }
     }
 
-    fn sums(&self, first: usize, shape: &dyn PulseShape, delay: f64) -> Sums {
+    fn sums<S: PulseShape + ?Sized>(&self, first: usize, shape: &S, delay: f64) -> Sums {
         let mut s = Sums::default();
-        for (i, yk) in self.iter().enumerate() {
-            let (v, g) = shape.value_and_slope((first + i) as f64 - delay);
+        self.on_grid(first, shape, delay, |yk, v, g| {
             s.ss += v * v;
             s.sy += v * yk;
             s.gg += g * g;
             s.sg += v * g;
             s.gy += g * yk;
-        }
+        });
         s
     }
 
-    fn reduced_cost(&self, first: usize, shape: &dyn PulseShape, delay: f64) -> f64 {
+    fn reduced_cost<S: PulseShape + ?Sized>(&self, first: usize, shape: &S, delay: f64) -> f64 {
         let (mut ss, mut sy) = (0.0, 0.0);
-        for (i, yk) in self.iter().enumerate() {
-            let v = shape.value_and_slope((first + i) as f64 - delay).0;
+        self.on_grid(first, shape, delay, |yk, v, _| {
             ss += v * v;
             sy += v * yk;
-        }
+        });
         if ss > 0.0 { -(sy * sy) / ss } else { 0.0 }
     }
 }

@@ -23,6 +23,86 @@ pub fn lag_product_sum(x: &[f64], lag: usize, centre: f64) -> f64 {
         .sum::<f64>()
 }
 
+/// [`lag_product_sum`] for every lag `k < out.len()` at once, each bit for
+/// bit the same (a sum in index order of the same products): `out[k]` gets
+/// the lag-`k` sum (0 for `k ≥ x.len()`). The lags are computed side by side,
+/// a block of them per sample (vector lanes, picked at run time where AVX2
+/// or AVX-512 is there), instead of one serial sum after another.
+/// `centred` is scratch (`x − centre`), kept by the caller.
+pub fn lag_product_sums(x: &[f64], centre: f64, out: &mut [f64], centred: &mut Vec<f64>) {
+    out.fill(0.0);
+    let lags = out.len().min(x.len());
+    if lags == 0 {
+        return;
+    }
+    centred.clear();
+    centred.extend(x.iter().map(|v| v - centre));
+    let out = &mut out[..lags];
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx512f") {
+            // SAFETY: AVX-512F checked just above.
+            return unsafe { lag_sums_avx512(centred, out) };
+        }
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: AVX2 checked just above.
+            return unsafe { lag_sums_avx2(centred, out) };
+        }
+    }
+    lag_sums_body::<16>(centred, out);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx2")]
+fn lag_sums_avx512(d: &[f64], out: &mut [f64]) {
+    lag_sums_body::<32>(d, out);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn lag_sums_avx2(d: &[f64], out: &mut [f64]) {
+    lag_sums_body::<16>(d, out);
+}
+
+/// Lags in blocks of `B`, then of 4, then one at a time (`out.len() <= d.len()`).
+#[inline(always)]
+fn lag_sums_body<const B: usize>(d: &[f64], out: &mut [f64]) {
+    let k = lag_blocks::<B>(d, out, 0);
+    let k = lag_blocks::<4>(d, out, k);
+    lag_blocks::<1>(d, out, k);
+}
+
+/// Lags `k0 .. k0 + B` per block from `k0` on, while whole blocks fit in
+/// `out`: every lane is one chain `acc += d_i·d_{i+k}` in index order
+/// (a multiply, then an add: no fused multiply-add, as the serial sum);
+/// where the longer lags have run out of samples the shorter ones finish
+/// alone. Returns where it stopped.
+#[inline(always)]
+fn lag_blocks<const B: usize>(d: &[f64], out: &mut [f64], mut k0: usize) -> usize {
+    let n = d.len();
+    while k0 + B <= out.len() {
+        // The neutral element of a float sum, as `Iterator::sum` starts from.
+        let mut acc = [-0.0f64; B];
+        // Samples for which every lane of the block has its partner.
+        let all = n - (k0 + B - 1);
+        for i in 0..all {
+            let di = d[i];
+            let w: &[f64; B] = d[i + k0..i + k0 + B].try_into().expect("slice has length B");
+            for b in 0..B {
+                acc[b] += di * w[b];
+            }
+        }
+        for (b, a) in acc.iter_mut().enumerate() {
+            for i in all..n - (k0 + b) {
+                *a += d[i] * d[i + k0 + b];
+            }
+        }
+        out[k0..k0 + B].copy_from_slice(&acc);
+        k0 += B;
+    }
+    k0
+}
+
 /// Σ (x_i − centre), summed in index order.
 pub fn shifted_sum(x: &[f64], centre: f64) -> f64 {
     x.iter().map(|v| v - centre).sum::<f64>()
@@ -151,7 +231,41 @@ mod tests {
             }
         }
         assert_eq!(lag_product_sum(&[], 0, 1.0), 0.0);
+        let mut out = [1.0; 3];
+        lag_product_sums(&[], 1.0, &mut out, &mut Vec::new());
+        assert_eq!(out, [0.0; 3]);
         assert_eq!(shifted_sum(&[1.0, 2.0, 4.0], 1.0), 4.0);
+    }
+
+    #[test]
+    fn all_lags_at_once_are_bit_identical_to_each_lag_alone() {
+        let mut rng = ChaCha8Rng::seed_from_u64(12);
+        let mut centred = Vec::new();
+        for n in [1usize, 3, 4, 5, 17, 40, 200, 1391] {
+            let x: Vec<f64> = (0..n).map(|_| rng.random_range(-3.0..5.0)).collect();
+            for lags in [1usize, 4, 5, 33, 65, 251] {
+                let centre = rng.random_range(-1.0..1.0);
+                let mut out = vec![f64::NAN; lags];
+                lag_product_sums(&x, centre, &mut out, &mut centred);
+                for (k, v) in out.iter().enumerate() {
+                    assert_eq!(v.to_bits(), lag_product_sum(&x, k, centre).to_bits(), "n {n} lag {k} of {lags}");
+                }
+                // Every lane width, whichever path this CPU takes.
+                let used = lags.min(n);
+                for body in [lag_sums_body::<16> as fn(&[f64], &mut [f64]), lag_sums_body::<32>, lag_sums_body::<4>] {
+                    let mut o = vec![f64::NAN; used];
+                    body(&centred, &mut o);
+                    assert!(o.iter().zip(&out).all(|(a, b)| a.to_bits() == b.to_bits()), "n {n} lags {lags}");
+                }
+                #[cfg(target_arch = "x86_64")]
+                if std::arch::is_x86_feature_detected!("avx2") {
+                    let mut o = vec![f64::NAN; used];
+                    // SAFETY: AVX2 checked just above.
+                    unsafe { lag_sums_avx2(&centred, &mut o) };
+                    assert!(o.iter().zip(&out).all(|(a, b)| a.to_bits() == b.to_bits()), "avx2 n {n} lags {lags}");
+                }
+            }
+        }
     }
 
     #[test]

@@ -9,6 +9,8 @@ pub mod special;
 pub mod stats;
 /// Dense linear solve (Gaussian elimination with partial pivoting).
 pub mod linalg;
+/// Sums in a fixed order of eight lanes: vectorised, the same bits on every CPU.
+pub mod sum;
 /// Lag-product sums and the pooled autocovariance accumulator.
 pub mod autocov;
 /// Roots of monotone functions: Illinois false position from a bracket or a guess.

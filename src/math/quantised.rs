@@ -23,31 +23,91 @@ use super::special::{phi, q_inv};
 /// A floating-point Euclid over the differences from the minimum: linear in
 /// `x.len()`, nothing allocated.
 pub fn grid_step(x: &[f64], min_step: f64) -> Option<f64> {
-    let (lo, hi) = x.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
+    let (lo, hi) = super::select::min_max(x);
     if !(hi > lo) || !hi.is_finite() || !lo.is_finite() {
         return None;
     }
     let eps = 1e-9 * lo.abs().max(hi.abs()).max(hi - lo);
-    let mut q = 0.0;
-    for &v in x {
-        let d = v - lo;
+    // Samples on the grid found so far are multiples of q to within eps:
+    // the test does not need the correctly rounded quotient, so it
+    // multiplies by 1/q (a division per sample costs several times more).
+    // Samples are taken in order, q shrinking at each one off its grid; the
+    // runs of samples on it (nearly all) are checked eight at a time.
+    let (mut q, mut inv_q) = (0.0, 0.0);
+    let mut i = 0;
+    while i < x.len() {
+        if q > 0.0 {
+            i += on_grid_run(&x[i..], lo, eps, q, inv_q);
+            if i == x.len() {
+                break;
+            }
+        }
+        let d = x[i] - lo;
+        i += 1;
         if d <= eps {
             continue;
         }
         if q == 0.0 {
             q = d;
+            inv_q = 1.0 / q;
             continue;
         }
-        let r = d / q;
-        if (r - r.round()).abs() * q <= eps {
+        let r = d * inv_q;
+        if (r - round(r)).abs() * q <= eps {
             continue;
         }
         q = float_gcd(q, d, eps);
+        inv_q = 1.0 / q;
         if !(q >= min_step) {
             return None;
         }
     }
     (q > 0.0 && q >= min_step).then_some(q)
+}
+
+/// How many leading samples of `x` pass [`grid_step`]'s test for the grid
+/// `q` (a sample at most `eps` above `lo`, or within `eps` of a multiple of
+/// `q` above it), checked eight at a time without branches; the first that
+/// may not is left to the caller's exact test. The nearest integer is
+/// taken by adding and subtracting 1.5·2⁵² (ties to even: the same distance
+/// to it as `round`'s) where the quotient is below 2⁵¹, and quotients
+/// beyond are left to the caller.
+fn on_grid_run(x: &[f64], lo: f64, eps: f64, q: f64, inv_q: f64) -> usize {
+    const MAGIC: f64 = 6_755_399_441_055_744.0;
+    let passes = |v: f64| {
+        let d = v - lo;
+        let r = d * inv_q;
+        let near = (r + MAGIC) - MAGIC;
+        d <= eps || (r < 2_251_799_813_685_248.0 && (r - near).abs() * q <= eps)
+    };
+    let mut done = 0;
+    for chunk in x.chunks_exact(8) {
+        let mut all = true;
+        for &v in chunk {
+            all &= passes(v);
+        }
+        if !all {
+            break;
+        }
+        done += 8;
+    }
+    done + x[done..].iter().take_while(|&&v| passes(v)).count()
+}
+
+/// `x.round()` (half away from zero), bit for bit, without the library
+/// call the portable x86-64 target makes for it (no SSE4.1 rounding
+/// instruction): these loops round every sample.
+#[inline(always)]
+fn round(x: f64) -> f64 {
+    let a = x.abs();
+    // 2⁵² and beyond (and NaN, ±∞) are integral already.
+    if !(a < 4_503_599_627_370_496.0) {
+        return x;
+    }
+    // Truncation by conversion is exact below 2⁵²; adding the double just
+    // below ½ first rounds half away from zero (as LLVM lowers `round` where
+    // the CPU has a truncating instruction), with no branch to mispredict.
+    ((a + 0.499_999_999_999_999_94) as i64 as f64).copysign(x)
 }
 
 /// Greatest common divisor of two positive reals, remainders below `eps` counting as 0.
@@ -92,30 +152,50 @@ pub fn quantised_sigma(x: &[f64], step: f64, counts: &mut Vec<u32>) -> Option<f6
     if x.len() < 2 || !(step > 0.0) {
         return None;
     }
-    let (lo, hi) = x.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
-    let levels = ((hi - lo) / step).round() + 1.0;
+    let (lo, hi) = super::select::min_max(x);
+    let levels = round((hi - lo) / step) + 1.0;
     if !(levels.is_finite() && levels <= MAX_LEVELS as f64) {
         return None;
     }
     let levels = levels as usize;
     counts.clear();
     counts.resize(levels, 0);
+    // Samples on the grid (as `grid_step` found it) sit next to an integer
+    // number of steps from the lowest: the nearest integer is the same
+    // whether (v − lo) is divided by the step or multiplied by its inverse.
+    let inv_step = 1.0 / step;
+    // (A signed conversion: the unsigned one's saturation costs branches.)
+    let top = levels as i64 - 1;
     for &v in x {
-        let k = (((v - lo) / step).round().max(0.0) as usize).min(levels - 1);
-        counts[k] += 1;
+        // v ≥ lo: the quotient is +0 or more, where `round` is this truncation.
+        let k = (((v - lo) * inv_step + 0.499_999_999_999_999_94) as i64).min(top);
+        counts[k as usize] += 1;
     }
     let n = x.len() as f64;
     // Boundary k lies between level k and k + 1, at lo + (k + ½)·step; F is
-    // the fraction of samples on levels 0..=k.
+    // the fraction of samples on levels 0..=k. F = cum/n rounded rises with
+    // the count, so a window [a, b] of F is a range of counts, found once
+    // with the same divisions (no division per level).
+    let counts_in = |(a, b): (f64, f64)| {
+        let total = x.len() as u64;
+        let f = |c: u64| c as f64 / n;
+        let mut first = ((a * n).floor() as u64).saturating_sub(2).min(total);
+        while first < total && !(f(first) >= a) {
+            first += 1;
+        }
+        let mut last = ((b * n).ceil() as u64 + 2).min(total);
+        while last > 0 && !(f(last) <= b) {
+            last -= 1;
+        }
+        (first, last, f(first) >= a && f(last) <= b)
+    };
     let in_window = |(a, b): (f64, f64)| {
+        let (first, last, any) = counts_in((a, b));
         let mut cum = 0u64;
         let mut m = 0usize;
         for &c in &counts[..levels - 1] {
             cum += c as u64;
-            let f = cum as f64 / n;
-            if (a..=b).contains(&f) {
-                m += 1;
-            }
+            m += (any && (first..=last).contains(&cum)) as usize;
         }
         m
     };
@@ -124,19 +204,20 @@ pub fn quantised_sigma(x: &[f64], step: f64, counts: &mut Vec<u32>) -> Option<f6
         .map(|(a, b, need)| ((a, b), in_window((a, b)), need))
         .find(|&(_, m, need)| m >= need)
         .map(|(w, m, _)| (w, m))?;
+    let (first, last, _) = counts_in((a, b));
     let stride = m.div_ceil(MAX_BOUNDARIES);
     let (mut sw, mut swx, mut swy, mut swxx, mut swxy) = (0.0, 0.0, 0.0, 0.0, 0.0);
     let (mut cum, mut seen) = (0u64, 0usize);
     for (k, &c) in counts[..levels - 1].iter().enumerate() {
         cum += c as u64;
-        let f = cum as f64 / n;
-        if !(a..=b).contains(&f) {
+        if !(first..=last).contains(&cum) {
             continue;
         }
         seen += 1;
         if (seen - 1) % stride != 0 {
             continue;
         }
+        let f = cum as f64 / n;
         let z = -q_inv(f);
         // Inverse-variance weight of Φ⁻¹(F̂): Var F̂ = F(1 − F)/n, and dz/dF = 1/φ(z).
         let w = phi(z).powi(2) / (f * (1.0 - f));
@@ -173,6 +254,133 @@ mod tests {
                 (offset / step + sigma / step * z).round() * step - 0.33
             })
             .collect()
+    }
+
+    #[test]
+    fn round_is_the_library_round_bit_for_bit() {
+        use rand::Rng;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let edges = [
+            0.0, -0.0, 0.5, -0.5, 1.5, 2.5, -2.5, 0.49999999999999994, -0.49999999999999994, 4503599627370495.5,
+            4503599627370496.0, -4503599627370497.0, 1e300, f64::MIN_POSITIVE, f64::INFINITY, f64::NEG_INFINITY,
+        ];
+        let random = (0..100_000).map(|_| rng.random_range(-1e6..1e6) * 10f64.powi(rng.random_range(-12..8)));
+        for x in edges.into_iter().chain(random) {
+            assert_eq!(round(x).to_bits(), x.round().to_bits(), "{x}");
+        }
+        assert!(round(f64::NAN).is_nan());
+    }
+
+    /// `grid_step` as first written: one sample at a time, dividing.
+    fn grid_step_naive(x: &[f64], min_step: f64) -> Option<f64> {
+        let (lo, hi) = x.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
+        if !(hi > lo) || !hi.is_finite() || !lo.is_finite() {
+            return None;
+        }
+        let eps = 1e-9 * lo.abs().max(hi.abs()).max(hi - lo);
+        let mut q = 0.0;
+        for &v in x {
+            let d = v - lo;
+            if d <= eps {
+                continue;
+            }
+            if q == 0.0 {
+                q = d;
+                continue;
+            }
+            let r = d / q;
+            if (r - r.round()).abs() * q <= eps {
+                continue;
+            }
+            q = float_gcd(q, d, eps);
+            if !(q >= min_step) {
+                return None;
+            }
+        }
+        (q > 0.0 && q >= min_step).then_some(q)
+    }
+
+    #[test]
+    fn grid_step_agrees_with_the_sample_by_sample_search() {
+        use rand::Rng;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        for trial in 0..400 {
+            let step = 10f64.powi(rng.random_range(-6..2)) * rng.random_range(1.0..2.0);
+            let mut x = quantised(rng.random_range(2..1500), step * rng.random_range(0.3..40.0), step, rng.random_range(-5.0..5.0), trial);
+            // Some with every code even, some with a sample off the grid.
+            if trial % 3 == 1 {
+                x.iter_mut().for_each(|v| *v = ((*v / step).round() * 0.5).round() * 2.0 * step);
+            }
+            if trial % 5 == 2 {
+                let k = rng.random_range(0..x.len());
+                x[k] += step * rng.random_range(0.01..0.99);
+            }
+            for min_step in [0.0, step * 0.5, step * 1.5] {
+                assert_eq!(grid_step(&x, min_step).map(f64::to_bits), grid_step_naive(&x, min_step).map(f64::to_bits), "trial {trial}");
+            }
+        }
+    }
+
+    /// `quantised_sigma` as first written: a division per level.
+    fn quantised_sigma_naive(x: &[f64], step: f64) -> Option<f64> {
+        let (lo, hi) = x.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
+        let levels = ((hi - lo) / step).round() + 1.0;
+        if !(levels <= MAX_LEVELS as f64) {
+            return None;
+        }
+        let levels = levels as usize;
+        let mut counts = vec![0u32; levels];
+        for &v in x {
+            counts[(((v - lo) / step).round().max(0.0) as usize).min(levels - 1)] += 1;
+        }
+        let n = x.len() as f64;
+        let in_window = |(a, b): (f64, f64)| {
+            let mut cum = 0u64;
+            counts[..levels - 1].iter().filter(|&&c| {
+                cum += c as u64;
+                (a..=b).contains(&(cum as f64 / n))
+            }).count()
+        };
+        let ((a, b), m) = WINDOWS.into_iter().map(|(a, b, need)| ((a, b), in_window((a, b)), need)).find(|&(_, m, need)| m >= need).map(|(w, m, _)| (w, m))?;
+        let stride = m.div_ceil(MAX_BOUNDARIES);
+        let (mut sw, mut swx, mut swy, mut swxx, mut swxy) = (0.0, 0.0, 0.0, 0.0, 0.0);
+        let (mut cum, mut seen) = (0u64, 0usize);
+        for (k, &c) in counts[..levels - 1].iter().enumerate() {
+            cum += c as u64;
+            let f = cum as f64 / n;
+            if !(a..=b).contains(&f) {
+                continue;
+            }
+            seen += 1;
+            if (seen - 1) % stride != 0 {
+                continue;
+            }
+            let z = -q_inv(f);
+            let w = phi(z).powi(2) / (f * (1.0 - f));
+            let xb = k as f64 + 0.5;
+            (sw, swx, swy, swxx, swxy) = (sw + w, swx + w * xb, swy + w * z, swxx + w * xb * xb, swxy + w * xb * z);
+        }
+        let det = sw * swxx - swx * swx;
+        let slope = (sw * swxy - swx * swy) / det;
+        if !(det > 0.0 && slope > 0.0 && slope.is_finite()) {
+            return None;
+        }
+        let sigma = step / slope;
+        Some((sigma * sigma + step * step / 12.0).sqrt())
+    }
+
+    #[test]
+    fn quantised_sigma_agrees_with_a_division_per_level() {
+        use rand::Rng;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(6);
+        let mut counts = Vec::new();
+        for trial in 0..300 {
+            let step = 10f64.powi(rng.random_range(-6..2));
+            let x = quantised(rng.random_range(2..1500), step * rng.random_range(0.2..60.0), step, rng.random_range(-5.0..5.0), trial);
+            let q = grid_step(&x, 0.0).unwrap_or(step);
+            let got = quantised_sigma(&x, q, &mut counts).map(f64::to_bits);
+            assert_eq!(got, quantised_sigma_naive(&x, q).map(f64::to_bits), "trial {trial}");
+        }
     }
 
     #[test]

@@ -6,6 +6,57 @@
 //! number, NaN with it set (what x86 arithmetic produces) below; callers that
 //! must ignore non-finite samples drop them first.
 
+/// (smallest, largest) of `x`, NaNs ignored ((+∞, −∞) when nothing is
+/// left), in eight lanes (a fold through `f64::min` is one serial chain);
+/// zeros of either sign count as equal.
+pub fn min_max(x: &[f64]) -> (f64, f64) {
+    let (mut lo, mut hi) = ([f64::INFINITY; 8], [f64::NEG_INFINITY; 8]);
+    let chunks = x.chunks_exact(8);
+    let rest = chunks.remainder();
+    for c in chunks {
+        for l in 0..8 {
+            lo[l] = if c[l] < lo[l] { c[l] } else { lo[l] };
+            hi[l] = if c[l] > hi[l] { c[l] } else { hi[l] };
+        }
+    }
+    for (l, &v) in rest.iter().enumerate() {
+        lo[l] = if v < lo[l] { v } else { lo[l] };
+        hi[l] = if v > hi[l] { v } else { hi[l] };
+    }
+    let lo = lo.iter().copied().fold(f64::INFINITY, |a, b| if b < a { b } else { a });
+    let hi = hi.iter().copied().fold(f64::NEG_INFINITY, |a, b| if b > a { b } else { a });
+    (lo, hi)
+}
+
+/// Index of the last largest value of `x` under [`f64::total_cmp`], which is
+/// what `(0..x.len()).max_by(|&a, &b| x[a].total_cmp(&x[b]))` returns (None
+/// for an empty slice): the maximum in eight lanes, then the last index
+/// holding it, instead of one serial comparison chain. Ties at zero (where
+/// the total order tells −0 from +0) and NaNs take the serial path.
+pub fn last_max_index(x: &[f64]) -> Option<usize> {
+    let serial = || (0..x.len()).max_by(|&a, &b| x[a].total_cmp(&x[b]));
+    let mut acc = [f64::NEG_INFINITY; 8];
+    let chunks = x.chunks_exact(8);
+    let rest = chunks.remainder();
+    let mut nan = false;
+    for c in chunks {
+        for l in 0..8 {
+            nan |= c[l].is_nan();
+            acc[l] = if c[l] > acc[l] { c[l] } else { acc[l] };
+        }
+    }
+    for (l, &v) in rest.iter().enumerate() {
+        nan |= v.is_nan();
+        acc[l] = if v > acc[l] { v } else { acc[l] };
+    }
+    let m = acc.iter().copied().fold(f64::NEG_INFINITY, |a, b| if b > a { b } else { a });
+    if nan || m == 0.0 || x.is_empty() {
+        return serial();
+    }
+    // m ≠ ±0 and no NaN: total_cmp's equal maxima are the values == m.
+    x.iter().rposition(|&v| v == m)
+}
+
 /// Median of `values` (reordered in place): the middle value for an odd
 /// count, the mean of the two middle values for an even one; `None` when
 /// empty. Equal to `trimmed_mean(values, 0.5)`, with one selection instead
@@ -82,6 +133,40 @@ mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
+
+    #[test]
+    fn min_max_is_the_fold_through_min_and_max() {
+        let mut rng = ChaCha8Rng::seed_from_u64(10);
+        for n in [0usize, 1, 5, 8, 13, 1391] {
+            let mut x: Vec<f64> = (0..n).map(|_| rng.random_range(-1e3..1e3)).collect();
+            if n > 4 {
+                x[3] = f64::NAN;
+            }
+            let want = x.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
+            assert_eq!(min_max(&x), want, "n {n}");
+        }
+        assert_eq!(min_max(&[f64::NAN]), (f64::INFINITY, f64::NEG_INFINITY));
+    }
+
+    #[test]
+    fn last_max_index_is_max_by_total_cmp() {
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        let serial = |x: &[f64]| (0..x.len()).max_by(|&a, &b| x[a].total_cmp(&x[b]));
+        for n in [0usize, 1, 7, 8, 9, 100, 2500] {
+            for case in 0..6 {
+                // Quantised values tie often; zeros of both signs, NaNs and -inf test the edges.
+                let mut x: Vec<f64> = (0..n).map(|_| (rng.random_range(-20.0..20.0f64)).round() * 0.25).collect();
+                match case {
+                    1 => x.iter_mut().for_each(|v| *v = -v.abs()),
+                    2 => x.iter_mut().for_each(|v| *v = if rng.random_bool(0.5) { 0.0 } else { -0.0 }),
+                    3 if n > 3 => x[n / 2] = f64::NAN,
+                    4 => x.iter_mut().for_each(|v| *v = f64::NEG_INFINITY),
+                    _ => {}
+                }
+                assert_eq!(last_max_index(&x), serial(&x), "n {n} case {case}");
+            }
+        }
+    }
 
     #[test]
     fn trimmed_mean_and_median() {

@@ -29,7 +29,7 @@
 use super::{FrameError, Stage, Work};
 use crate::frame::FrameFlag;
 use crate::detect::cfar::{CfarMethod, CfarPlan};
-use crate::detect::colour::{output_gain_with, NoiseColour, OutputColour};
+use crate::detect::colour::{output_gain_from_acf, taps_acf, NoiseColour, OutputColour};
 use crate::detect::kernels::{local_maxima, local_maxima_above, upcrossings, upcrossings_above, DetectorPlan};
 use crate::detect::empirical::EmpiricalTail;
 use crate::detect::extreme::{ln_upcrossing_prob, threshold_for_report, ReportThreshold};
@@ -116,7 +116,7 @@ struct ColourTerms {
     g: Vec<f64>,
     /// Scratch: the normalised autocorrelation before it is shared.
     rho_v: Vec<f64>,
-    /// Scratch: the taps' autocorrelation.
+    /// The detector taps' autocorrelation (computed when the plan is new).
     acf: Vec<f64>,
 }
 
@@ -143,6 +143,10 @@ impl ColourTerms {
         if self.version == Some(colour.version()) {
             return;
         }
+        // The taps change only with the plan, which resets `version`.
+        if self.version.is_none() || self.acf.len() != taps.len() {
+            taps_acf(taps, &mut self.acf);
+        }
         self.version = Some(colour.version());
         let coloured = colour.rho_into(&mut self.g, &mut self.rho_v);
         if coloured {
@@ -164,14 +168,14 @@ impl ColourTerms {
                 self.rho_cube = 1.0;
                 self.rho_cube_at = 1.0;
             }
-            self.output = output_gain_with(taps, &self.rho_v, &mut self.acf);
+            self.output = output_gain_from_acf(taps, &self.rho_v, &self.acf);
         } else {
             self.rho_v.clear();
             self.tau = 1.0;
             self.rho_sq = 1.0;
             self.rho_cube = 1.0;
             self.rho_cube_at = 1.0;
-            self.output = output_gain_with(taps, &[1.0], &mut self.acf);
+            self.output = output_gain_from_acf(taps, &[1.0], &self.acf);
         }
         match Arc::get_mut(&mut self.rho) {
             Some(r) if r.len() == self.rho_v.len() => r.copy_from_slice(&self.rho_v),
@@ -466,7 +470,10 @@ impl FalseAlarmCounter {
         let trials = (self.cells / d).round() as u64;
         let successes = ((self.observed as f64 / d).round() as u64).min(trials);
         let (lo, hi) = clopper_pearson(successes, trials, 0.95);
-        let (lo_strict, _) = clopper_pearson(successes, trials, EXCESS_CONFIDENCE);
+        // The strict interval's lower end lies below the observed rate: where
+        // that rate is at or below the design it cannot flag, and is not solved.
+        let below = successes as f64 <= p_cell * trials as f64;
+        let lo_strict = if below { 0.0 } else { clopper_pearson(successes, trials, EXCESS_CONFIDENCE).0 };
         FalseAlarmStats {
             expected_per_frame: gate_cells * p_cell,
             observed: self.observed,

@@ -72,6 +72,12 @@ impl Events {
     }
 }
 
+/// Whether the detection at `p` lies from `before` samples before to
+/// `after` samples after a detection judged an event.
+fn reached(peaks: &[f64], verdicts: &[Verdict], p: f64, before: f64, after: f64) -> bool {
+    peaks.iter().zip(verdicts).any(|(&e, v)| matches!(v, Verdict::Event(_)) && p >= e - before && p <= e + after)
+}
+
 impl Stage for Events {
     fn name(&self) -> &'static str {
         "events"
@@ -103,6 +109,24 @@ impl Stage for Events {
         self.verdicts.clear();
         for k in 0..self.peaks.len() {
             self.verdicts.push(test.judge(&w.buffers.stop_v, noise, shape, &self.peaks, k, w.threshold.u));
+        }
+        // An event found in the frame reaches the detections around it (its
+        // tail lasts a good part of the frame): those step 1 passed must
+        // stand out of the event subspace too. Repeated while that finds
+        // more events.
+        let (before, after) = ((TEMPLATE_BEFORE_S / dt).ceil(), (TEMPLATE_AFTER_S / dt).ceil());
+        loop {
+            let mut found = false;
+            for k in 0..self.peaks.len() {
+                if self.verdicts[k] == Verdict::Return && reached(&self.peaks, &self.verdicts, self.peaks[k], before, after) {
+                    let v = test.judge_near_event(&w.buffers.stop_v, noise, shape, &self.peaks, k, w.threshold.u);
+                    found |= matches!(v, Verdict::Event(_));
+                    self.verdicts[k] = v;
+                }
+            }
+            if !found {
+                break;
+            }
         }
         // The frame's event, when it holds one: its detections (the one on
         // the highest sample first) anchor the learned waveform. Where the

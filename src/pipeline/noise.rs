@@ -11,6 +11,7 @@
 
 use super::{FrameError, Stage, Work};
 use crate::frame::FrameFlag;
+use crate::detect::events::{EventTestConfig, GateScreen};
 use crate::detect::gates::{GateCleaner, GatePlacer};
 use crate::detect::noise_model::{NoiseFitter, NoiseTracker};
 use crate::frame::NoiseSummary;
@@ -47,6 +48,9 @@ pub struct Noise {
     /// cleaning starts from it (an event filling most of a gate inflates
     /// even the robust sigma).
     last_sigma: Option<f64>,
+    /// Screens the gates for interference events (scenes with `[events]`
+    /// only), for the current sampling period.
+    screen: Option<(f64, GateScreen)>,
 }
 
 impl Noise {
@@ -62,8 +66,28 @@ impl Noise {
             cleaner: GateCleaner::default(),
             pulse_extent: None,
             last_sigma: None,
+            screen: None,
         }
     }
+}
+
+/// The events screen for sampling period `dt` in `slot` (built when it
+/// changes), where `scene` tests for events.
+fn screen_for<'a>(slot: &'a mut Option<(f64, GateScreen)>, scene: &Scene, dt: f64) -> Option<&'a mut GateScreen> {
+    let ev = &scene.events;
+    if !ev.enabled {
+        return None;
+    }
+    if slot.as_ref().is_none_or(|s| s.0 != dt) {
+        let cfg = EventTestConfig {
+            max_frequency: ev.max_frequency_hz * dt,
+            flank: (ev.flank_s / dt).ceil().max(1.0) as usize,
+            fit_alpha: ev.fit_alpha,
+        };
+        let shape = scene.return_pulse.shape(dt);
+        *slot = Some((dt, GateScreen::new(cfg, &shape, ev.fit_alpha)));
+    }
+    slot.as_mut().map(|s| &mut s.1)
 }
 
 impl Stage for Noise {
@@ -125,7 +149,10 @@ impl Stage for Noise {
                 Some(last) if last > 0.0 => last.min(noise.robust_sigma_v),
                 _ => noise.robust_sigma_v,
             };
-            let kept = self.cleaner.clean(&stop_v, quiet, median, start, dilate, block);
+            // Within a quarter step of a rail counts as clipped (as timing's saturation flag).
+            let margin = 0.25 * w.source.lsb_v;
+            let rails = w.source.clip_v.map(|(lo, hi)| (lo + margin, hi - margin));
+            let kept = self.cleaner.clean(&stop_v, quiet, median, start, dilate, block, rails);
             // Too little left to rest a noise model on (coloured noise whose
             // quiet blocks read low can clip nearly everything): the raw gates.
             let kept_samples: usize = kept.iter().map(|r| r.len()).sum();
@@ -158,6 +185,28 @@ impl Stage for Noise {
             }
         } else {
             noise
+        };
+        // Gate windows holding an interference event's lobes or tail (slow
+        // structure the sample clipping and block test leave in) are left
+        // out, where the scene tests for events: the model is then the
+        // receiver's noise, and so are the colour, the self-check and the
+        // events test's null, which all read these runs.
+        let noise = match screen_for(&mut self.screen, s, w.frame.sample_interval_s) {
+            Some(screen) if noise.samples >= 2 => match screen.screen(&stop_v, noise.mean_v, noise.sigma_v, quiet) {
+                Some(kept) if kept.iter().map(|r| r.len()).sum::<usize>() >= s.noise_gate.min_samples.max(MIN_KEPT) => {
+                    quiet.clear();
+                    quiet.extend_from_slice(kept);
+                    let mut parts: [&[f64]; MAX_RUNS] = [&[]; MAX_RUNS];
+                    let runs = quiet.len().min(MAX_RUNS);
+                    for (p, r) in parts.iter_mut().zip(quiet.iter()) {
+                        *p = &stop_v[r.clone()];
+                    }
+                    let clean = self.fitter.fit(&parts[..runs], s.detector.normality_alpha);
+                    NoiseSummary { contaminated: true, robust_sigma_v: noise.robust_sigma_v, ..clean }
+                }
+                _ => noise,
+            },
+            _ => noise,
         };
         if (noise.samples as usize) < s.noise_gate.min_samples {
             w.report.flags.push(FrameFlag::NoiseGateSmall);

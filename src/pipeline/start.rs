@@ -7,6 +7,7 @@ use super::{FrameError, Stage, Work};
 use crate::frame::FrameFlag;
 use crate::detect::kernels::DetectorPlan;
 use crate::math::select::mad_sigma;
+use crate::math::sum;
 use crate::detect::error_table::ErrorTable;
 use crate::detect::pulse_timing::{time_pulse, mismatch_gap, ShapeFit, TimingInput, MISMATCH_Z};
 use crate::dsp::pulse::Shape;
@@ -76,17 +77,17 @@ impl Stage for Start {
         w.frame.channels[s].volts_into(&mut self.volts);
         let x = &mut self.volts;
         // Keep the reference finite whatever the samples hold.
-        let finite_mean = {
+        if !sum::all_finite(x) {
             let (sum, n) = x.iter().filter(|v| v.is_finite()).fold((0.0, 0usize), |(s, n), v| (s + v, n + 1));
-            if n > 0 { sum / n as f64 } else { 0.0 }
-        };
-        x.iter_mut().filter(|v| !v.is_finite()).for_each(|v| *v = finite_mean);
+            let finite_mean = if n > 0 { sum / n as f64 } else { 0.0 };
+            x.iter_mut().filter(|v| !v.is_finite()).for_each(|v| *v = finite_mean);
+        }
         // The start pulse occupies a small part of the channel: the largest
         // excursion locates the pulse, and the baseline and noise are
         // measured on the samples well away from it (the median and MAD of
         // the whole channel when too few are left).
         let n = x.len();
-        let peak = (0..n).max_by(|&a, &b| x[a].total_cmp(&x[b])).unwrap_or(0);
+        let peak = crate::math::select::last_max_index(x).unwrap_or(0);
         if self.plan.as_ref().is_none_or(|p| p.0 != dt || p.2.len() > n + 1) {
             let pulse = self.pulse_cfg.shape(dt);
             let plan = DetectorPlan::matched_filter(&pulse, n);
@@ -97,15 +98,15 @@ impl Stage for Start {
         let away_lo = (peak as f64 + 2.0 * lo).floor();
         let away_hi = (peak as f64 + 2.0 * hi).ceil();
         // Two passes over the samples away from the pulse (mean, then the
-        // sum of squared deviations): exact in f64 and vectorisable, unlike
-        // a division per sample.
+        // sum of squared deviations), each in the eight-lane order of
+        // `math::sum` (vectorised; no division per sample).
         let a = (away_lo.max(0.0) as usize).min(n);
         let b = ((away_hi + 1.0).max(0.0) as usize).min(n).max(a);
         let (left, right) = (&x[..a], &x[b..]);
         let count = left.len() + right.len();
         let (baseline, sigma) = if count >= 8 {
-            let mean = (left.iter().sum::<f64>() + right.iter().sum::<f64>()) / count as f64;
-            let ss: f64 = left.iter().chain(right).map(|v| (v - mean) * (v - mean)).sum();
+            let mean = (sum::sum(left) + sum::sum(right)) / count as f64;
+            let ss = sum::sum_sq_dev(left, mean) + sum::sum_sq_dev(right, mean);
             (mean, (ss / (count - 1) as f64).sqrt())
         } else {
             self.scratch.clear();

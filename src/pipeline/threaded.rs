@@ -391,6 +391,24 @@ impl Drop for Staged {
     }
 }
 
+/// Each stage's mean time per frame, s (validate first), over `frames`
+/// on one pipeline on the calling thread, the first `warmup` frames left
+/// out (start-up: plans, error tables, the pooled colour settling). The
+/// clock is read around each stage (wall time: a loaded machine charges
+/// its waits to whichever stage was running).
+pub fn stage_times(scene: &Scene, frames: &[Frame], warmup: usize) -> Vec<(&'static str, f64)> {
+    let mut pipeline = Pipeline::new(scene, "stage-times");
+    let names = pipeline.stage_names();
+    let mut costs = vec![0.0; names.len()];
+    let mut timed = 0usize;
+    for (i, f) in frames.iter().enumerate() {
+        let on = i >= warmup;
+        let _ = push_timed(&mut pipeline, f.clone(), on.then_some(costs.as_mut_slice()));
+        timed += on as usize;
+    }
+    names.into_iter().zip(costs).map(|(n, c)| (n, c / timed.max(1) as f64)).collect()
+}
+
 /// One frame through `pipeline` stage by stage, each stage's time added to
 /// `costs` (index 0 validate) when given.
 fn push_timed(pipeline: &mut Pipeline, frame: Frame, mut costs: Option<&mut [f64]>) -> (Vec<Report>, Result<(), FrameError>) {

@@ -120,8 +120,12 @@ fn events_are_not_reported_as_returns() {
     let rows = table(&scene);
     let met = [
         "MultiMode 4 sigma, random position",
+        "Ringing 4 sigma, random position",
+        "Ringing 350 mV, random position",
         "WavePacket 4 sigma, random position",
+        "WavePacket 350 mV, random position",
         "Doublet 4 sigma, random position",
+        "Doublet 350 mV, random position",
         "MultiMode 4 sigma, on the return",
     ];
     for (name, on, dark) in rows.iter().filter(|r| met.contains(&r.0.as_str())) {
@@ -132,18 +136,35 @@ fn events_are_not_reported_as_returns() {
     // Measured (300 frames each): found, spurious, laser-off reports with a
     // return. The laser-off rows of the repeating (zero-phase) events rest
     // on the learned event waveform: 142 of 300 reports carried a lobe of
-    // the event's slow tail before it, 2 now (both while it learns).
+    // the event's slow tail before it, 2 now (both while it learns). The
+    // 350 mV events clip at the generator's bottom rail: a noise gate whose
+    // lobe sat on the rail had its sigma fitted 6-8 times too high (the
+    // cleaning started from the clipped block's zero spread) and lost the
+    // return (WavePacket 294, Doublet 292 found); with the rails known to the
+    // cleaning, 300 and 298. With an event in every frame (laser off), the
+    // events' lobes and tails in the gates taught the noise colour a slow
+    // correlation (the matched filter's output sigma read 1.3-5.6 times the
+    // white one, and step 1's null limit 90-475 where noise gives 28): the
+    // gate windows holding slow structure are now left out of the noise
+    // model (Ringing 4 sigma laser-off 17 -> 10), and a detection within an
+    // event's reach must stand out of the event subspace whatever step 1
+    // says (-> 1; Ringing 350 mV 8 -> 3, MultiMode 4 sigma 8 -> 0). An
+    // event on the return: a detection of the event's lobe closer than the
+    // pulse's width, as a known pulse in step 2, split the return's energy
+    // with it (z -5.6 to 3.8); left out, 285 -> 288 found. Of the 12 still
+    // lost, 9 are reported but timed 3-4 m early (the event's lobe on the
+    // leading edge moves the half-maximum crossing): the 9 spurious.
     let measured: [(&str, usize, usize, usize); 10] = [
-        ("MultiMode 4 sigma, random position", 300, 0, 2),
-        ("MultiMode 350 mV, random position", 297, 2, 11),
-        ("Ringing 4 sigma, random position", 300, 2, 17),
-        ("Ringing 350 mV, random position", 295, 2, 8),
-        ("WavePacket 4 sigma, random position", 300, 0, 3),
-        ("WavePacket 350 mV, random position", 294, 0, 8),
+        ("MultiMode 4 sigma, random position", 300, 0, 0),
+        ("MultiMode 350 mV, random position", 298, 2, 11),
+        ("Ringing 4 sigma, random position", 300, 2, 1),
+        ("Ringing 350 mV, random position", 297, 2, 3),
+        ("WavePacket 4 sigma, random position", 300, 0, 0),
+        ("WavePacket 350 mV, random position", 300, 0, 1),
         ("Doublet 4 sigma, random position", 300, 0, 0),
-        ("Doublet 350 mV, random position", 292, 0, 0),
-        ("MultiMode 4 sigma, on the return", 300, 3, 2),
-        ("MultiMode 350 mV, on the return", 285, 9, 0),
+        ("Doublet 350 mV, random position", 298, 0, 0),
+        ("MultiMode 4 sigma, on the return", 300, 0, 0),
+        ("MultiMode 350 mV, on the return", 288, 9, 0),
     ];
     for (name, found, spurious, dark_reports) in measured {
         let (_, on, dark) = rows.iter().find(|r| r.0 == name).expect("row");

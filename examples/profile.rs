@@ -1,0 +1,213 @@
+//! Per-frame cost of one sensor's pipeline on one core, for profiling
+//! (`valgrind --tool=callgrind`, `perf record`) and quick before/after
+//! timings. Not part of the acceptance: `tofwave bench` is.
+//!
+//! ```text
+//! cargo run --release --example profile -- SCENE METHOD [FRAMES] [PASSES]
+//!   SCENE:  ref | ref-learned | default | lab  (or `peer`: the numpy/scipy
+//!           peer comparison of `tofwave bench` alone, markdown; or `machine`:
+//!           this core's f64 FMA rate and the memory bandwidth yardstick; or
+//!           `limits`: the physical-limit table of `tofwave bench` alone)
+//!   METHOD: ml | peak_parabolic | constant_fraction | scene
+//! ```
+//!
+//! Prints CPU µs/frame of the calling thread (best of PASSES passes over the same frames, frames
+//! cloned before the clock starts) and each stage's µs/frame from the
+//! threaded engine's pilot (frames 200-400, one thread).
+
+
+use tofwave::bench::{reference_frames, reference_scene};
+use tofwave::frame::Frame;
+use tofwave::physics::Simulator;
+use tofwave::pipeline::Pipeline;
+use tofwave::pipeline::learn::{LearnOptions, learn_shapes};
+use tofwave::scene::{Scene, TimingMethod};
+
+fn main() {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let which = args.first().map_or("ref", String::as_str);
+    if which == "machine" {
+        machine();
+        return;
+    }
+    if which == "limits" {
+        // The physical-limit table of `tofwave bench` alone (reference frames, ML).
+        let scene = reference_scene();
+        let (frames, _) = reference_frames(&scene, 20.0, 99, 2000);
+        println!("{}", tofwave::bench::measure_limits(&scene, &frames, 400).markdown());
+        return;
+    }
+    if which == "peer" {
+        // The numpy/scipy peer on the reference frames, as `tofwave bench` runs it.
+        let cfg = tofwave::bench::BenchConfig::default_run();
+        let root = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+        match tofwave::bench::run_peer(&reference_scene(), &cfg, &root, &root) {
+            tofwave::bench::PeerOutcome::Ran(c) => println!("{}", c.markdown()),
+            tofwave::bench::PeerOutcome::Failed(why) => println!("peer did not run: {why}"),
+        }
+        return;
+    }
+    let method = args.get(1).map_or("scene", String::as_str);
+    let count: usize = args.get(2).map_or(2000, |s| s.parse().expect("FRAMES"));
+    let passes: usize = args.get(3).map_or(3, |s| s.parse().expect("PASSES"));
+    let (mut scene, frames) = match which {
+        "ref" | "ref-learned" => {
+            let mut scene = reference_scene();
+            if which == "ref-learned" {
+                let (shots, _) = reference_frames(&scene, 35.0, 7, 400);
+                let opts = LearnOptions { passes: 3, ..Default::default() };
+                scene = learn_shapes(&scene, "bench", &shots, &opts, |_| {}, |_| {}).expect("shapes learn");
+            }
+            let (frames, _) = reference_frames(&scene, 20.0, 99, count);
+            (scene, frames)
+        }
+        "default" | "lab" => {
+            let scene = if which == "lab" {
+                Scene::load(std::path::Path::new("replay-data/scenes/lab-table-10-20.toml")).expect("lab scene")
+            } else {
+                Scene::default_scene()
+            };
+            let sim = Simulator::new(&scene).expect("scene simulates");
+            let frames: Vec<Frame> = (0..count as u64).map(|i| sim.frame(1, i).0).collect();
+            (scene, frames)
+        }
+        other => panic!("unknown scene {other}"),
+    };
+    scene.timing.method = match method {
+        "ml" => TimingMethod::Ml,
+        "peak_parabolic" => TimingMethod::PeakParabolic,
+        "constant_fraction" => TimingMethod::ConstantFraction,
+        "scene" => scene.timing.method,
+        other => panic!("unknown method {other}"),
+    };
+    // Start-up (error tables, cached per process) is not a frame's cost.
+    let mut warm = Pipeline::new(&scene, "bench");
+    let mut out = Vec::new();
+    for f in frames.iter().take(50).cloned() {
+        warm.recycle(&mut out);
+        warm.push(f, &mut out).expect("valid frames");
+    }
+    let mut best = f64::INFINITY;
+    let mut returns = 0;
+    for _ in 0..passes {
+        let (s, r) = timed_pass(&scene, &frames);
+        best = best.min(s);
+        returns = r;
+    }
+    println!("{which} {method}: {:.1} us/frame over {} frames ({returns} returns)", best / frames.len() as f64 * 1e6, frames.len());
+    if std::env::var_os("PROFILE_REPORT").is_some() {
+        let mut p = Pipeline::new(&scene, "bench");
+        let mut out = Vec::new();
+        p.push(frames[0].clone(), &mut out).expect("valid frames");
+        println!("{}", tofwave::pipeline::report_json(&out[0]));
+    }
+    if std::env::var_os("PROFILE_STAGES").is_some() && frames.len() >= 400 {
+        let cut = tofwave::pipeline::threaded::run(&scene, "bench", 2, frames.iter().take(400).cloned(), |_| {});
+        for (name, s) in &cut.stage_s {
+            println!("  {name:>18}: {:7.1} us/frame", s * 1e6);
+        }
+    }
+}
+
+/// One pass over `frames` on a fresh pipeline: (seconds, returns). The
+/// profiler's collection can be limited to this function
+/// (`--toggle-collect=profile::timed_pass`).
+#[inline(never)]
+fn timed_pass(scene: &Scene, frames: &[Frame]) -> (f64, usize) {
+    let mut p = Pipeline::new(scene, "bench");
+    let owned = frames.to_vec();
+    let mut out = Vec::new();
+    let mut returns = 0;
+    let t0 = thread_cpu_s();
+    for f in owned {
+        p.recycle(&mut out);
+        p.push(f, &mut out).expect("valid frames");
+        returns += out.iter().map(|r| r.returns.len()).sum::<usize>();
+    }
+    (thread_cpu_s() - t0, returns)
+}
+
+/// CPU time of the calling thread, s: on a loaded machine wall time counts
+/// the time the thread waited for a core.
+fn thread_cpu_s() -> f64 {
+    #[repr(C)]
+    struct Timespec {
+        tv_sec: i64,
+        tv_nsec: i64,
+    }
+    unsafe extern "C" {
+        fn clock_gettime(clock: i32, tp: *mut Timespec) -> i32;
+    }
+    const CLOCK_THREAD_CPUTIME_ID: i32 = 3;
+    let mut t = Timespec { tv_sec: 0, tv_nsec: 0 };
+    // SAFETY: clock_gettime writes one timespec through a valid pointer.
+    let rc = unsafe { clock_gettime(CLOCK_THREAD_CPUTIME_ID, &mut t) };
+    assert_eq!(rc, 0, "clock_gettime");
+    t.tv_sec as f64 + t.tv_nsec as f64 * 1e-9
+}
+
+/// The machine's yardsticks for the physical-limit table: f64 fused
+/// multiply-adds per second on one core (independent chains, the widest
+/// vectors the CPU has) and the bench's copy / read bandwidth.
+fn machine() {
+    let fma = fma_rate();
+    println!("f64 FMA, one core: {:.2e} FMA/s ({:.1} GFLOP/s)", fma, 2.0 * fma / 1e9);
+    let bw = tofwave::bench::measure_bandwidth(2500, 4096);
+    println!(
+        "copy {:.1} GB/s (read + write), i16 accumulate {:.1} GB/s read (stream {} MB, wall time)",
+        bw.copy_bytes_per_s / 1e9,
+        bw.average_bytes_per_s / 1e9,
+        bw.stream_bytes / 1_000_000
+    );
+}
+
+/// Best of five CPU-timed runs of 64 independent FMA chains.
+fn fma_rate() -> f64 {
+    const ITER: usize = 20_000_000;
+    let mut best = 0.0f64;
+    for _ in 0..5 {
+        let t0 = thread_cpu_s();
+        std::hint::black_box(fma_chains(ITER, std::hint::black_box(1.000_000_1)));
+        let s = thread_cpu_s() - t0;
+        best = best.max((ITER * 64) as f64 / s);
+    }
+    best
+}
+
+fn fma_chains(iter: usize, m: f64) -> f64 {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx512f") && std::arch::is_x86_feature_detected!("fma") {
+            // SAFETY: AVX-512F and FMA checked just above.
+            return unsafe { fma_chains_avx512(iter, m) };
+        }
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+            // SAFETY: AVX2 and FMA checked just above.
+            return unsafe { fma_chains_avx2(iter, m) };
+        }
+    }
+    fma_chains_body(iter, m)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx2,fma")]
+fn fma_chains_avx512(iter: usize, m: f64) -> f64 {
+    fma_chains_body(iter, m)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn fma_chains_avx2(iter: usize, m: f64) -> f64 {
+    fma_chains_body(iter, m)
+}
+
+#[inline(always)]
+fn fma_chains_body(iter: usize, m: f64) -> f64 {
+    let mut acc = [0.5f64; 64];
+    for _ in 0..iter {
+        for a in acc.iter_mut() {
+            *a = a.mul_add(m, 1e-9);
+        }
+    }
+    acc.iter().sum()
+}

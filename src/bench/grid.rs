@@ -97,6 +97,10 @@ pub struct BenchConfig {
     pub reference_snr_db: f64,
     /// Frames pushed through the loopback service.
     pub service_frames: usize,
+    /// Coverage on the simulated lab scene: (frames averaged per report,
+    /// reports) for each run of every timing method; empty leaves the
+    /// section out.
+    pub lab_coverage: Vec<(u32, usize)>,
 }
 
 impl BenchConfig {
@@ -116,6 +120,7 @@ impl BenchConfig {
             reference_frames: 2000,
             reference_snr_db: 20.0,
             service_frames: 4000,
+            lab_coverage: vec![(1, 300), (16, 150), (256, 105)],
         }
     }
 
@@ -149,7 +154,9 @@ impl BenchConfig {
             .sum();
         let grid = per_snr * self.snr_db.len() * variants().len();
         let roc = self.roc_snr_db.len() * self.roc_pfa.len() * self.roc_reports;
-        (grid + roc) as u64
+        // Each lab run calibrates on its own frames first.
+        let lab: usize = self.lab_coverage.iter().map(|&(n, r)| (r + r.clamp(50, 200)) * n as usize).sum::<usize>() * crate::scene::TimingMethod::ALL.len();
+        (grid + roc + lab) as u64
     }
 }
 

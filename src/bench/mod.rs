@@ -8,6 +8,7 @@
 //! pieces are public so that tests can run a tiny grid.
 
 mod cluster;
+mod coverage;
 mod grid;
 mod limits;
 mod membw;
@@ -19,6 +20,7 @@ mod soak;
 mod threads;
 
 pub use cluster::{ClusterCost, measure_cluster_cost};
+pub use coverage::{CoverageCell, LAB_CALIBRATION_RANGE_M, lab_cells};
 pub use grid::{
     BenchConfig, CellStats, RocPoint, SnrSetting, Variant, analytic_crlb_range_m, bench_scene,
     offline_throughput, reference_frames, reference_scene, roc, run_grid, snr_scene, variants,
@@ -132,6 +134,27 @@ pub struct BenchResults {
     pub offline_frames_per_s: f64,
     /// Each stage's time on the reference frames against its physical limit.
     pub limits: Option<Limits>,
+    /// Coverage of the reported sigma on the simulated lab scene (or why
+    /// there is none); `None` when the configuration asks for no runs.
+    pub lab_coverage: Option<Result<Vec<CoverageCell>, String>>,
+}
+
+/// The lab scene the coverage section runs, under the repository root.
+pub const LAB_SCENE: &str = "replay-data/scenes/lab-table-10-20.toml";
+
+/// Every timing method through the lab scene at each of `cfg.lab_coverage`'s
+/// averaging depths.
+fn run_lab_coverage(cfg: &BenchConfig, repo_root: &Path, progress: &indicatif::ProgressBar) -> Result<Vec<CoverageCell>, String> {
+    let path = repo_root.join(LAB_SCENE);
+    let lab = crate::scene::Scene::load(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let mut cells = Vec::new();
+    for (m, &method) in crate::scene::TimingMethod::ALL.iter().enumerate() {
+        for (i, &(n, reports)) in cfg.lab_coverage.iter().enumerate() {
+            let seed = cfg.seed ^ (0x1ab0 + 10 * m as u64 + i as u64);
+            cells.extend(lab_cells(&lab, method, n, reports, seed, &mut || progress.inc(1))?);
+        }
+    }
+    Ok(cells)
 }
 
 /// Runs the whole bench on `base` and writes `report.md`, the CSVs and the
@@ -168,6 +191,11 @@ pub fn run(
         progress.set_message("physical limits");
         let (frames, _) = reference_frames(&reference, cfg.reference_snr_db, 99, cfg.reference_frames.max(2));
         measure_limits(&reference, &frames, (frames.len() / 5).min(400))
+    });
+
+    let lab_coverage = (!cfg.lab_coverage.is_empty()).then(|| {
+        progress.set_message("coverage on the lab scene");
+        run_lab_coverage(cfg, &opts.repo_root, progress)
     });
 
     let peer = if opts.peer {
@@ -209,6 +237,7 @@ pub fn run(
         bandwidth,
         offline_frames_per_s,
         limits,
+        lab_coverage,
     };
     output::write_all(&results, opts, out_dir)?;
     plot::write_all(&results, out_dir)?;

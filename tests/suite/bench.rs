@@ -16,6 +16,7 @@ fn tiny() -> BenchConfig {
         roc_reports: 60,
         reference_frames: 50,
         service_frames: 64,
+        lab_coverage: vec![(1, 20)],
         ..BenchConfig::default_run()
     }
 }
@@ -92,6 +93,12 @@ fn tiny_run_writes_columns_and_ml_is_near_the_crlb() {
         csv_rows(&std::fs::read_to_string(dir.path().join("roc.csv")).unwrap());
     assert_eq!(roc_header, ROC_COLUMNS);
     assert_eq!(roc_rows.len(), 2);
+    // The lab coverage: 5 methods x 6 targets, every target's truth found.
+    let lab = res.lab_coverage.as_ref().expect("asked for").as_ref().expect("lab coverage runs");
+    assert_eq!(lab.len(), 30);
+    assert!(lab.iter().all(|c| c.range_m.is_finite() && c.reports == 20), "{lab:?}");
+    // The strong near targets are detected in every report by every method.
+    assert!(lab.iter().filter(|c| c.range_m < 10.0).all(|c| c.z.len() == 20), "{lab:?}");
 
     let md = std::fs::read_to_string(dir.path().join("report.md")).unwrap();
     for needle in [
@@ -101,6 +108,8 @@ fn tiny_run_writes_columns_and_ml_is_near_the_crlb() {
         "ROC",
         "Coverage of the reported sigma",
         "| method | N | SNR dB | detected | within 1σ |",
+        "Coverage on the simulated lab scene",
+        "| method | N | target m | SNR | detected |",
     ] {
         assert!(md.contains(needle), "report.md lacks {needle:?}");
     }

@@ -241,54 +241,12 @@ fn reported_sigma_covers_the_error_of_averaged_independent_frames() {
     assert!(failures.is_empty(), "{} cells fail:\n{}", failures.len(), failures.join("\n"));
 }
 
-/// The simulator's lab scene (`replay-data/scenes/lab-table-10-20.toml`:
-/// six targets of the source's Table 10.20 along one beam, its table pulses,
-/// band-limited receiver noise), calibrated on separate frames as `tofwave
-/// calibrate` would at the 3.45 m target; one cell per target (its SNR),
-/// with `n` frames averaged per report.
+/// The lab scene's cells through the bench's own code (what `tofwave bench`
+/// prints in its "Coverage on the simulated lab scene" section).
 fn lab_cells(method: TimingMethod, n: u32, reports: u64, seed: u64) -> Vec<Cell> {
-    use tofwave::physics::Simulator;
-    let mut scene = common::load_scene("lab-table-10-20");
-    scene.timing.method = method;
-    scene.averaging.frames = n;
-    let sim = Simulator::new(&scene).expect("lab scene simulates");
-    let run = |scene: &Scene, seed: u64, count: u64| {
-        let mut p = Pipeline::new(scene, "lab");
-        let mut out = Vec::new();
-        let mut truth = Vec::new();
-        for i in 0..count * n as u64 {
-            let (f, t) = sim.frame(seed, i);
-            truth.push(t);
-            p.push(f, &mut out).expect("frame");
-        }
-        (out, truth)
-    };
-    let (cal_reports, _) = run(&scene, seed ^ 0xca11, reports.clamp(50, 200));
-    let cal = tofwave::calibrate::calibrate(&cal_reports, 3.45, &scene, false).expect("calibrates");
-    scene.calibration = cal.file.calibration;
-    let (out, truth) = run(&scene, seed, reports);
-    let targets = scene.simulation.as_ref().expect("a simulation").targets.len();
-    let mut z: Vec<Vec<f64>> = vec![Vec::new(); targets];
-    let mut amplitude_v = vec![0.0; targets];
-    // SNR against the single-shot noise the pipeline measured (the receiver's, through the TIA).
-    let sigma_v = out.iter().map(|r| r.noise.sigma_v).sum::<f64>() / out.len().max(1) as f64 * (n as f64).sqrt();
-    for rep in &out {
-        let group = &truth[rep.seq_first as usize..=rep.seq_last as usize];
-        for (k, z) in z.iter_mut().enumerate() {
-            let Some(t) = group[0].returns.iter().find(|r| r.target == k) else { continue };
-            amplitude_v[k] = t.peak_amplitude_v;
-            let range_m = t.range_m;
-            let hit = rep.returns.iter().min_by(|a, b| (a.range_m - range_m).abs().total_cmp(&(b.range_m - range_m).abs()));
-            // Farther than 1.5 m (10 ns) from the target: not its return.
-            if let Some(ret) = hit.filter(|h| (h.range_m - range_m).abs() < 1.5) {
-                z.push((ret.range_m - range_m) / ret.range_sigma_m);
-            }
-        }
-    }
-    z.into_iter()
-        .zip(amplitude_v)
-        .map(|(z, a)| Cell { snr: a / sigma_v * (n as f64).sqrt(), z, frames: reports as usize })
-        .collect()
+    let lab = common::load_scene("lab-table-10-20");
+    let cells = tofwave::bench::lab_cells(&lab, method, n, reports as usize, seed, &mut || {}).expect("lab coverage runs");
+    cells.into_iter().map(|c| Cell { snr: c.snr, z: c.z, frames: c.reports }).collect()
 }
 
 /// The lab scene, every method, single shot (300 reports), 16 frames averaged

@@ -12,7 +12,7 @@ use crate::detect::error_table::ErrorTable;
 use crate::detect::pulse_timing::{time_pulse, mismatch_gap, ShapeFit, TimingInput, MISMATCH_Z};
 use crate::dsp::pulse::Shape;
 use crate::scene::{Scene, TimingMethod};
-use super::timing::{MismatchSwing, ModelFloor};
+use super::timing::{MismatchSwing, ModelFloor, PhaseDensity};
 use std::sync::Arc;
 
 /// Times the start pulse.
@@ -34,6 +34,9 @@ pub struct Start {
     mismatch: MismatchSwing,
     /// The start shape's error on the pulses it fits.
     floor: ModelFloor,
+    /// The start pulse's sub-sample phase error, from the density of its
+    /// measured phases (the shot is free-running against the sample clock).
+    phase: PhaseDensity,
     volts: Vec<f64>,
     scratch: Vec<f64>,
 }
@@ -53,6 +56,7 @@ impl Start {
             fallback_errors: None,
             mismatch: MismatchSwing::default(),
             floor: ModelFloor::default(),
+            phase: PhaseDensity::default(),
             volts: Vec::new(),
             scratch: Vec::new(),
         }
@@ -166,7 +170,11 @@ impl Stage for Start {
         let fit = ShapeFit::measure(xw, baseline, sigma, pulse, timed.index - a as f64 - pulse.fraction_offset(self.fraction));
         // The shape's error on the pulses it fits (see `ModelFloor`), as
         // learned before this pulse.
-        let floor = self.floor.floor(timed.sigma_samples, timed.amplitude_v / sigma);
+        // Where the start is free-running against the sample clock, the
+        // density of its measured phases shows the same error directly
+        // (see `PhaseDensity`); the two measure one thing, so the larger.
+        let floor = self.floor.floor(timed.sigma_samples, timed.amplitude_v / sigma).max(self.phase.floor());
+        self.phase.update(timed.index);
         let mismatched = fit.mismatched(MISMATCH_Z, 1.0);
         if mismatched {
             // Its typical value is a constant the calibration absorbs; the

@@ -154,7 +154,9 @@ fn learned_shapes_make_the_ml_uncertainty_honest() {
     learned.timing.method = TimingMethod::Ml;
     let mut p = Pipeline::new(&learned, "ml");
     let c = learned.c_medium_m_per_s();
-    let mut per_target: Vec<Vec<(f64, f64)>> = vec![Vec::new(); 6];
+    // Per target: the stop's own error and sigma (the start's taken out of
+    // both), the range error and the reported range sigma, m.
+    let mut per_target: Vec<Vec<(f64, f64, f64, f64)>> = vec![Vec::new(); 6];
     let mut out = Vec::new();
     for i in 0..300 {
         let (f, truth) = sim.frame(22, i);
@@ -171,7 +173,8 @@ fn learned_shapes_make_the_ml_uncertainty_honest() {
             assert!((t.tof_s - x.tof_s).abs() < 20e-9, "a return of no target at {} m", x.range_m);
             // tof = stop - start: the stop's own error is the range error plus the start's.
             let stop_err_m = 0.5 * c * (x.tof_s - t.tof_s + start_err);
-            per_target[t.target].push((stop_err_m, x.range_sigma_m));
+            let stop_sigma_m = (x.range_sigma_m.powi(2) - (0.5 * c * r.t_start_sigma_s).powi(2)).max(0.0).sqrt();
+            per_target[t.target].push((stop_err_m, stop_sigma_m, 0.5 * c * (x.tof_s - t.tof_s), x.range_sigma_m));
         }
     }
     for (k, v) in per_target.iter().enumerate().take(5) {
@@ -179,8 +182,27 @@ fn learned_shapes_make_the_ml_uncertainty_honest() {
         let m = v.iter().map(|a| a.0).sum::<f64>() / 300.0;
         let sd = (v.iter().map(|a| (a.0 - m).powi(2)).sum::<f64>() / 299.0).sqrt();
         let sig = v.iter().map(|a| a.1).sum::<f64>() / 300.0;
-        eprintln!("target {k}: stop-only sd {:.2} cm, mean reported sigma {:.2} cm, ratio {:.2}", sd * 100.0, sig * 100.0, sd / sig);
+        // The range a user reads (stop minus start, both timed): reported
+        // sigma within ±25 % of the sd. The start pulse (short, sampled
+        // about once on its edge) timed with a learned shape has a
+        // sub-sample phase bias of 0-108 ps (truth phase 0.5 worst): its
+        // sigma said 11 ps, its errors scattered 40 ps, and the range sigma
+        // of the 3.45 m target covered 0.63 of the sd until the start's
+        // phase density (`PhaseDensity`) measured it.
+        let mr = v.iter().map(|a| a.2).sum::<f64>() / 300.0;
+        let sd_range = (v.iter().map(|a| (a.2 - mr).powi(2)).sum::<f64>() / 299.0).sqrt();
+        let sig_range = v.iter().map(|a| a.3).sum::<f64>() / 300.0;
+        eprintln!(
+            "target {k}: stop-only sd {:.2} cm, stop sigma {:.2} cm, ratio {:.2}; range sd {:.2} cm, range sigma {:.2} cm, sigma / sd {:.2}",
+            sd * 100.0,
+            sig * 100.0,
+            sd / sig,
+            sd_range * 100.0,
+            sig_range * 100.0,
+            sig_range / sd_range
+        );
         assert!((0.75..=1.35).contains(&(sd / sig)), "target {k}: sd/sigma {}", sd / sig);
+        assert!((0.75..=1.25).contains(&(sig_range / sd_range)), "target {k}: sigma / range sd {}", sig_range / sd_range);
     }
     assert!(per_target[5].is_empty(), "the 20.8 mV return is below a single shot's threshold");
 }

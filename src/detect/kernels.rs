@@ -113,6 +113,26 @@ impl DetectorPlan {
         &self.output
     }
 
+    /// As [`run`](Self::run), but only the outputs at `part` (positions in
+    /// `x`, clamped to it) are computed, each bit for bit what `run` gives
+    /// there; the others are NaN, so that a reader outside `part` cannot go
+    /// unnoticed. Where the correlator cannot compute part of its output
+    /// (the FFT method) every output is computed, as by `run`.
+    pub fn run_part(&mut self, x: &[f64], mean: f64, part: Range<usize>) -> &[f64] {
+        let len = self.len();
+        self.padded.clear();
+        self.padded.resize(self.peak_tap, 0.0);
+        self.padded.extend(x.iter().map(|v| v - mean));
+        self.padded.resize(self.peak_tap + x.len() + (len - 1 - self.peak_tap), 0.0);
+        let part = part.start.min(x.len())..part.end.min(x.len());
+        self.output.clear();
+        self.output.resize(x.len(), f64::NAN);
+        if !self.correlator.correlate_part(&self.padded, &mut self.output, part) {
+            self.correlator.correlate(&self.padded, &mut self.output);
+        }
+        &self.output
+    }
+
     /// After [`run`](Self::run) on an input of `x.len()` samples that has
     /// since changed only at `changed` (sample indices): brings the output up
     /// to date by recomputing just the outputs whose template reads those
@@ -272,6 +292,29 @@ mod tests {
             assert!(part.iter().zip(&full).all(|(a, b)| a.to_bits() == b.to_bits()), "change {s}..{e}");
         }
         assert!(!plan.rerun_part(&x[..300], 0.25, 0..3), "another length needs a full run");
+    }
+
+    #[test]
+    fn a_partial_run_equals_a_full_run_where_computed_and_is_nan_elsewhere() {
+        let pulse = Shape::Parametric(crate::dsp::pulse::Pulse { sigma_rise: 3.0, sigma_fall: 5.0 });
+        let mut plan = DetectorPlan::matched_filter(&pulse, 400);
+        for n in [400, 333, 37] {
+            let x: Vec<f64> = (0..n).map(|i| ((i * 31 % 97) as f64 * 0.13).sin()).collect();
+            let full = plan.run(&x, 0.25).to_vec();
+            for (s, e) in [(0, 3), (100, 140), (n - 9, n), (n - 3, n + 5), (0, n), (7, 7)] {
+                let (s, e) = (s.min(n), e.min(n + 5));
+                let part = plan.run_part(&x, 0.25, s..e).to_vec();
+                assert_eq!(part.len(), n);
+                let fft = plan.correlator.method() == crate::dsp::correlate::CorrelationMethod::Fft;
+                for (k, (a, b)) in part.iter().zip(&full).enumerate() {
+                    if (s..e).contains(&k) || fft {
+                        assert_eq!(a.to_bits(), b.to_bits(), "n {n}, part {s}..{e}, output {k}");
+                    } else {
+                        assert!(a.is_nan(), "n {n}, part {s}..{e}, output {k}");
+                    }
+                }
+            }
+        }
     }
 
     #[test]

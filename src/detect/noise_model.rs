@@ -8,7 +8,7 @@
 
 use crate::frame::NoiseSummary;
 use crate::math::autocov::lag_product_sum;
-use crate::math::quantised::{grid_step, quantised_sigma};
+use crate::math::quantised::{grid_step_within, quantised_sigma_within};
 use crate::math::select::mad_sigma;
 use crate::math::sum;
 
@@ -342,7 +342,7 @@ impl NoiseFitter {
     ///   too. Requires [`MIN_VERDICT_SAMPLES`] samples.
     /// * `robust_sigma_v` of samples on a quantisation grid coarser than
     ///   σ/256 (scope codes) comes from the probit fit of
-    ///   [`quantised_sigma`] instead of the MAD, which such a grid rounds
+    ///   [`quantised_sigma`](crate::math::quantised::quantised_sigma) instead of the MAD, which such a grid rounds
     ///   (an 8-bit scope with a step of 1.3 σ flagged every clean gate).
     ///   With the same bound the verdict is conservative there: the fit
     ///   uses the central samples' distribution and follows s more closely
@@ -422,11 +422,13 @@ impl NoiseFitter {
 
     /// Robust sigma of the samples in `scratch` (reorders them): 1.4826·MAD,
     /// or, for samples on a quantisation grid coarser than σ/[`GRID_FRACTION`]
-    /// (`sigma` is the plain one), the probit fit of [`quantised_sigma`].
+    /// (`sigma` is the plain one), the probit fit of [`quantised_sigma`](crate::math::quantised::quantised_sigma).
     fn robust_sigma(&mut self, sigma: f64) -> f64 {
+        // One min/max pass serves both.
+        let (lo, hi) = crate::math::select::min_max(&self.scratch);
         if sigma > 0.0
-            && let Some(r) = grid_step(&self.scratch, sigma / GRID_FRACTION)
-                .and_then(|q| quantised_sigma(&self.scratch, q, &mut self.levels))
+            && let Some(r) = grid_step_within(&self.scratch, lo, hi, sigma / GRID_FRACTION)
+                .and_then(|q| quantised_sigma_within(&self.scratch, lo, hi, q, &mut self.levels))
         {
             return r;
         }

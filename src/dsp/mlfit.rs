@@ -133,9 +133,13 @@ pub fn fit_delay_with<S: PulseShape + ?Sized>(
     }
     // y = x − baseline, computed on the fly so the fit allocates nothing.
     let yw = Centered { x: xw, baseline };
+    // The shape on the window at the last delay evaluated: the sums after an
+    // accepted step, and the final sums and residual, read the same delay.
+    let mut grid = GridCache::new();
+    let grid = &mut grid;
 
     let mut delay = delay0;
-    let s0 = yw.sums(first, shape, delay0);
+    let s0 = yw.sums(first, shape, delay0, grid);
     let mut cost = if s0.ss > 0.0 {
         -(s0.sy * s0.sy) / s0.ss
     } else {
@@ -159,7 +163,7 @@ pub fn fit_delay_with<S: PulseShape + ?Sized>(
         let steps = (opts.search_half_width / scan_step).floor() as i64;
         for i in (-steps..=steps).filter(|&i| i != 0) {
             let d = delay0 + i as f64 * scan_step;
-            let c = yw.reduced_cost(first, shape, d);
+            let c = yw.reduced_cost(first, shape, d, grid);
             if c < cost {
                 cost = c;
                 delay = d;
@@ -175,7 +179,7 @@ pub fn fit_delay_with<S: PulseShape + ?Sized>(
         iterations = it + 1;
         let s = cached
             .take()
-            .unwrap_or_else(|| yw.sums(first, shape, delay));
+            .unwrap_or_else(|| yw.sums(first, shape, delay, grid));
         if s.ss <= 0.0 {
             break;
         }
@@ -199,7 +203,7 @@ pub fn fit_delay_with<S: PulseShape + ?Sized>(
         // cost is at the level of rounding, so it cannot judge the step.
         let small = 1e-3 * (s.ss / s.gg).sqrt();
         while step.abs() > small {
-            let c = yw.reduced_cost(first, shape, delay + step);
+            let c = yw.reduced_cost(first, shape, delay + step, grid);
             if c <= cost {
                 cost = c;
                 break;
@@ -213,11 +217,11 @@ pub fn fit_delay_with<S: PulseShape + ?Sized>(
         }
     }
 
-    let s = yw.sums(first, shape, delay);
+    let s = yw.sums(first, shape, delay, grid);
     let amplitude = if s.ss > 0.0 { s.sy / s.ss } else { 0.0 };
     // Summed directly: Σy² − 2aΣsy + a²Σs² would cancel catastrophically for a good fit.
     let mut rss = 0.0;
-    yw.on_grid(first, shape, delay, |yk, v, _| {
+    yw.on_grid(first, shape, delay, grid, |yk, v, _| {
         let r = yk - amplitude * v;
         rss += r * r;
     });
@@ -254,12 +258,45 @@ struct Centered<'a> {
 /// Shape values evaluated per call of [`PulseShape::fill_grid`].
 const GRID_CHUNK: usize = 64;
 
+/// Longest window whose shape values [`GridCache`] keeps.
+const GRID_CACHE: usize = 256;
+
+/// The shape's (value, slope) on the window at one delay (its bits), filled
+/// chunk by chunk exactly as [`Centered::on_grid`] fills them, so that a
+/// second pass at the same delay reads the very values.
+struct GridCache {
+    /// Delay (bits) the values are for; None: nothing held.
+    delay: Option<u64>,
+    values: [(f64, f64); GRID_CACHE],
+}
+
+impl GridCache {
+    fn new() -> GridCache {
+        GridCache { delay: None, values: [(0.0, 0.0); GRID_CACHE] }
+    }
+}
+
 impl Centered<'_> {
     /// Calls `f(y_k, value, slope)` for every sample of the window in order,
     /// the shape at `k − delay` evaluated on the grid a chunk at a time (a
-    /// Gaussian half by recurrence, not an exponential per sample).
+    /// Gaussian half by recurrence, not an exponential per sample); a window
+    /// of at most [`GRID_CACHE`] samples keeps the values in `cache` and
+    /// reuses them at the same delay.
     #[inline(always)]
-    fn on_grid<S: PulseShape + ?Sized>(&self, first: usize, shape: &S, delay: f64, mut f: impl FnMut(f64, f64, f64)) {
+    fn on_grid<S: PulseShape + ?Sized>(&self, first: usize, shape: &S, delay: f64, cache: &mut GridCache, mut f: impl FnMut(f64, f64, f64)) {
+        let n = self.x.len();
+        if n <= GRID_CACHE {
+            if cache.delay != Some(delay.to_bits()) {
+                for (c, g) in cache.values[..n].chunks_mut(GRID_CHUNK).enumerate() {
+                    shape.fill_grid((first + c * GRID_CHUNK) as f64 - delay, g);
+                }
+                cache.delay = Some(delay.to_bits());
+            }
+            for (x, &(v, dv)) in self.x.iter().zip(&cache.values[..n]) {
+                f(x - self.baseline, v, dv);
+            }
+            return;
+        }
         let mut grid = [(0.0, 0.0); GRID_CHUNK];
         for (c, xs) in self.x.chunks(GRID_CHUNK).enumerate() {
             let start = c * GRID_CHUNK;
@@ -271,9 +308,9 @@ impl Centered<'_> {
         }
     }
 
-    fn sums<S: PulseShape + ?Sized>(&self, first: usize, shape: &S, delay: f64) -> Sums {
+    fn sums<S: PulseShape + ?Sized>(&self, first: usize, shape: &S, delay: f64, cache: &mut GridCache) -> Sums {
         let mut s = Sums::default();
-        self.on_grid(first, shape, delay, |yk, v, g| {
+        self.on_grid(first, shape, delay, cache, |yk, v, g| {
             s.ss += v * v;
             s.sy += v * yk;
             s.gg += g * g;
@@ -283,9 +320,9 @@ impl Centered<'_> {
         s
     }
 
-    fn reduced_cost<S: PulseShape + ?Sized>(&self, first: usize, shape: &S, delay: f64) -> f64 {
+    fn reduced_cost<S: PulseShape + ?Sized>(&self, first: usize, shape: &S, delay: f64, cache: &mut GridCache) -> f64 {
         let (mut ss, mut sy) = (0.0, 0.0);
-        self.on_grid(first, shape, delay, |yk, v, _| {
+        self.on_grid(first, shape, delay, cache, |yk, v, _| {
             ss += v * v;
             sy += v * yk;
         });

@@ -24,6 +24,12 @@ use super::special::{phi, q_inv};
 /// `x.len()`, nothing allocated.
 pub fn grid_step(x: &[f64], min_step: f64) -> Option<f64> {
     let (lo, hi) = super::select::min_max(x);
+    grid_step_within(x, lo, hi, min_step)
+}
+
+/// [`grid_step`] where the caller has `(lo, hi)`, the
+/// [`min_max`](super::select::min_max) of `x`, at hand.
+pub fn grid_step_within(x: &[f64], lo: f64, hi: f64, min_step: f64) -> Option<f64> {
     if !(hi > lo) || !hi.is_finite() || !lo.is_finite() {
         return None;
     }
@@ -139,6 +145,46 @@ const MAX_BOUNDARIES: usize = 32;
 /// boundaries around one wide code would read its width as the noise's.
 const WINDOWS: [(f64, f64, usize); 4] = [(0.1, 0.9, 3), (0.05, 0.95, 3), (0.02, 0.98, 3), (0.005, 0.995, 2)];
 
+/// Each sample's level on the grid from `lo` with 1/step `inv_step`, at most
+/// `top`, into `index` (`lo` is the least of `x`, and `x` spans at most
+/// [`MAX_LEVELS`] levels; a NaN is level 0); with AVX-512 where the CPU has it (the packed
+/// conversion to integers), the same arithmetic either way.
+fn level_indices(x: &[f64], lo: f64, inv_step: f64, top: i64, index: &mut [u32]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx512f") && std::arch::is_x86_feature_detected!("avx512dq") {
+            // SAFETY: the CPU has AVX-512F and AVX-512DQ (checked above).
+            unsafe { level_indices_avx512(x, lo, inv_step, top, index) };
+            return;
+        }
+    }
+    level_indices_body(x, lo, inv_step, top, index);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2,fma")]
+fn level_indices_avx512(x: &[f64], lo: f64, inv_step: f64, top: i64, index: &mut [u32]) {
+    // The quotient q lies in [0, 2¹⁷) (at most MAX_LEVELS levels), where
+    // truncation is floor (one rounding instruction here) and the integer
+    // floor(q) is the low bits of floor(q) + 2⁵²: packed, no saturating
+    // conversion (which the compiler does element by element).
+    const TWO_52: f64 = 4_503_599_627_370_496.0;
+    let top = top as u32;
+    for (k, &v) in index.iter_mut().zip(x) {
+        let q = (v - lo) * inv_step + 0.499_999_999_999_999_94;
+        *k = ((q.floor() + TWO_52).to_bits() as u32).min(top);
+    }
+}
+
+#[inline(always)]
+fn level_indices_body(x: &[f64], lo: f64, inv_step: f64, top: i64, index: &mut [u32]) {
+    // (A signed conversion: the unsigned one's saturation costs branches.)
+    for (k, &v) in index.iter_mut().zip(x) {
+        // v ≥ lo: the quotient is +0 or more, where `round` is this truncation.
+        *k = (((v - lo) * inv_step + 0.499_999_999_999_999_94) as i64).min(top) as u32;
+    }
+}
+
 /// Robust standard deviation of samples on a grid of step `step` (from
 /// [`grid_step`]): the probit fit described in the module documentation.
 /// `counts` is scratch (one counter per level), kept between calls.
@@ -149,28 +195,36 @@ const WINDOWS: [(f64, f64, usize); 4] = [(0.1, 0.9, 3), (0.05, 0.95, 3), (0.02, 
 /// than two (nearly every sample on one or two levels: the spread is below
 /// what the grid resolves), or the samples span more than [`MAX_LEVELS`] levels.
 pub fn quantised_sigma(x: &[f64], step: f64, counts: &mut Vec<u32>) -> Option<f64> {
+    let (lo, hi) = super::select::min_max(x);
+    quantised_sigma_within(x, lo, hi, step, counts)
+}
+
+/// [`quantised_sigma`] where the caller has `(lo, hi)`, the
+/// [`min_max`](super::select::min_max) of `x`, at hand.
+pub fn quantised_sigma_within(x: &[f64], lo: f64, hi: f64, step: f64, counts: &mut Vec<u32>) -> Option<f64> {
     if x.len() < 2 || !(step > 0.0) {
         return None;
     }
-    let (lo, hi) = super::select::min_max(x);
     let levels = round((hi - lo) / step) + 1.0;
     if !(levels.is_finite() && levels <= MAX_LEVELS as f64) {
         return None;
     }
     let levels = levels as usize;
+    // `counts` holds the level counts and, after them, each sample's level
+    // (scratch): the levels are found in one pass the compiler vectorises
+    // (no store between samples), then counted.
     counts.clear();
-    counts.resize(levels, 0);
+    counts.resize(levels + x.len(), 0);
+    let (counts, index) = counts.split_at_mut(levels);
     // Samples on the grid (as `grid_step` found it) sit next to an integer
     // number of steps from the lowest: the nearest integer is the same
     // whether (v − lo) is divided by the step or multiplied by its inverse.
     let inv_step = 1.0 / step;
-    // (A signed conversion: the unsigned one's saturation costs branches.)
-    let top = levels as i64 - 1;
-    for &v in x {
-        // v ≥ lo: the quotient is +0 or more, where `round` is this truncation.
-        let k = (((v - lo) * inv_step + 0.499_999_999_999_999_94) as i64).min(top);
+    level_indices(x, lo, inv_step, levels as i64 - 1, index);
+    for &k in index.iter() {
         counts[k as usize] += 1;
     }
+    let counts = &*counts;
     let n = x.len() as f64;
     // Boundary k lies between level k and k + 1, at lo + (k + ½)·step; F is
     // the fraction of samples on levels 0..=k. F = cum/n rounded rises with
@@ -244,6 +298,28 @@ mod tests {
     use super::*;
     use rand::SeedableRng;
     use rand_distr::{Distribution, StandardNormal};
+
+    #[test]
+    fn level_indices_are_the_same_on_every_path() {
+        let mut x = quantised(1003, 37.0, 0.5, -3.25, 11);
+        x.push(f64::NAN);
+        let (lo, hi) = crate::math::select::min_max(&x[..1003]);
+        let step = 0.5;
+        let top = (((hi - lo) / step).round()) as i64;
+        let mut want = vec![0u32; x.len()];
+        level_indices_body(&x, lo, 1.0 / step, top, &mut want);
+        let mut got = vec![0u32; x.len()];
+        level_indices(&x, lo, 1.0 / step, top, &mut got);
+        assert_eq!(got, want);
+        // Off the grid too (the truncation, not only exact levels).
+        for v in &mut x[..1003] {
+            *v += 0.2499;
+        }
+        level_indices_body(&x, lo, 1.0 / step, top, &mut want);
+        level_indices(&x, lo, 1.0 / step, top, &mut got);
+        assert_eq!(got, want);
+        assert_eq!(want[1003], 0, "NaN");
+    }
 
     fn quantised(n: usize, sigma: f64, step: f64, offset: f64, seed: u64) -> Vec<f64> {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);

@@ -711,7 +711,12 @@ impl Stage for Detect {
         gate_pos.clear();
         gate_pos.extend(w.buffers.quiet.iter().map(|r| plan.positions_inside(r)).filter(|p| !p.is_empty()));
         w.buffers.detector_output.clear();
-        w.buffers.detector_output.extend(plan.output().iter().map(|v| v * scale));
+        if scale == 1.0 {
+            // v · 1 is v: a plain copy.
+            w.buffers.detector_output.extend_from_slice(plan.output());
+        } else {
+            w.buffers.detector_output.extend(plan.output().iter().map(|v| v * scale));
+        }
         if whitened {
             // Unit σ in whitened units is σ_eff volts-equivalent.
             w.noise.sigma_v = scale;

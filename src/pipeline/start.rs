@@ -141,10 +141,13 @@ impl Stage for Start {
         let a = peak.saturating_sub(reach);
         let b = (peak + reach + 1).min(n);
         let xw = &x[a..b];
-        let y = plan.run(xw, baseline);
         let w_half = (pulse.fwhm() * 0.5).ceil() as usize + 1;
         let lo = (peak - a).saturating_sub(w_half);
         let hi = (peak - a + w_half + 1).min(xw.len());
+        // Of the filter output, the peak search reads lo..hi and the peak
+        // interpolation one sample either side of the peak it finds: only
+        // those outputs are computed (bit for bit; the rest are NaN).
+        let y = plan.run_part(xw, baseline, lo.saturating_sub(1)..hi + 1);
         let y_peak = (lo..hi).max_by(|&i, &j| y[i].total_cmp(&y[j])).unwrap_or(peak - a);
         let input = TimingInput {
             x: xw,

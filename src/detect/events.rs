@@ -148,8 +148,8 @@ pub struct EventTest {
     xw: Vec<f64>,
     /// The span of the model's columns (steps 1 and 2).
     basis: Basis,
-    /// Orthonormal band columns of the nominal window length.
-    band: Option<(usize, Vec<f64>)>,
+    /// Orthonormal band columns per window length (see [`BandCache`]).
+    bands: BandCache,
     /// The step-1 statistic's distribution under noise, learned from the gates.
     null: EmpiricalNull,
     /// Pulse values and slopes at the samples of the detections judged lately.
@@ -278,8 +278,7 @@ impl EventTest {
         let reaches = |p: f64| p + hi >= first as f64 && p + lo <= last as f64;
         self.xw.clear();
         self.xw.extend(x[window.clone()].iter().map(|v| v - noise.mean_v));
-        self.load_band(len, cfg.max_frequency);
-        let band = &self.band.as_ref().expect("loaded").1;
+        let band = self.bands.get(len, cfg.max_frequency);
         let bands = band.len() / len;
         // Step 1: what the event subspace explains of x beyond the pulses
         // (and slopes) of every reaching detection: the energy in the span
@@ -403,7 +402,11 @@ impl EventTest {
         self.col.reserve(len);
         self.xw.reserve(len);
         let f_max = self.cfg().max_frequency;
-        self.load_band(len, f_max);
+        // The lengths a detection's window takes away from the frame's edges
+        // (one more or less than the gates' where its peak is fractional).
+        for l in [len.saturating_sub(1), len, len + 1] {
+            self.bands.get(l, f_max);
+        }
     }
 
     /// Window length of a detection's test, samples (away from the frame's edges).
@@ -433,8 +436,7 @@ impl EventTest {
                 ..EmpiricalNull::default()
             };
         }
-        self.load_band(len, cfg.max_frequency);
-        let band = &self.band.as_ref().expect("loaded").1;
+        let band = self.bands.get(len, cfg.max_frequency);
         let null = &mut self.null;
         for r in runs {
             let mut start = r.start;
@@ -483,23 +485,48 @@ impl EventTest {
         let e1: f64 = self.col.iter().map(|v| v * v).sum();
         10.0 * (e1 / e0).log10()
     }
+}
 
-    /// Makes the band cache hold the orthonormal band columns of a window of
-    /// `len` (they depend on nothing else; built in `q` when the length changes).
-    fn load_band(&mut self, len: usize, f_max: f64) {
-        if self.band.as_ref().is_some_and(|b| b.0 == len) {
-            return;
-        }
-        self.q.clear();
-        band_columns(len, f_max, &mut self.q, &mut self.col);
-        match &mut self.band {
-            Some((l, b)) => {
-                *l = len;
-                b.clear();
-                b.extend_from_slice(&self.q);
+/// Orthonormal band columns ([`band_columns`]) by window length: they depend
+/// on the length and the band only, never on a frame. A frame's windows
+/// come in a few lengths (the nominal one of the gate windows; a
+/// detection's is one longer where its peak is fractional, shorter at the
+/// frame's edges), so each length is built once and kept, the last
+/// [`BandCache::CAPACITY`] of them.
+#[derive(Debug, Clone, Default)]
+struct BandCache {
+    /// (window length, band's highest frequency bits, columns).
+    entries: Vec<(usize, u64, Vec<f64>)>,
+    /// Entry replaced next once full.
+    next: usize,
+    /// Scratch column for building.
+    col: Vec<f64>,
+}
+
+impl BandCache {
+    /// Window lengths kept (a frame uses two or three; edge windows add a few).
+    const CAPACITY: usize = 16;
+
+    /// The columns for windows of `len` and the band up to `f_max` (cycles per sample).
+    fn get(&mut self, len: usize, f_max: f64) -> &[f64] {
+        let key = f_max.to_bits();
+        let at = match self.entries.iter().position(|e| e.0 == len && e.1 == key) {
+            Some(i) => i,
+            None => {
+                let mut cols = Vec::new();
+                band_columns(len, f_max, &mut cols, &mut self.col);
+                if self.entries.len() < Self::CAPACITY {
+                    self.entries.push((len, key, cols));
+                    self.entries.len() - 1
+                } else {
+                    let i = self.next;
+                    self.next = (self.next + 1) % Self::CAPACITY;
+                    self.entries[i] = (len, key, cols);
+                    i
+                }
             }
-            None => self.band = Some((len, self.q.clone())),
-        }
+        };
+        &self.entries[at].2
     }
 }
 

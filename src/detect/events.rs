@@ -331,10 +331,12 @@ impl EventTest {
         // The onset is a jump (a step) or, where the event starts from zero
         // with a finite slope (a corner: a decaying oscillation whose
         // envelope rises from its onset), a ramp; the likelier of the two.
-        let onsets = [Col::Step as fn(usize) -> Col, Col::Ramp];
+        // (Steps at every start; ramps, whose answer changes slowly with
+        // their start, at every fourth and then around the best.)
+        let onsets = [(Col::Step as fn(usize) -> Col, 1), (Col::Ramp, 4)];
         let Some((step, t, onset)) = onsets
             .into_iter()
-            .filter_map(|kind| basis.strongest_onset(band, len, &self.xw, from..to, kind).map(|(s, t)| (s, t, kind(s))))
+            .filter_map(|(kind, stride)| basis.strongest_onset(band, len, &self.xw, from..to, kind, stride).map(|(s, t)| (s, t, kind(s))))
             .max_by(|a, b| a.1.total_cmp(&b.1))
         else {
             return Verdict::ReturnWithEvent(z);
@@ -741,12 +743,26 @@ impl Basis {
     /// The onset column (`kind`: a unit step up or a ramp) starting in
     /// window samples `starts` that stands out most of the span, and how far
     /// (qᵀ(x − μ)/√(qᵀq), q the column off the span). Needs [`Basis::prepare_steps`].
-    fn strongest_onset(&mut self, band: &[f64], len: usize, xw: &[f64], starts: std::ops::Range<usize>, kind: fn(usize) -> Col) -> Option<(usize, f64)> {
+    /// Every `stride`-th start is tried, then the starts within `stride` of
+    /// the best of those (a ramp's answer changes slowly with its start).
+    #[allow(clippy::too_many_arguments)]
+    fn strongest_onset(&mut self, band: &[f64], len: usize, xw: &[f64], starts: std::ops::Range<usize>, kind: fn(usize) -> Col, stride: usize) -> Option<(usize, f64)> {
+        let valid = |s: usize| s > 0 && s < len && starts.contains(&s);
         let mut best: Option<(usize, f64)> = None;
-        for s in starts.filter(|&s| s > 0 && s < len) {
+        for s in starts.clone().step_by(stride.max(1)).filter(|&s| valid(s)) {
             let t = self.answer(band, len, xw, kind(s));
             if best.is_none_or(|b| t > b.1) {
                 best = Some((s, t));
+            }
+        }
+        if stride > 1
+            && let Some((at, _)) = best
+        {
+            for s in (at.saturating_sub(stride - 1)..at + stride).filter(|&s| s != at && valid(s)) {
+                let t = self.answer(band, len, xw, kind(s));
+                if best.is_none_or(|b| t > b.1) {
+                    best = Some((s, t));
+                }
             }
         }
         best

@@ -36,9 +36,11 @@
 //!    same noise units): a return that an event overlaps; else an event.
 //!
 //!    **Events that start with a jump** (a switching transient: noise only
-//!    before the onset, a band-limited ringing from it) answer the pulse at
-//!    their onset as strongly as a return, and step 2 alone passes them. So
-//!    where z passes, the unit step up under the pulse's rise (`c + lo ..= c`,
+//!    before the onset, a band-limited ringing from it) or **with a corner**
+//!    (a decaying oscillation whose envelope rises from zero at its onset:
+//!    zero before, a finite slope after) answer the pulse at their onset as
+//!    strongly as a return, and step 2 alone passes them. So where z passes,
+//!    the unit step up or the ramp under the pulse's rise (`c + lo ..= c`,
 //!    its place searched as the detector searches the pulse's) that stands out
 //!    most of step 2's model, with answer t, is weighed against the pulse. It
 //!    is the event's onset when all three hold: the data ask for it (t ≥ z,
@@ -148,8 +150,8 @@ pub struct EventTest {
     xw: Vec<f64>,
     /// The span of the model's columns (steps 1 and 2).
     basis: Basis,
-    /// Orthonormal band columns of the nominal window length.
-    band: Option<(usize, Vec<f64>)>,
+    /// Orthonormal band columns per window length (see [`BandCache`]).
+    bands: BandCache,
     /// The step-1 statistic's distribution under noise, learned from the gates.
     null: EmpiricalNull,
     /// Pulse values and slopes at the samples of the detections judged lately.
@@ -278,8 +280,7 @@ impl EventTest {
         let reaches = |p: f64| p + hi >= first as f64 && p + lo <= last as f64;
         self.xw.clear();
         self.xw.extend(x[window.clone()].iter().map(|v| v - noise.mean_v));
-        self.load_band(len, cfg.max_frequency);
-        let band = &self.band.as_ref().expect("loaded").1;
+        let band = self.bands.get(len, cfg.max_frequency);
         let bands = band.len() / len;
         // Step 1: what the event subspace explains of x beyond the pulses
         // (and slopes) of every reaching detection: the energy in the span
@@ -327,7 +328,17 @@ impl EventTest {
         // not stand out of the model with it (and its corner) by the threshold.
         basis.prepare_steps(band, len, &self.xw);
         let (from, to) = (((c + lo).ceil().max(0.0) as usize).saturating_sub(first), (c.floor().max(0.0) as usize + 1).saturating_sub(first).min(len));
-        let Some((step, t)) = basis.strongest_step(band, len, &self.xw, from..to) else {
+        // The onset is a jump (a step) or, where the event starts from zero
+        // with a finite slope (a corner: a decaying oscillation whose
+        // envelope rises from its onset), a ramp; the likelier of the two.
+        // (Steps at every start; ramps, whose answer changes slowly with
+        // their start, at every fourth and then around the best.)
+        let onsets = [(Col::Step as fn(usize) -> Col, 1), (Col::Ramp, 4)];
+        let Some((step, t, onset)) = onsets
+            .into_iter()
+            .filter_map(|(kind, stride)| basis.strongest_onset(band, len, &self.xw, from..to, kind, stride).map(|(s, t)| (s, t, kind(s))))
+            .max_by(|a, b| a.1.total_cmp(&b.1))
+        else {
             return Verdict::ReturnWithEvent(z);
         };
         // In the pulse's units (white: the step's answer is compared as the
@@ -337,7 +348,7 @@ impl EventTest {
         // threshold with the pulse (and its slope) in the model too.
         if t < z {
             basis.push_pulse(band, len, &self.xw, self.pulses.get(pulse, c), first);
-            let beyond = basis.answer(band, len, &self.xw, Col::Step(step)) / sigma;
+            let beyond = basis.answer(band, len, &self.xw, onset) / sigma;
             if !(beyond > threshold) {
                 return Verdict::ReturnWithEvent(z);
             }
@@ -356,6 +367,57 @@ impl EventTest {
         let (num, var) = basis.off_span(band, len, &self.xw, self.pulses.get(pulse, c), first, noise.rho, &mut self.col);
         let z2 = if var > 0.0 { num / (sigma * var.sqrt()) } else { 0.0 };
         if z2 > threshold { Verdict::ReturnWithEvent(z2) } else { Verdict::Event(z2) }
+    }
+
+    /// The event under the detection `peaks[which]` over its test's window:
+    /// the event-subspace part of the least-squares fit of x − μ there by
+    /// step 2's model (the event subspace and the other detections' pulses
+    /// with their slopes) plus this detection's pulse and slope. Leaves the
+    /// part in `out` (the window's length) and returns the window's first
+    /// sample (`None`: no window). A return judged
+    /// [`Verdict::ReturnWithEvent`] is timed on x less this part: an event's
+    /// lobe under the return's leading edge otherwise moves its timing point
+    /// (a constant-fraction crossing reads the lobe's rise as the pulse's).
+    pub fn event_under(&mut self, x: &[f64], noise: NoiseTerms, pulse: &Shape, peaks: &[f64], which: usize, out: &mut Vec<f64>) -> Option<usize> {
+        let cfg = self.cfg();
+        let n = x.len();
+        let c = peaks[which];
+        let (lo, hi) = pulse.support();
+        out.clear();
+        let first = ((c + lo).floor() - cfg.flank as f64).max(0.0) as usize;
+        let last = (((c + hi).ceil() + cfg.flank as f64).max(0.0) as usize).min(n.saturating_sub(1));
+        if n == 0 || last <= first {
+            return None;
+        }
+        let len = last + 1 - first;
+        let reaches = |p: f64| p + hi >= first as f64 && p + lo <= last as f64;
+        self.xw.clear();
+        self.xw.extend(x[first..=last].iter().map(|v| v - noise.mean_v));
+        let band = self.bands.get(len, cfg.max_frequency);
+        let apart = pulse.fwhm();
+        let others = peaks.iter().copied().filter(|&p| p != c && reaches(p) && (p - c).abs() >= apart);
+        let basis = &mut self.basis;
+        basis.event_model(band, len, &self.xw, &mut self.pulses, pulse, others, first);
+        basis.push_pulse(band, len, &self.xw, self.pulses.get(pulse, c), first);
+        let k = basis.cols.len();
+        // The fit's coefficients on the kept columns: Lᵀβ = y.
+        basis.g.clear();
+        basis.g.extend_from_slice(&basis.y);
+        for i in (0..k).rev() {
+            let mut s = basis.g[i];
+            for j in i + 1..k {
+                s -= basis.l[j * CAP_COLS + i] * basis.g[j];
+            }
+            basis.g[i] = s / basis.l[i * CAP_COLS + i];
+        }
+        out.resize(len, 0.0);
+        for (i, &col) in basis.cols.iter().enumerate() {
+            if let Col::Band(j) = col {
+                let beta = basis.g[i];
+                out.iter_mut().zip(&band[j * len..(j + 1) * len]).for_each(|(v, b)| *v += beta * b);
+            }
+        }
+        Some(first)
     }
 
     /// The matched filter's answer to the pulse at `p` on x − μ − `event`
@@ -403,7 +465,11 @@ impl EventTest {
         self.col.reserve(len);
         self.xw.reserve(len);
         let f_max = self.cfg().max_frequency;
-        self.load_band(len, f_max);
+        // The lengths a detection's window takes away from the frame's edges
+        // (one more or less than the gates' where its peak is fractional).
+        for l in [len.saturating_sub(1), len, len + 1] {
+            self.bands.get(l, f_max);
+        }
     }
 
     /// Window length of a detection's test, samples (away from the frame's edges).
@@ -433,8 +499,7 @@ impl EventTest {
                 ..EmpiricalNull::default()
             };
         }
-        self.load_band(len, cfg.max_frequency);
-        let band = &self.band.as_ref().expect("loaded").1;
+        let band = self.bands.get(len, cfg.max_frequency);
         let null = &mut self.null;
         for r in runs {
             let mut start = r.start;
@@ -483,23 +548,48 @@ impl EventTest {
         let e1: f64 = self.col.iter().map(|v| v * v).sum();
         10.0 * (e1 / e0).log10()
     }
+}
 
-    /// Makes the band cache hold the orthonormal band columns of a window of
-    /// `len` (they depend on nothing else; built in `q` when the length changes).
-    fn load_band(&mut self, len: usize, f_max: f64) {
-        if self.band.as_ref().is_some_and(|b| b.0 == len) {
-            return;
-        }
-        self.q.clear();
-        band_columns(len, f_max, &mut self.q, &mut self.col);
-        match &mut self.band {
-            Some((l, b)) => {
-                *l = len;
-                b.clear();
-                b.extend_from_slice(&self.q);
+/// Orthonormal band columns ([`band_columns`]) by window length: they depend
+/// on the length and the band only, never on a frame. A frame's windows
+/// come in a few lengths (the nominal one of the gate windows; a
+/// detection's is one longer where its peak is fractional, shorter at the
+/// frame's edges), so each length is built once and kept, the last
+/// [`BandCache::CAPACITY`] of them.
+#[derive(Debug, Clone, Default)]
+struct BandCache {
+    /// (window length, band's highest frequency bits, columns).
+    entries: Vec<(usize, u64, Vec<f64>)>,
+    /// Entry replaced next once full.
+    next: usize,
+    /// Scratch column for building.
+    col: Vec<f64>,
+}
+
+impl BandCache {
+    /// Window lengths kept (a frame uses two or three; edge windows add a few).
+    const CAPACITY: usize = 16;
+
+    /// The columns for windows of `len` and the band up to `f_max` (cycles per sample).
+    fn get(&mut self, len: usize, f_max: f64) -> &[f64] {
+        let key = f_max.to_bits();
+        let at = match self.entries.iter().position(|e| e.0 == len && e.1 == key) {
+            Some(i) => i,
+            None => {
+                let mut cols = Vec::new();
+                band_columns(len, f_max, &mut cols, &mut self.col);
+                if self.entries.len() < Self::CAPACITY {
+                    self.entries.push((len, key, cols));
+                    self.entries.len() - 1
+                } else {
+                    let i = self.next;
+                    self.next = (self.next + 1) % Self::CAPACITY;
+                    self.entries[i] = (len, key, cols);
+                    i
+                }
             }
-            None => self.band = Some((len, self.q.clone())),
-        }
+        };
+        &self.entries[at].2
     }
 }
 
@@ -650,15 +740,29 @@ impl Basis {
         if d2 > DEPENDENT * DEPENDENT * norm2 { (self.with_x(xw, a) - dot(&self.g, &self.y)) / d2.sqrt() } else { 0.0 }
     }
 
-    /// The unit step up starting in window samples `starts` that stands
-    /// out most of the span, and how far (qᵀ(x − μ)/√(qᵀq), q the step off
-    /// the span). Needs [`Basis::prepare_steps`].
-    fn strongest_step(&mut self, band: &[f64], len: usize, xw: &[f64], starts: std::ops::Range<usize>) -> Option<(usize, f64)> {
+    /// The onset column (`kind`: a unit step up or a ramp) starting in
+    /// window samples `starts` that stands out most of the span, and how far
+    /// (qᵀ(x − μ)/√(qᵀq), q the column off the span). Needs [`Basis::prepare_steps`].
+    /// Every `stride`-th start is tried, then the starts within `stride` of
+    /// the best of those (a ramp's answer changes slowly with its start).
+    #[allow(clippy::too_many_arguments)]
+    fn strongest_onset(&mut self, band: &[f64], len: usize, xw: &[f64], starts: std::ops::Range<usize>, kind: fn(usize) -> Col, stride: usize) -> Option<(usize, f64)> {
+        let valid = |s: usize| s > 0 && s < len && starts.contains(&s);
         let mut best: Option<(usize, f64)> = None;
-        for s in starts.filter(|&s| s > 0 && s < len) {
-            let t = self.answer(band, len, xw, Col::Step(s));
+        for s in starts.clone().step_by(stride.max(1)).filter(|&s| valid(s)) {
+            let t = self.answer(band, len, xw, kind(s));
             if best.is_none_or(|b| t > b.1) {
                 best = Some((s, t));
+            }
+        }
+        if stride > 1
+            && let Some((at, _)) = best
+        {
+            for s in (at.saturating_sub(stride - 1)..at + stride).filter(|&s| s != at && valid(s)) {
+                let t = self.answer(band, len, xw, kind(s));
+                if best.is_none_or(|b| t > b.1) {
+                    best = Some((s, t));
+                }
             }
         }
         best

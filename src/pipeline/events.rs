@@ -3,7 +3,10 @@
 //! overlaps. Learns the waveform of events that repeat
 //! (`detect::events::EventTemplate`) and, where it fits a frame, drops the
 //! detections that no longer stand above the threshold once the event is
-//! taken off. Runs between detect and timing when `[events] enabled`.
+//! taken off. A return with an event on it, alone in its window, is timed
+//! on the samples less the event fitted under it
+//! ([`EventTest::event_under`]). Runs between detect and timing when
+//! `[events] enabled`.
 
 use super::{FrameError, Stage, Work};
 use crate::detect::events::{EventTemplate, EventTest, EventTestConfig, NoiseTerms, Verdict};
@@ -21,6 +24,10 @@ const TEMPLATE_BEFORE_S: f64 = 0.5e-6;
 /// prototype's events last a fraction of its 2.5 µs frame).
 const TEMPLATE_AFTER_S: f64 = 2e-6;
 
+/// The event fitted under a return is taken off before timing where it
+/// reaches beyond this many noise sigmas over the pulse's support.
+const UNDER_SIGMAS: f64 = 3.0;
+
 /// The events stage.
 #[derive(Debug)]
 pub struct Events {
@@ -37,6 +44,8 @@ pub struct Events {
     verdicts: Vec<Verdict>,
     /// Sample indices of the frame's event detections (scratch).
     anchors: Vec<usize>,
+    /// The event under a return, over its window (scratch).
+    under: Vec<f64>,
 }
 
 impl Events {
@@ -50,6 +59,7 @@ impl Events {
             peaks: Vec::new(),
             verdicts: Vec::new(),
             anchors: Vec::new(),
+            under: Vec::new(),
         }
     }
 }
@@ -166,6 +176,41 @@ impl Stage for Events {
                 peaks.iter().zip(verdicts).any(|(&p, v)| !matches!(v, Verdict::Event(_)) && j as f64 >= p + lo && j as f64 <= p + hi)
             };
             self.template.add(x, noise.mean_v, &self.anchors, aligned, &kept);
+        }
+        // A return with an event on it (an event found in the frame whose
+        // reach covers it) is timed with the event taken off (its fit over
+        // the return's window): the event's lobe under the leading edge would
+        // otherwise move the timing point. Only where the fitted event under
+        // the pulse stands out of the noise (beyond `UNDER_SIGMAS` σ: a clean
+        // return whose shape misfits step 1 leaves a fit of noise and misfit
+        // there, and is timed as it is), and not where the window holds a
+        // sample at a rail (the fit is not the event there, and the samples
+        // keep their saturation).
+        let rails = w.source.clip_v.map(|(lo, hi)| (lo + 0.25 * w.source.lsb_v, hi - 0.25 * w.source.lsb_v));
+        let (lo, hi) = shape.support();
+        for k in 0..self.peaks.len() {
+            let p = self.peaks[k];
+            if !matches!(self.verdicts[k], Verdict::ReturnWithEvent(_)) || !reached(&self.peaks, &self.verdicts, p, before, after) {
+                continue;
+            }
+            // Nor where another return shares the window: the fit's event
+            // would carry its misfit (shape, place) into both.
+            let near = test.window_len(shape) as f64;
+            if (0..self.peaks.len()).any(|j| j != k && !matches!(self.verdicts[j], Verdict::Event(_)) && (self.peaks[j] - p).abs() < near) {
+                continue;
+            }
+            let x = &mut w.buffers.stop_v;
+            let Some(first) = test.event_under(x, noise, shape, &self.peaks, k, &mut self.under) else { continue };
+            let window = &mut x[first..first + self.under.len()];
+            if rails.is_some_and(|(lo, hi)| window.iter().any(|&v| v <= lo || v >= hi)) {
+                continue;
+            }
+            let support = ((p + lo).ceil().max(first as f64) as usize - first)..(((p + hi).floor() + 1.0).max(0.0) as usize).saturating_sub(first).min(self.under.len());
+            let under = self.under.get(support).map_or(0.0, |u| u.iter().fold(0.0f64, |m, v| m.max(v.abs())));
+            if !(under > UNDER_SIGMAS * noise.sigma_v) {
+                continue;
+            }
+            window.iter_mut().zip(&self.under).for_each(|(v, e)| *v -= e);
         }
         let mut dropped = 0;
         let mut k = 0;

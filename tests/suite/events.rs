@@ -120,6 +120,7 @@ fn events_are_not_reported_as_returns() {
     let rows = table(&scene);
     let met = [
         "MultiMode 4 sigma, random position",
+        "MultiMode 350 mV, random position",
         "Ringing 4 sigma, random position",
         "Ringing 350 mV, random position",
         "WavePacket 4 sigma, random position",
@@ -153,10 +154,23 @@ fn events_are_not_reported_as_returns() {
     // pulse's width, as a known pulse in step 2, split the return's energy
     // with it (z -5.6 to 3.8); left out, 285 -> 288 found. Of the 12 still
     // lost, 9 are reported but timed 3-4 m early (the event's lobe on the
-    // leading edge moves the half-maximum crossing): the 9 spurious.
+    // leading edge moves the half-maximum crossing): the 9 spurious. Such a
+    // return (judged a return with an event, within an event's reach, alone
+    // in its window) is now timed on the samples less the event fitted
+    // under it where that reaches beyond 3 sigma under the pulse: 288 found
+    // and 9 spurious -> 296 and 0. The 4 still lost are frames whose return
+    // and the event's lobe next to it answer the matched filter as one
+    // detection 10-30 samples late, judged an event (3), and one return on
+    // the event's rise that its onset (below) explains.
+    // Laser off, MultiMode 350 mV (random phases): the 11 reports with a
+    // return were each a detection 12-27 samples after the event's onset,
+    // which starts from zero with a finite slope (its envelope rises from
+    // the onset), not with the jump step 2b looked for; step 2b now weighs a
+    // corner (a ramp from the onset) as well: 11 -> 1 (and 2 -> 1 spurious
+    // with the laser on).
     let measured: [(&str, usize, usize, usize); 10] = [
         ("MultiMode 4 sigma, random position", 300, 0, 0),
-        ("MultiMode 350 mV, random position", 298, 2, 11),
+        ("MultiMode 350 mV, random position", 298, 1, 1),
         ("Ringing 4 sigma, random position", 300, 2, 1),
         ("Ringing 350 mV, random position", 297, 2, 3),
         ("WavePacket 4 sigma, random position", 300, 0, 0),
@@ -164,7 +178,7 @@ fn events_are_not_reported_as_returns() {
         ("Doublet 4 sigma, random position", 300, 0, 0),
         ("Doublet 350 mV, random position", 298, 0, 0),
         ("MultiMode 4 sigma, on the return", 300, 0, 0),
-        ("MultiMode 350 mV, on the return", 288, 9, 0),
+        ("MultiMode 350 mV, on the return", 296, 0, 0),
     ];
     for (name, found, spurious, dark_reports) in measured {
         let (_, on, dark) = rows.iter().find(|r| r.0 == name).expect("row");

@@ -333,9 +333,13 @@ impl EventTest {
         // envelope rises from its onset), a ramp; the likelier of the two.
         // (Steps at every start; ramps, whose answer changes slowly with
         // their start, at every fourth and then around the best.)
+        // A pulse the frame's end cuts off shows only its rise, which a
+        // ramp fits as well as the pulse does: there only a step is weighed.
+        let cut = c + hi > (n - 1) as f64;
         let onsets = [(Col::Step as fn(usize) -> Col, 1), (Col::Ramp, 4)];
-        let Some((step, t, onset)) = onsets
-            .into_iter()
+        let Some((step, t, onset)) = onsets[..if cut { 1 } else { 2 }]
+            .iter()
+            .copied()
             .filter_map(|(kind, stride)| basis.strongest_onset(band, len, &self.xw, from..to, kind, stride).map(|(s, t)| (s, t, kind(s))))
             .max_by(|a, b| a.1.total_cmp(&b.1))
         else {

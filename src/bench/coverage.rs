@@ -49,9 +49,13 @@ impl CoverageCell {
         if self.z.is_empty() { f64::NAN } else { self.within(k) as f64 / self.z.len() as f64 }
     }
 
-    /// RMS of the normalised errors (1 for an exact Gaussian sigma).
+    /// RMS of the normalised errors (1 for an exact Gaussian sigma; NaN
+    /// without any).
     pub fn rms_z(&self) -> f64 {
-        (self.z.iter().map(|z| z * z).sum::<f64>() / self.z.len().max(1) as f64).sqrt()
+        if self.z.is_empty() {
+            return f64::NAN;
+        }
+        (self.z.iter().map(|z| z * z).sum::<f64>() / self.z.len() as f64).sqrt()
     }
 
     /// The acceptance: with at least 100 detections, within 2σ in

@@ -401,7 +401,7 @@ pub fn markdown(res: &BenchResults, opts: &RunOptions) -> String {
                 };
                 let _ = writeln!(
                     md,
-                    "| {} | {} | {:.2} | {:.1} | {}/{} | {} | {} | {} | {:.2} | {band} |",
+                    "| {} | {} | {:.2} | {:.1} | {}/{} | {} | {} | {} | {} | {band} |",
                     c.method.name(),
                     c.averaging,
                     c.range_m,
@@ -411,7 +411,7 @@ pub fn markdown(res: &BenchResults, opts: &RunOptions) -> String {
                     f(c.fraction_within(1.0)),
                     f(c.fraction_within(2.0)),
                     f(c.fraction_within(3.0)),
-                    c.rms_z()
+                    if c.rms_z().is_finite() { format!("{:.2}", c.rms_z()) } else { "–".into() }
                 );
             }
         }

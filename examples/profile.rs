@@ -167,47 +167,9 @@ fn fma_rate() -> f64 {
     let mut best = 0.0f64;
     for _ in 0..5 {
         let t0 = thread_cpu_s();
-        std::hint::black_box(fma_chains(ITER, std::hint::black_box(1.000_000_1)));
+        std::hint::black_box(tofwave::bench::fma_chains(ITER, std::hint::black_box(1.000_000_1)));
         let s = thread_cpu_s() - t0;
         best = best.max((ITER * 64) as f64 / s);
     }
     best
-}
-
-fn fma_chains(iter: usize, m: f64) -> f64 {
-    #[cfg(target_arch = "x86_64")]
-    {
-        if std::arch::is_x86_feature_detected!("avx512f") && std::arch::is_x86_feature_detected!("fma") {
-            // SAFETY: AVX-512F and FMA checked just above.
-            return unsafe { fma_chains_avx512(iter, m) };
-        }
-        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
-            // SAFETY: AVX2 and FMA checked just above.
-            return unsafe { fma_chains_avx2(iter, m) };
-        }
-    }
-    fma_chains_body(iter, m)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f,avx2,fma")]
-fn fma_chains_avx512(iter: usize, m: f64) -> f64 {
-    fma_chains_body(iter, m)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-fn fma_chains_avx2(iter: usize, m: f64) -> f64 {
-    fma_chains_body(iter, m)
-}
-
-#[inline(always)]
-fn fma_chains_body(iter: usize, m: f64) -> f64 {
-    let mut acc = [0.5f64; 64];
-    for _ in 0..iter {
-        for a in acc.iter_mut() {
-            *a = a.mul_add(m, 1e-9);
-        }
-    }
-    acc.iter().sum()
 }

@@ -124,7 +124,10 @@ pub fn fma_rate() -> f64 {
     best
 }
 
-fn fma_chains(iter: usize, m: f64) -> f64 {
+/// `iter` rounds of 64 independent fused multiply-add chains (x ← x·m +
+/// 1e-9) in the widest vectors the CPU has; returns their sum (keep it
+/// live). What [`fma_rate`] times.
+pub fn fma_chains(iter: usize, m: f64) -> f64 {
     #[cfg(target_arch = "x86_64")]
     {
         if std::arch::is_x86_feature_detected!("avx512f") && std::arch::is_x86_feature_detected!("fma") {

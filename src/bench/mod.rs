@@ -25,7 +25,7 @@ pub use grid::{
     BenchConfig, CellStats, RocPoint, SnrSetting, Variant, analytic_crlb_range_m, bench_scene,
     offline_throughput, reference_frames, reference_scene, roc, run_grid, snr_scene, variants,
 };
-pub use limits::{Limits, StageLimit, Yardsticks, fma_rate, measure_limits};
+pub use limits::{Limits, StageLimit, Yardsticks, fma_chains, fma_rate, measure_limits};
 pub use membw::{Bandwidth, measure_bandwidth};
 pub use output::{CSV_COLUMNS, ROC_COLUMNS, write_csv, write_roc_csv};
 pub use peer::{FULL_STAGES, MINIMAL_STAGES, PeerComparison, PeerOutcome, PeerRow, REPEATS, run_peer};

@@ -1364,15 +1364,7 @@ mod tests {
         EventTest::new(EventTestConfig { max_frequency: 0.01, flank: 60, fit_alpha: 1e-3 })
     }
 
-    /// Deterministic Gaussian noise (Box–Muller on an LCG).
-    fn noise(n: usize, seed: u64) -> Vec<f64> {
-        let mut s = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-        let mut u = || {
-            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            ((s >> 11) as f64 + 0.5) / (1u64 << 53) as f64
-        };
-        (0..n).map(|_| (-2.0 * u().ln()).sqrt() * (2.0 * std::f64::consts::PI * u()).cos()).collect()
-    }
+    use crate::detect::gates::test_noise as noise;
 
     const WHITE: NoiseTerms<'static> = NoiseTerms { mean_v: 0.0, sigma_v: 1.0, rho: &[] };
 

@@ -424,6 +424,17 @@ impl GateCleaner {
     }
 }
 
+/// Deterministic Gaussian noise for unit tests (Box–Muller on an LCG).
+#[cfg(test)]
+pub(crate) fn test_noise(n: usize, seed: u64) -> Vec<f64> {
+    let mut s = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+    let mut u = || {
+        s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        ((s >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+    };
+    (0..n).map(|_| (-2.0 * u().ln()).sqrt() * (2.0 * std::f64::consts::PI * u()).cos()).collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -466,15 +477,7 @@ mod tests {
         assert!(QuietRanges::from_ranges([0..0, 4..4]).is_empty());
     }
 
-    /// Deterministic Gaussian noise (Box–Muller on an LCG).
-    fn noise(n: usize, seed: u64) -> Vec<f64> {
-        let mut s = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-        let mut u = || {
-            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            ((s >> 11) as f64 + 0.5) / (1u64 << 53) as f64
-        };
-        (0..n).map(|_| (-2.0 * u().ln()).sqrt() * (2.0 * std::f64::consts::PI * u()).cos()).collect()
-    }
+    use super::test_noise as noise;
 
     #[test]
     fn a_lobe_clipped_at_a_rail_is_cleaned_out() {

@@ -90,6 +90,18 @@ fn screen_for<'a>(slot: &'a mut Option<(f64, GateScreen)>, scene: &Scene, dt: f6
     slot.as_mut().map(|s| &mut s.1)
 }
 
+/// Fits the noise model to the runs `quiet` of `x`, as slices on the stack
+/// (a cleaned gate has a few dozen runs at most; any beyond [`MAX_RUNS`]
+/// are left out of the fit).
+fn fit_runs(fitter: &mut NoiseFitter, x: &[f64], quiet: &[std::ops::Range<usize>], normality_alpha: f64) -> NoiseSummary {
+    let mut parts: [&[f64]; MAX_RUNS] = [&[]; MAX_RUNS];
+    let runs = quiet.len().min(MAX_RUNS);
+    for (p, r) in parts.iter_mut().zip(quiet) {
+        *p = &x[r.clone()];
+    }
+    fitter.fit(&parts[..runs], normality_alpha)
+}
+
 impl Stage for Noise {
     fn name(&self) -> &'static str {
         "noise"
@@ -160,14 +172,7 @@ impl Stage for Noise {
                 quiet.clear();
                 quiet.extend_from_slice(kept);
             }
-            // The kept runs as slices, on the stack (a cleaned gate has a few
-            // dozen runs at most; any beyond MAX_RUNS are left out of the fit).
-            let mut parts: [&[f64]; MAX_RUNS] = [&[]; MAX_RUNS];
-            let runs = quiet.len().min(MAX_RUNS);
-            for (p, r) in parts.iter_mut().zip(quiet.iter()) {
-                *p = &stop_v[r.clone()];
-            }
-            let clean = self.fitter.fit(&parts[..runs], s.detector.normality_alpha);
+            let clean = fit_runs(&mut self.fitter, &stop_v, quiet, s.detector.normality_alpha);
             // A cleaning that moves sigma by less than the raw gate's own
             // sampling spread (z at normality_alpha; widened by the gate's
             // colour) found nothing worth dropping (the flag's false alarms,
@@ -196,12 +201,7 @@ impl Stage for Noise {
                 Some(kept) if kept.iter().map(|r| r.len()).sum::<usize>() >= s.noise_gate.min_samples.max(MIN_KEPT) => {
                     quiet.clear();
                     quiet.extend_from_slice(kept);
-                    let mut parts: [&[f64]; MAX_RUNS] = [&[]; MAX_RUNS];
-                    let runs = quiet.len().min(MAX_RUNS);
-                    for (p, r) in parts.iter_mut().zip(quiet.iter()) {
-                        *p = &stop_v[r.clone()];
-                    }
-                    let clean = self.fitter.fit(&parts[..runs], s.detector.normality_alpha);
+                    let clean = fit_runs(&mut self.fitter, &stop_v, quiet, s.detector.normality_alpha);
                     NoiseSummary { contaminated: true, robust_sigma_v: noise.robust_sigma_v, ..clean }
                 }
                 _ => noise,

@@ -450,6 +450,13 @@ impl EventTest {
         if var > 0.0 && noise.sigma_v > 0.0 { num / (noise.sigma_v * var.sqrt()) } else { 0.0 }
     }
 
+    /// Forgets the pulse values cached for the detections judged lately: call
+    /// when the shape the test is given changes.
+    pub fn forget_pulses(&mut self) {
+        self.pulses.keys.clear();
+        self.pulses.vals.clear();
+    }
+
     /// Grows the scratch for windows of `pulse` with up to 16 pulses in one,
     /// so that judging does not allocate.
     pub fn reserve(&mut self, pulse: &Shape) {

@@ -35,3 +35,5 @@ pub mod os_coloured;
 pub mod walk;
 /// Returns against interference events: flank fit and matched subspace test.
 pub mod events;
+/// The sensor's return shape learned from its frames, for the events test.
+pub mod return_shape;

@@ -10,6 +10,7 @@
 
 use super::{FrameError, Stage, Work};
 use crate::detect::events::{EventTemplate, EventTest, EventTestConfig, NoiseTerms, Verdict};
+use crate::detect::return_shape::ReturnShapeLearner;
 use crate::dsp::pulse::Shape;
 use crate::frame::FrameFlag;
 use crate::scene::{EventsConfig, PulseConfig, Scene};
@@ -46,6 +47,10 @@ pub struct Events {
     anchors: Vec<usize>,
     /// The event under a return, over its window (scratch).
     under: Vec<f64>,
+    /// The sensor's return shape, learned from the first frames with strong
+    /// returns and no event; the test takes it where the scene's misfits
+    /// (see [`ReturnShapeLearner`]).
+    learner: Option<ReturnShapeLearner>,
 }
 
 impl Events {
@@ -60,6 +65,7 @@ impl Events {
             verdicts: Vec::new(),
             anchors: Vec::new(),
             under: Vec::new(),
+            learner: None,
         }
     }
 }
@@ -76,6 +82,7 @@ impl Events {
             let shape = self.pulse_cfg.shape(dt);
             let mut test = EventTest::new(cfg);
             test.reserve(&shape);
+            self.learner = Some(ReturnShapeLearner::new(&shape));
             self.plan = Some((dt, shape, test));
             self.template = EventTemplate::new((TEMPLATE_BEFORE_S / dt).ceil() as usize, (TEMPLATE_AFTER_S / dt).ceil() as usize);
         }
@@ -177,6 +184,27 @@ impl Stage for Events {
             };
             self.template.add(x, noise.mean_v, &self.anchors, aligned, &kept);
         }
+        // The sensor's return shape, from frames that hold no event and no
+        // sample at a rail: once learned, the test takes it where the
+        // scene's misfits.
+        let rails = w.source.clip_v.map(|(lo, hi)| (lo + 0.25 * w.source.lsb_v, hi - 0.25 * w.source.lsb_v));
+        if let Some(learner) = self.learner.as_mut().filter(|l| !l.done())
+            && !self.verdicts.iter().any(|v| matches!(v, Verdict::Event(_)))
+            && !rails.is_some_and(|(lo, hi)| x.iter().any(|&v| v <= lo || v >= hi))
+            && learner.offer(x, noise.mean_v, noise.sigma_v, &self.peaks, shape)
+            && let Some(learned) = learner.learned()
+        {
+            tracing::info!(
+                misfit = learned.misfit,
+                frames = learned.frames,
+                returns = learned.returns,
+                fwhm_samples = learned.shape.fwhm(),
+                "events: the scene's return shape misfits the sensor's returns; the events test uses the shape learned from them"
+            );
+            *shape = learned.shape.clone();
+            test.forget_pulses();
+            test.reserve(shape);
+        }
         // A return with an event on it (an event found in the frame whose
         // reach covers it) is timed with the event taken off (its fit over
         // the return's window): the event's lobe under the leading edge would
@@ -186,7 +214,6 @@ impl Stage for Events {
         // there, and is timed as it is), and not where the window holds a
         // sample at a rail (the fit is not the event there, and the samples
         // keep their saturation).
-        let rails = w.source.clip_v.map(|(lo, hi)| (lo + 0.25 * w.source.lsb_v, hi - 0.25 * w.source.lsb_v));
         let (lo, hi) = shape.support();
         for k in 0..self.peaks.len() {
             let p = self.peaks[k];

@@ -35,6 +35,16 @@
 //!    (R: the noise correlation). z above the detector's threshold (in the
 //!    same noise units): a return that an event overlaps; else an event.
 //!
+//!    **A return merged with an event's lobe.** A return and the event's
+//!    lobe beside it can answer the matched filter as one detection between
+//!    the two, where the pulse does not stand out of the event subspace.
+//!    Where the caller can move a detection ([`EventTest::set_search`]), the
+//!    pulse is placed at every sample up to 1.5 widths each side (not where
+//!    another detection stands) and the place that stands out most is a
+//!    return when z there exceeds the threshold plus √(`EVENT_MISFIT`·S)
+//!    (S step 1's band energy in σ²: what the event model's misfit, a
+//!    fraction of the event's energy, could answer at most).
+//!
 //!    **Events that start with a jump** (a switching transient: noise only
 //!    before the onset, a band-limited ringing from it) or **with a corner**
 //!    (a decaying oscillation whose envelope rises from zero at its onset:
@@ -54,6 +64,11 @@
 //!    ringing's slope). The onset is in the model only where the data ask for
 //!    it: as standing columns of the event subspace, steps would absorb most
 //!    of every return's rise.
+//!
+//! **The sensor's shape.** The pulse shape the caller passes is the one the
+//! test fits; the events stage passes the shape learned from the sensor's
+//! own returns where the scene's misfits them ([`crate::detect::return_shape`]):
+//! a misfit of a strong return fills step 1's band energy like an event.
 //!
 //! **Within an event's reach.** Once a detection of the frame is judged an
 //! event, every detection from 0.5 µs before it to 2 µs after it that step
@@ -98,6 +113,12 @@ use crate::math::stats::chi2_upper;
 /// Pulses (each with its slope) whose columns one judgement reserves room
 /// for up front; more still work, with a one-off allocation.
 const MAX_PULSE_COLS: usize = 32;
+
+/// Fraction of an event's band energy (step 1's S) that the event subspace
+/// may leave unexplained (its content above `max_frequency`, its lobes
+/// clipped at a rail): a return sought beside a detection must stand out
+/// beyond what that much misfit could answer.
+const EVENT_MISFIT: f64 = 0.02;
 
 /// Columns whose norm falls below this fraction of their own before
 /// orthogonalisation are dependent on the earlier ones and dropped.
@@ -156,6 +177,10 @@ pub struct EventTest {
     null: EmpiricalNull,
     /// Pulse values and slopes at the samples of the detections judged lately.
     pulses: PulseCache,
+    /// See [`EventTest::set_search`].
+    search: bool,
+    /// See [`EventTest::moved_to`].
+    moved: Option<f64>,
 }
 
 /// The pulse's (value, slope) at every sample of its support, for each peak
@@ -262,6 +287,7 @@ impl EventTest {
     #[allow(clippy::too_many_arguments)]
     fn judge_from(&mut self, x: &[f64], noise: NoiseTerms, pulse: &Shape, peaks: &[f64], which: usize, threshold: f64, near_event: bool) -> Verdict {
         let cfg = self.cfg();
+        self.moved = None;
         let n = x.len();
         let c = peaks[which];
         let (lo, hi) = pulse.support();
@@ -316,9 +342,25 @@ impl EventTest {
         let others = || peaks.iter().copied().filter(|&p| p != c && reaches(p) && (p - c).abs() >= apart);
         basis.event_model(band, len, &self.xw, &mut self.pulses, pulse, others(), first);
         let (num, var) = basis.off_span(band, len, &self.xw, self.pulses.get(pulse, c), first, noise.rho, &mut self.col);
-        let z = if var > 0.0 { num / (sigma * var.sqrt()) } else { 0.0 };
+        let mut z = if var > 0.0 { num / (sigma * var.sqrt()) } else { 0.0 };
+        // A return the event's neighbouring lobe merged into one detection
+        // peaks the matched filter between the two, up to a width and a half
+        // from the return: where the pulse does not stand out at the
+        // detection, it is sought around it (see [`EventTest::set_search`]).
+        let mut at = c;
         if !(z > threshold) {
-            return Verdict::Event(z);
+            // Not where another detection stands for the pulse already.
+            let taken = |p: f64| peaks.iter().any(|&o| o != c && (o - p).abs() < apart);
+            let found = if self.search { basis.search_beside(band, len, &self.xw, &mut self.pulses, pulse, c, first, noise.rho, &mut self.col, taken) } else { None };
+            match found.map(|(num, var, p)| (num / (sigma * var.sqrt()), p)) {
+                // Beyond the threshold and beyond what the event model's
+                // misfit (a fraction EVENT_MISFIT of the event's band energy)
+                // could answer (Cauchy–Schwarz: √(misfit energy)/σ).
+                Some((zz, p)) if zz > threshold + (EVENT_MISFIT * explained).sqrt() / sigma => {
+                    (z, at) = (zz, p);
+                }
+                _ => return Verdict::Event(z),
+            }
         }
         // Step 2b: an event that starts with a jump up (a switching
         // transient) answers the pulse at its onset. The step up under the
@@ -327,7 +369,7 @@ impl EventTest {
         // the data ask for it, nothing comes before it, and the pulse does
         // not stand out of the model with it (and its corner) by the threshold.
         basis.prepare_steps(band, len, &self.xw);
-        let (from, to) = (((c + lo).ceil().max(0.0) as usize).saturating_sub(first), (c.floor().max(0.0) as usize + 1).saturating_sub(first).min(len));
+        let (from, to) = (((at + lo).ceil().max(0.0) as usize).saturating_sub(first), (at.floor().max(0.0) as usize + 1).saturating_sub(first).min(len));
         // The onset is a jump (a step) or, where the event starts from zero
         // with a finite slope (a corner: a decaying oscillation whose
         // envelope rises from its onset), a ramp; the likelier of the two.
@@ -335,7 +377,7 @@ impl EventTest {
         // their start, at every fourth and then around the best.)
         // A pulse the frame's end cuts off shows only its rise, which a
         // ramp fits as well as the pulse does: there only a step is weighed.
-        let cut = c + hi > (n - 1) as f64;
+        let cut = at + hi > (n - 1) as f64;
         let onsets = [(Col::Step as fn(usize) -> Col, 1), (Col::Ramp, 4)];
         let Some((step, t, onset)) = onsets[..if cut { 1 } else { 2 }]
             .iter()
@@ -343,7 +385,7 @@ impl EventTest {
             .filter_map(|(kind, stride)| basis.strongest_onset(band, len, &self.xw, from..to, kind, stride).map(|(s, t)| (s, t, kind(s))))
             .max_by(|a, b| a.1.total_cmp(&b.1))
         else {
-            return Verdict::ReturnWithEvent(z);
+            return self.moved(at, c, z);
         };
         // In the pulse's units (white: the step's answer is compared as the
         // pulse's would be without the noise colour).
@@ -351,10 +393,10 @@ impl EventTest {
         // Asked for: the likelier of the two, or standing out by the
         // threshold with the pulse (and its slope) in the model too.
         if t < z {
-            basis.push_pulse(band, len, &self.xw, self.pulses.get(pulse, c), first);
+            basis.push_pulse(band, len, &self.xw, self.pulses.get(pulse, at), first);
             let beyond = basis.answer(band, len, &self.xw, onset) / sigma;
             if !(beyond > threshold) {
-                return Verdict::ReturnWithEvent(z);
+                return self.moved(at, c, z);
             }
         }
         // An onset has nothing before it: the window up to the step must
@@ -363,14 +405,14 @@ impl EventTest {
         let before = dot(&self.xw[..step], &self.xw[..step]) / (sigma * sigma);
         let rho_sq = rho_squared_sum(noise.rho);
         if before > rho_sq * chi2_upper(step as f64 / rho_sq, cfg.fit_alpha) {
-            return Verdict::ReturnWithEvent(z);
+            return self.moved(at, c, z);
         }
         basis.event_model(band, len, &self.xw, &mut self.pulses, pulse, others(), first);
         basis.push(band, len, &self.xw, Col::Step(step));
         basis.push(band, len, &self.xw, Col::Ramp(step));
-        let (num, var) = basis.off_span(band, len, &self.xw, self.pulses.get(pulse, c), first, noise.rho, &mut self.col);
+        let (num, var) = basis.off_span(band, len, &self.xw, self.pulses.get(pulse, at), first, noise.rho, &mut self.col);
         let z2 = if var > 0.0 { num / (sigma * var.sqrt()) } else { 0.0 };
-        if z2 > threshold { Verdict::ReturnWithEvent(z2) } else { Verdict::Event(z2) }
+        if z2 > threshold { self.moved(at, c, z2) } else { Verdict::Event(z2) }
     }
 
     /// The event under the detection `peaks[which]` over its test's window:
@@ -448,6 +490,30 @@ impl EventTest {
         }
         self.col = col;
         if var > 0.0 && noise.sigma_v > 0.0 { num / (noise.sigma_v * var.sqrt()) } else { 0.0 }
+    }
+
+    /// A return at `at` (judged as the detection at `c`), answering z.
+    fn moved(&mut self, at: f64, c: f64, z: f64) -> Verdict {
+        self.moved = (at != c).then_some(at);
+        Verdict::ReturnWithEvent(z)
+    }
+
+    /// Whether a detection whose pulse does not stand out of step 2's model
+    /// is sought around (up to 1.5 pulse widths each side; off by default):
+    /// a return and an event's neighbouring lobe peak the matched filter as
+    /// one detection between them, and the return stands out of the event
+    /// subspace at its own place only. Found (beyond the threshold and the
+    /// event model's misfit), the verdict is a return there
+    /// ([`moved_to`](Self::moved_to)). For detections whose place the
+    /// caller can move (not for pulses already fitted jointly).
+    pub fn set_search(&mut self, search: bool) {
+        self.search = search;
+    }
+
+    /// Where the last judgement placed the return, when it sought it away
+    /// from the detection (see [`set_search`](Self::set_search)).
+    pub fn moved_to(&self) -> Option<f64> {
+        self.moved
     }
 
     /// Forgets the pulse values cached for the detections judged lately: call
@@ -839,6 +905,30 @@ impl Basis {
             self.vals.extend(values.iter().map(|&(v, s)| if d == 0 { v } else { s }));
             self.push(band, len, xw, Col::Sparse { start, off, len: n });
         }
+    }
+
+    /// The pulse placed at every whole sample from 1.5 pulse widths before
+    /// `c` to as far after it, projected off the span (as
+    /// [`off_span`](Self::off_span)): the place it answers most, as
+    /// (qᵀ(x − μ), qᵀRq, place). Places `taken` by another detection's
+    /// pulse are skipped. None where no place has a pulse off the span.
+    #[allow(clippy::too_many_arguments)]
+    fn search_beside(&mut self, band: &[f64], len: usize, xw: &[f64], pulses: &mut PulseCache, pulse: &Shape, c: f64, first: usize, rho: &[f64], q: &mut Vec<f64>, taken: impl Fn(f64) -> bool) -> Option<(f64, f64, f64)> {
+        let reach = (1.5 * pulse.fwhm()).ceil() as i64;
+        let mark = self.vals.len();
+        let mut best: Option<(f64, f64, f64)> = None;
+        for d in -reach..=reach {
+            let p = c + d as f64;
+            if taken(p) {
+                continue;
+            }
+            let (num, var) = self.off_span(band, len, xw, pulses.get(pulse, p), first, rho, q);
+            self.vals.truncate(mark);
+            if var > 0.0 && best.is_none_or(|b| num / var.sqrt() > b.0 / b.1.sqrt()) {
+                best = Some((num, var, p));
+            }
+        }
+        best
     }
 
     /// The pulse at `c` projected off the span: (qᵀ(x − μ), qᵀRq) with R

@@ -43,6 +43,9 @@ pub struct Events {
     peaks: Vec<f64>,
     /// Verdicts, one per detection (scratch).
     verdicts: Vec<Verdict>,
+    /// Where a detection's return was found beside it (scratch; see
+    /// `EventTest::set_search`).
+    moves: Vec<Option<f64>>,
     /// Sample indices of the frame's event detections (scratch).
     anchors: Vec<usize>,
     /// The event under a return, over its window (scratch).
@@ -63,6 +66,7 @@ impl Events {
             template: EventTemplate::default(),
             peaks: Vec::new(),
             verdicts: Vec::new(),
+            moves: Vec::new(),
             anchors: Vec::new(),
             under: Vec::new(),
             learner: None,
@@ -105,6 +109,7 @@ impl Stage for Events {
         w.buffers.interfered.reserve(MAX_DETECTIONS);
         self.peaks.reserve(MAX_DETECTIONS);
         self.verdicts.reserve(MAX_DETECTIONS);
+        self.moves.reserve(MAX_DETECTIONS);
         self.anchors.reserve(MAX_DETECTIONS);
         let dt = w.frame.sample_interval_s;
         self.refresh(dt);
@@ -123,9 +128,18 @@ impl Stage for Events {
             out.push(w);
             return Ok(());
         }
+        // Detections not yet fitted may be moved to a return beside them
+        // (see `EventTest::set_search`); fitted pulses keep their place.
+        test.set_search(!resolved);
         self.verdicts.clear();
+        self.moves.clear();
         for k in 0..self.peaks.len() {
             self.verdicts.push(test.judge(&w.buffers.stop_v, noise, shape, &self.peaks, k, w.threshold.u));
+            self.moves.push(test.moved_to());
+            // The later judgements see the return at its own place.
+            if let Some(m) = test.moved_to() {
+                self.peaks[k] = m;
+            }
         }
         // An event found in the frame reaches the detections around it (its
         // tail lasts a good part of the frame): those step 1 passed must
@@ -139,6 +153,10 @@ impl Stage for Events {
                     let v = test.judge_near_event(&w.buffers.stop_v, noise, shape, &self.peaks, k, w.threshold.u);
                     found |= matches!(v, Verdict::Event(_));
                     self.verdicts[k] = v;
+                    if let Some(m) = test.moved_to() {
+                        self.moves[k] = Some(m);
+                        self.peaks[k] = m;
+                    }
                 }
             }
             if !found {
@@ -238,6 +256,15 @@ impl Stage for Events {
                 continue;
             }
             window.iter_mut().zip(&self.under).for_each(|(v, e)| *v -= e);
+        }
+        // Returns found beside their detection are timed at their place.
+        if !resolved {
+            let last = w.buffers.stop_v.len().saturating_sub(1) as f64;
+            for (d, m) in w.buffers.detections.iter_mut().zip(&self.moves) {
+                if let Some(m) = m {
+                    *d = m.round().clamp(0.0, last) as usize;
+                }
+            }
         }
         let mut dropped = 0;
         let mut k = 0;

@@ -128,7 +128,9 @@ fn events_are_not_reported_as_returns() {
         "Doublet 4 sigma, random position",
         "Doublet 350 mV, random position",
         "MultiMode 4 sigma, on the return",
+        "MultiMode 350 mV, on the return",
     ];
+    assert_eq!(met.len(), rows.len(), "every row meets the acceptance");
     for (name, on, dark) in rows.iter().filter(|r| met.contains(&r.0.as_str())) {
         assert!(on.found * 100 >= 99 * on.frames, "{name}: {on:?}");
         assert!(on.spurious * 100 <= on.frames, "{name}: {on:?}");
@@ -161,7 +163,13 @@ fn events_are_not_reported_as_returns() {
     // and 9 spurious -> 296 and 0. The 4 still lost are frames whose return
     // and the event's lobe next to it answer the matched filter as one
     // detection 10-30 samples late, judged an event (3), and one return on
-    // the event's rise that its onset (below) explains.
+    // the event's rise that its onset (below) explains. Where step 2 judges
+    // a detection an event, the return is now sought up to 1.5 pulse widths
+    // around it (`EventTest::set_search`: z 36 at the return's place in
+    // those three frames, against 6-8 for event lobes searched the same
+    // way, which the margin for the event model's misfit turns away):
+    // 296 -> 299 found, 1 spurious (Ringing 350 mV: 2 -> 3 spurious,
+    // MultiMode 350 mV at random positions 298 -> 299 found).
     // Laser off, MultiMode 350 mV (random phases): the 11 reports with a
     // return were each a detection 12-27 samples after the event's onset,
     // which starts from zero with a finite slope (its envelope rises from
@@ -170,15 +178,15 @@ fn events_are_not_reported_as_returns() {
     // with the laser on).
     let measured: [(&str, usize, usize, usize); 10] = [
         ("MultiMode 4 sigma, random position", 300, 0, 0),
-        ("MultiMode 350 mV, random position", 298, 1, 1),
+        ("MultiMode 350 mV, random position", 299, 1, 1),
         ("Ringing 4 sigma, random position", 300, 2, 1),
-        ("Ringing 350 mV, random position", 297, 2, 3),
+        ("Ringing 350 mV, random position", 297, 3, 3),
         ("WavePacket 4 sigma, random position", 300, 0, 0),
         ("WavePacket 350 mV, random position", 300, 0, 1),
         ("Doublet 4 sigma, random position", 300, 0, 0),
         ("Doublet 350 mV, random position", 298, 0, 0),
         ("MultiMode 4 sigma, on the return", 300, 0, 0),
-        ("MultiMode 350 mV, on the return", 296, 0, 0),
+        ("MultiMode 350 mV, on the return", 299, 1, 0),
     ];
     for (name, found, spurious, dark_reports) in measured {
         let (_, on, dark) = rows.iter().find(|r| r.0 == name).expect("row");
@@ -374,3 +382,49 @@ fn simulator_interference_through_the_events_stage() {
     let (_, with, without) = &rows[0];
     assert!(100 * without.found.saturating_sub(with.found) <= 3 * with.strong, "{with:?} {without:?}");
 }
+
+/// The default scene on its own simulated frames without events: the
+/// scene's return shape (the prototype's measured 26 ns pulse) is not the
+/// simulated one (9.4 ns), and every strong return's misfit used to fill
+/// step 1's band energy: all 1500 returns of 300 frames were reported with
+/// `interference`. The events stage learns the sensor's shape from the
+/// first frames (`detect::return_shape`); after frame 30, the returns
+/// flagged must be at most 1 % (the test's false-flag rate is fit_alpha =
+/// 1e-3 per detection through step 1 and below step 2's threshold: 0.2 %
+/// measured on 3000 frames; at 0.2 % over 1350 returns, more than 13 has
+/// probability below 1e-6). Returns found: all the strong ones, as with
+/// the events stage off.
+#[test]
+fn the_default_scene_learns_its_sensors_return_shape() {
+    use tofwave::frame::ReturnFlag;
+    use tofwave::physics::Simulator;
+    let mut sim_scene = Scene::default_scene();
+    sim_scene.simulation.as_mut().expect("default simulates").interference_events.as_mut().expect("events").probability_per_frame = 0.0;
+    let sim = Simulator::new(&sim_scene).expect("simulator");
+    let scene = Scene::default_scene();
+    let mut off = scene.clone();
+    off.events.enabled = false;
+    let (mut on_p, mut off_p) = (Pipeline::new(&scene, "clean"), Pipeline::new(&off, "clean"));
+    let (mut flagged, mut returns, mut found_on, mut found_off) = (0, 0, 0, 0);
+    let mut out = Vec::new();
+    for k in 0..300u64 {
+        let (f, _) = sim.frame(5, k);
+        out.clear();
+        on_p.push(f.clone(), &mut out).expect("frame");
+        for rep in &out {
+            found_on += rep.returns.iter().filter(|r| r.amplitude_v >= STRONG_V).count();
+            if k >= 30 {
+                returns += rep.returns.len();
+                flagged += rep.returns.iter().filter(|r| r.flags.contains(ReturnFlag::Interference)).count();
+            }
+        }
+        out.clear();
+        off_p.push(f, &mut out).expect("frame");
+        found_off += out.iter().map(|rep| rep.returns.iter().filter(|r| r.amplitude_v >= STRONG_V).count()).sum::<usize>();
+    }
+    eprintln!("clean default frames: {flagged} of {returns} returns flagged interference after frame 30; strong returns found {found_on} (events stage off: {found_off})");
+    assert!(returns >= 1300, "{returns} returns");
+    assert!(flagged * 100 <= returns, "{flagged} of {returns} returns flagged interference on clean frames");
+    assert_eq!(found_on, found_off, "the events stage lost strong returns on clean frames");
+}
+

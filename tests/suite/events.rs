@@ -226,7 +226,9 @@ fn clean_returns_are_kept() {
 /// to 320 m: pulses in the range gate and in the beyond-range gate) at 0.3 V
 /// (22 sigma). Every pulse inside the range gate is detected, in every
 /// frame; the fitted noise sigma is within 10 % of the true 13.84 mV on
-/// average and within 20 % in every frame (measured: worst 15 %).
+/// average (measured: 0.8 %), scatters from frame to frame by no more than
+/// its sampling spread allows, and is within 20 % in every frame (measured:
+/// worst 15 %, the sampling spread of ~190 kept samples).
 #[test]
 fn pulses_in_the_noise_gates_are_cleaned_out() {
     let scene = Scene::default_scene();
@@ -237,6 +239,7 @@ fn pulses_in_the_noise_gates_are_cleaned_out() {
     let c = cfg.speed_of_light_m_per_s;
     let delay_m = 0.5 * c * cfg.system_delay_s;
     let (mut worst_sigma, mut sum_ratio, mut missed, mut frames) = (0.0f64, 0.0, 0usize, 0usize);
+    let (mut sum_sq, mut kept) = (0.0, 0.0);
     for seq in 0..100 {
         let (frame, _) = frame_with_seed(&cfg, 31, seq);
         out.clear();
@@ -245,6 +248,8 @@ fn pulses_in_the_noise_gates_are_cleaned_out() {
             frames += 1;
             assert!(rep.flags.iter().any(|f| f.name() == "noise_gate_contaminated"), "{:?}", rep.flags);
             worst_sigma = worst_sigma.max((rep.noise.sigma_v / cfg.noise_sigma_v - 1.0).abs());
+            sum_sq += (rep.noise.sigma_v / cfg.noise_sigma_v - 1.0).powi(2);
+            kept += rep.noise.samples as f64;
             sum_ratio += rep.noise.sigma_v / cfg.noise_sigma_v;
             for &r in ranges.iter().filter(|&&r| r + delay_m <= scene.range_gate.max_m) {
                 if !rep.returns.iter().any(|x| (x.range_m - r - delay_m).abs() < SAME_RETURN_M) {
@@ -254,8 +259,18 @@ fn pulses_in_the_noise_gates_are_cleaned_out() {
         }
     }
     let mean_ratio = sum_ratio / frames as f64;
-    eprintln!("{frames} frames: mean sigma/true = {mean_ratio:.3}, worst |sigma/true - 1| = {worst_sigma:.3}, in-gate pulses missed: {missed}");
+    // The frame-to-frame spread is the estimate's own: sigma from n
+    // samples scatters by 1/sqrt(2n) (white noise), 5.1 % for the ~190
+    // samples the cleaning keeps of this frame's gates (the pulses fill the
+    // rest), so a frame 2.6 sd out, 15 %, is to be expected in 100.
+    let (rms, n) = ((sum_sq / frames as f64).sqrt(), kept / frames as f64);
+    eprintln!(
+        "{frames} frames: mean sigma/true = {mean_ratio:.3}, rms |sigma/true - 1| = {rms:.3} (sampling alone: {:.3} from {n:.0} kept samples), worst = {worst_sigma:.3}, in-gate pulses missed: {missed}",
+        (0.5 / n).sqrt()
+    );
     assert!((mean_ratio - 1.0).abs() < 0.10, "{mean_ratio}");
+    // No more than half again the sampling spread (the noise's colour widens it a little).
+    assert!(rms <= 1.5 * (0.5 / n).sqrt(), "rms {rms} from {n} samples");
     assert!(worst_sigma < 0.20, "{worst_sigma}");
     assert_eq!(missed, 0);
 }

@@ -24,6 +24,9 @@ struct Tally {
     spurious: usize,
     reports_with_returns: usize,
     flagged_events: usize,
+    /// Reports whose false-alarm self-check called an excess (the gate's
+    /// crossing rate above the design's 99.8 % interval).
+    excess: usize,
 }
 
 fn expected_range_m(cfg: &GenConfig, t: &GenTruth) -> Vec<f64> {
@@ -47,6 +50,7 @@ fn run(scene: &Scene, cfg: &GenConfig, frames: u64, seed: u64) -> Tally {
             if rep.flags.iter().any(|f| f.name() == "interference_events") {
                 tally.flagged_events += 1;
             }
+            tally.excess += usize::from(rep.false_alarm.excess);
             let mut hit = vec![false; want.len()];
             for r in &rep.returns {
                 match want.iter().position(|w| (r.range_m - w).abs() < SAME_RETURN_M) {
@@ -97,8 +101,8 @@ fn table(scene: &Scene) -> Vec<(String, Tally, Tally)> {
         s.detector.pfa = 1e-3;
         let dark = run(&s, &off, 300, 200 + i as u64);
         eprintln!(
-            "{name:<40} return found {:>3}/{} spurious {:>3} | laser off, event every frame: {:>3}/{} reports with a return",
-            on.found, on.frames, on.spurious, dark.reports_with_returns, dark.frames
+            "{name:<40} return found {:>3}/{} spurious {:>3} | laser off, event every frame: {:>3}/{} reports with a return, {} with a false-alarm excess",
+            on.found, on.frames, on.spurious, dark.reports_with_returns, dark.frames, dark.excess
         );
         rows.push((name, on, dark));
     }
@@ -442,4 +446,3 @@ fn the_default_scene_learns_its_sensors_return_shape() {
     assert!(flagged * 100 <= returns, "{flagged} of {returns} returns flagged interference on clean frames");
     assert_eq!(found_on, found_off, "the events stage lost strong returns on clean frames");
 }
-

@@ -18,7 +18,7 @@
 //! (the colour is a property of the receiver, slow to change) so that a single
 //! short gate does not make the threshold jitter.
 
-use crate::math::autocov::lag_product_sums;
+use crate::math::autocov::{lag_product_sums, lag_sums_short};
 
 /// Pooled autocovariance of noise-gate samples, lags 0..=max_lag.
 #[derive(Debug, Clone)]
@@ -231,8 +231,11 @@ pub fn output_gain_with(taps: &[f64], rho: &[f64], acf: &mut Vec<f64>) -> Output
 /// first): what [`output_gain_from_acf`] reads, kept by a caller whose taps
 /// do not change from frame to frame.
 pub fn taps_acf(taps: &[f64], acf: &mut Vec<f64>) {
+    // Σ_i taps_i·taps_{i+j}, each lag the serial sum in index order,
+    // several lags side by side (see `lag_sums_short`).
     acf.clear();
-    acf.extend((0..taps.len()).map(|j| taps[..taps.len() - j].iter().zip(&taps[j..]).map(|(x, y)| x * y).sum::<f64>()));
+    acf.resize(taps.len(), 0.0);
+    lag_sums_short(taps, acf);
 }
 
 /// [`output_gain`] from the taps' autocorrelation `acf` ([`taps_acf`] of `taps`).

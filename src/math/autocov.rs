@@ -52,6 +52,21 @@ pub fn lag_product_sums(x: &[f64], centre: f64, out: &mut [f64], centred: &mut V
     lag_sums_body::<16>(centred, out);
 }
 
+/// Σ_{i < n−k} d_i·d_{i+k} for every lag `k < out.len()` (`out.len() <=
+/// d.len()`) of data centred already, each bit for bit the serial sum in
+/// index order ([`lag_product_sum`] with centre 0), for a short `d` (a
+/// template or a pulse's slope: tens to hundreds of samples): lags in blocks
+/// of 8, then 4, then alone, where the gate kernel's long blocks would leave
+/// most of their work to their scalar tails. Twice as fast as one serial
+/// sum per lag at 70-100 samples.
+pub fn lag_sums_short(d: &[f64], out: &mut [f64]) {
+    let out_len = out.len().min(d.len());
+    let out = &mut out[..out_len];
+    let k = lag_blocks::<8>(d, out, 0);
+    let k = lag_blocks::<4>(d, out, k);
+    lag_blocks::<1>(d, out, k);
+}
+
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx2")]
 fn lag_sums_avx512(d: &[f64], out: &mut [f64]) {
@@ -336,6 +351,20 @@ mod tests {
                     unsafe { lag_sums_avx512(&centred, &mut o) };
                     assert!(o.iter().zip(&out).all(|(a, b)| a.to_bits() == b.to_bits()), "avx512 n {n} lags {lags}");
                 }
+            }
+        }
+    }
+
+    #[test]
+    fn short_lag_sums_are_the_serial_sums() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        for n in [0usize, 1, 3, 8, 13, 64, 65, 100, 129] {
+            let d: Vec<f64> = (0..n).map(|_| rng.random_range(-2.0..3.0)).collect();
+            let mut out = vec![f64::NAN; n];
+            lag_sums_short(&d, &mut out);
+            for (k, v) in out.iter().enumerate() {
+                let serial = d[..n - k].iter().zip(&d[k..]).map(|(a, b)| a * b).sum::<f64>();
+                assert_eq!(v.to_bits(), serial.to_bits(), "n {n} lag {k}");
             }
         }
     }

@@ -350,16 +350,24 @@ impl Correlator {
     /// `out[k] = Σ_j taps[j] * x[k + j]` for `k` in `0..=x.len() - taps.len()`;
     /// `out` is cleared (and left empty when `x` is shorter than the template).
     pub fn correlate(&mut self, x: &[f64], out: &mut Vec<f64>) {
-        out.clear();
         let l = self.taps.len();
         if x.len() < l || l == 0 {
+            out.clear();
             return;
         }
         let outputs = x.len() - l + 1;
         match &mut self.fft {
-            Some(plan) => plan.run(l, x, out),
+            Some(plan) => {
+                out.clear();
+                plan.run(l, x, out)
+            }
             None => {
-                out.resize(outputs, 0.0);
+                // Every output is written below: a buffer of the right
+                // length (the last frame's) needs no zero fill first.
+                if out.len() != outputs {
+                    out.clear();
+                    out.resize(outputs, 0.0);
+                }
                 correlate_valid(&self.taps, x, out);
             }
         }

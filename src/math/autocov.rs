@@ -93,14 +93,36 @@ fn lag_sums_avx512(d: &[f64], out: &mut [f64]) {
     lag_blocks::<1>(d, out, k);
 }
 
+/// One sample of [`lag_block_avx512`]: the lag window at offset `R` within
+/// the eight samples' five loaded vectors, times the sample, added (a
+/// multiply, then an add) to each accumulator.
+#[cfg(target_arch = "x86_64")]
+macro_rules! lag_sample_avx512 {
+    ($r:literal, $di:expr, $a:ident, $acc:ident) => {{
+        use std::arch::x86_64::{_mm512_add_pd, _mm512_alignr_epi64, _mm512_castpd_si512, _mm512_castsi512_pd, _mm512_mul_pd, _mm512_set1_pd};
+        let di = _mm512_set1_pd($di);
+        for z in 0..4 {
+            // Lanes R..8 of vector z, then 0..R of vector z + 1.
+            let w = if $r == 0 {
+                $a[z]
+            } else {
+                _mm512_castsi512_pd(_mm512_alignr_epi64::<$r>(_mm512_castpd_si512($a[z + 1]), _mm512_castpd_si512($a[z])))
+            };
+            $acc[z] = _mm512_add_pd($acc[z], _mm512_mul_pd(di, w));
+        }
+    }};
+}
+
 /// Lags `k0 .. k0 + 32 + E` (`k0 + 32 + E <= out.len() <= d.len()`): as
 /// [`lag_blocks`] does them, lane by lane the same chain `acc += d_i·d_{i+k}`
 /// in index order (a multiply, then an add), 32 lags in zmm registers and
-/// `E` in scalar registers.
+/// `E` in scalar registers. The lag window of sample i, d[i + k0 ..][..32],
+/// is loaded once per eight samples (five loads, not 32 that nearly all
+/// split a cache line) and shifted into place in registers (`valignq`).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx2")]
 unsafe fn lag_block_avx512<const E: usize>(d: &[f64], out: &mut [f64], k0: usize) {
-    use std::arch::x86_64::{_mm512_add_pd, _mm512_loadu_pd, _mm512_mul_pd, _mm512_set1_pd, _mm512_storeu_pd};
+    use std::arch::x86_64::{_mm512_add_pd, _mm512_loadu_pd, _mm512_maskz_loadu_pd, _mm512_mul_pd, _mm512_set1_pd, _mm512_setzero_pd, _mm512_storeu_pd};
     let n = d.len();
     let b = 32 + E;
     assert!(k0 + b <= out.len() && out.len() <= n);
@@ -108,18 +130,65 @@ unsafe fn lag_block_avx512<const E: usize>(d: &[f64], out: &mut [f64], k0: usize
     let mut acc = [_mm512_set1_pd(-0.0); 4];
     let mut ex = [-0.0f64; E];
     let p = d.as_ptr();
-    for i in 0..all {
-        // SAFETY: i + k0 + 32 + E - 1 < n (i < all), so every read is inside `d`.
-        unsafe {
+    let mut i = 0;
+    // SAFETY (every read): sample i < all reads d[i + k0 + 31 + E] at most,
+    // below n; a group of eight (i + 8 <= all) loads d[i + k0 ..][..39]
+    // (the fifth vector masked to its first seven lanes), below
+    // i + k0 + 39 <= all + k0 + 31 <= n.
+    unsafe {
+        while i + 8 <= all {
+            let q = p.add(i + k0);
+            let mut a = [_mm512_setzero_pd(); 5];
+            for (m, v) in a.iter_mut().enumerate().take(4) {
+                *v = _mm512_loadu_pd(q.add(8 * m));
+            }
+            a[4] = _mm512_maskz_loadu_pd(0x7f, q.add(32));
+            let s = &d[i..i + 8];
+            lag_sample_avx512!(0, s[0], a, acc);
+            for (e, x) in ex.iter_mut().enumerate() {
+                *x += s[0] * *q.add(32 + e);
+            }
+            lag_sample_avx512!(1, s[1], a, acc);
+            for (e, x) in ex.iter_mut().enumerate() {
+                *x += s[1] * *q.add(33 + e);
+            }
+            lag_sample_avx512!(2, s[2], a, acc);
+            for (e, x) in ex.iter_mut().enumerate() {
+                *x += s[2] * *q.add(34 + e);
+            }
+            lag_sample_avx512!(3, s[3], a, acc);
+            for (e, x) in ex.iter_mut().enumerate() {
+                *x += s[3] * *q.add(35 + e);
+            }
+            lag_sample_avx512!(4, s[4], a, acc);
+            for (e, x) in ex.iter_mut().enumerate() {
+                *x += s[4] * *q.add(36 + e);
+            }
+            lag_sample_avx512!(5, s[5], a, acc);
+            for (e, x) in ex.iter_mut().enumerate() {
+                *x += s[5] * *q.add(37 + e);
+            }
+            lag_sample_avx512!(6, s[6], a, acc);
+            for (e, x) in ex.iter_mut().enumerate() {
+                *x += s[6] * *q.add(38 + e);
+            }
+            lag_sample_avx512!(7, s[7], a, acc);
+            for (e, x) in ex.iter_mut().enumerate() {
+                *x += s[7] * *q.add(39 + e);
+            }
+            i += 8;
+        }
+        while i < all {
             let s = *p.add(i);
             let di = _mm512_set1_pd(s);
             let q = p.add(i + k0);
             for (z, a) in acc.iter_mut().enumerate() {
                 *a = _mm512_add_pd(*a, _mm512_mul_pd(di, _mm512_loadu_pd(q.add(8 * z))));
             }
-            for (e, a) in ex.iter_mut().enumerate() {
-                *a += s * *q.add(32 + e);
+            for (e, x) in ex.iter_mut().enumerate() {
+                *x += s * *q.add(32 + e);
             }
+            i += 1;
         }
     }
     let mut lanes = [0.0f64; 35];

@@ -176,11 +176,9 @@ fn decode_i16_avx2(codes: &[i16], g: f64, o: f64, out: &mut Vec<f64>) {
 
 #[inline(always)]
 fn decode_i16_body(codes: &[i16], g: f64, o: f64, out: &mut Vec<f64>) {
-    let start = out.len();
-    out.resize(start + codes.len(), 0.0);
-    for (v, &c) in out[start..].iter_mut().zip(codes) {
-        *v = c as f64 * g + o;
-    }
+    // Written once (no zero fill first).
+    out.reserve(codes.len());
+    out.extend(codes.iter().map(|&c| c as f64 * g + o));
 }
 
 /// One acquisition: one laser shot or one scope trigger.

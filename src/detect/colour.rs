@@ -18,7 +18,7 @@
 //! (the colour is a property of the receiver, slow to change) so that a single
 //! short gate does not make the threshold jitter.
 
-use crate::math::autocov::lag_product_sums;
+use crate::math::autocov::{lag_product_sums, lag_sums_short};
 
 /// Pooled autocovariance of noise-gate samples, lags 0..=max_lag.
 #[derive(Debug, Clone)]
@@ -231,8 +231,11 @@ pub fn output_gain_with(taps: &[f64], rho: &[f64], acf: &mut Vec<f64>) -> Output
 /// first): what [`output_gain_from_acf`] reads, kept by a caller whose taps
 /// do not change from frame to frame.
 pub fn taps_acf(taps: &[f64], acf: &mut Vec<f64>) {
+    // Σ_i taps_i·taps_{i+j}, each lag the serial sum in index order,
+    // several lags side by side (see `lag_sums_short`).
     acf.clear();
-    acf.extend((0..taps.len()).map(|j| taps[..taps.len() - j].iter().zip(&taps[j..]).map(|(x, y)| x * y).sum::<f64>()));
+    acf.resize(taps.len(), 0.0);
+    lag_sums_short(taps, acf);
 }
 
 /// [`output_gain`] from the taps' autocorrelation `acf` ([`taps_acf`] of `taps`).
@@ -240,11 +243,14 @@ pub fn output_gain_from_acf(taps: &[f64], rho: &[f64], acf: &[f64]) -> OutputCol
     let len = taps.len() as isize;
     let a = |j: isize| -> f64 { acf.get(j.unsigned_abs()).copied().unwrap_or(0.0) };
     let kmax = (rho.len() as isize - 1).min(len);
-    let r = |m: isize| -> f64 {
-        (-kmax..=kmax)
-            .map(|k| rho[k.unsigned_abs()] * a(m - k))
-            .sum::<f64>()
-    };
+    // r(0) and r(1) side by side: two chains of adds, each the serial sum
+    // over k in order (as `Iterator::sum`, from −0.0), in one loop.
+    let (mut r0, mut r1) = (-0.0f64, -0.0f64);
+    for k in -kmax..=kmax {
+        let rk = rho[k.unsigned_abs()];
+        r0 += rk * a(-k);
+        r1 += rk * a(1 - k);
+    }
     let white = || {
         let e: f64 = taps.iter().map(|t| t * t).sum();
         OutputColour {
@@ -252,13 +258,12 @@ pub fn output_gain_from_acf(taps: &[f64], rho: &[f64], acf: &[f64]) -> OutputCol
             rho1: if e > 0.0 { a(1) / e } else { 0.0 },
         }
     };
-    let r0 = r(0);
     if !(r0 > 0.0) || !r0.is_finite() {
         return white();
     }
     OutputColour {
         variance_gain: r0,
-        rho1: (r(1) / r0).clamp(-1.0, 1.0),
+        rho1: (r1 / r0).clamp(-1.0, 1.0),
     }
 }
 
@@ -271,6 +276,23 @@ mod tests {
     fn unit(taps: &[f64]) -> Vec<f64> {
         let e = taps.iter().map(|t| t * t).sum::<f64>().sqrt();
         taps.iter().map(|t| t / e).collect()
+    }
+
+    #[test]
+    fn output_gain_is_the_serial_sums_bit_for_bit() {
+        // r(m) = Σ_k ρ(|k|) A(m − k), k from −kmax to kmax, one serial sum each.
+        for (len, lags) in [(1usize, 1usize), (5, 3), (64, 65), (64, 20), (9, 40)] {
+            let h = unit(&(0..len).map(|i| 1.0 + ((i * 7) % 5) as f64 * 0.3).collect::<Vec<_>>());
+            let rho: Vec<f64> = (0..lags).map(|k| 0.93f64.powi(k as i32) * if k % 3 == 2 { -0.5 } else { 1.0 }).collect();
+            let mut acf = Vec::new();
+            taps_acf(&h, &mut acf);
+            let a = |j: isize| acf.get(j.unsigned_abs()).copied().unwrap_or(0.0);
+            let kmax = (rho.len() as isize - 1).min(len as isize);
+            let r = |m: isize| (-kmax..=kmax).map(|k| rho[k.unsigned_abs()] * a(m - k)).sum::<f64>();
+            let c = output_gain_from_acf(&h, &rho, &acf);
+            assert_eq!(c.variance_gain.to_bits(), r(0).to_bits(), "len {len} lags {lags}");
+            assert_eq!(c.rho1.to_bits(), (r(1) / r(0)).clamp(-1.0, 1.0).to_bits(), "len {len} lags {lags}");
+        }
     }
 
     #[test]

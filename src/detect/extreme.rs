@@ -52,8 +52,43 @@ pub struct ReportThreshold {
     pub cells_effective: f64,
 }
 
+/// tan θ at the Simpson nodes of [0, `upper`] (θ = i·upper/intervals; the
+/// last node is `upper` itself), as [`ln_owen_integral`] evaluates them: one
+/// threshold solve evaluates the integral at every step of its root search
+/// on the same interval (the lag-1 correlation sets it), so the tangents are
+/// taken once per solve instead of once per step (the same values: the
+/// integral is bit for bit the same).
+struct TanGrid {
+    upper: f64,
+    tan: [f64; SIMPSON_INTERVALS + 1],
+}
+
+impl TanGrid {
+    fn new(upper: f64) -> TanGrid {
+        let step = upper / SIMPSON_INTERVALS as f64;
+        let mut tan = [0.0; SIMPSON_INTERVALS + 1];
+        tan[0] = 0.0f64.tan();
+        for (i, t) in tan.iter_mut().enumerate().take(SIMPSON_INTERVALS).skip(1) {
+            *t = (i as f64 * step).tan();
+        }
+        tan[SIMPSON_INTERVALS] = upper.tan();
+        TanGrid { upper, tan }
+    }
+
+    /// The grid for the integral of [`ln_upcrossing_prob`] at `rho1` when
+    /// it is not cut short by h (None where it is empty).
+    fn for_rho1(rho1: f64) -> Option<TanGrid> {
+        let rho = rho1.clamp(-1.0, 1.0);
+        if !(rho < 1.0) {
+            return None;
+        }
+        let theta_max = ((1.0 - rho) / (1.0 + rho)).sqrt().atan();
+        (theta_max > 0.0).then(|| TanGrid::new(theta_max))
+    }
+}
+
 /// ln ∫₀^{atan a} exp(−h² tan²θ/2) dθ for h ≥ 0, a ≥ 0 (a = ∞ allowed).
-fn ln_owen_integral(h: f64, a: f64) -> f64 {
+fn ln_owen_integral(h: f64, a: f64, grid: Option<&TanGrid>) -> f64 {
     let theta_max = a.atan();
     if theta_max <= 0.0 {
         return f64::NEG_INFINITY;
@@ -65,11 +100,20 @@ fn ln_owen_integral(h: f64, a: f64) -> f64 {
         theta_max
     };
     let hh = 0.5 * h * h;
+    let step = upper / SIMPSON_INTERVALS as f64;
+    if let Some(g) = grid.filter(|g| g.upper.to_bits() == upper.to_bits()) {
+        let f = |tt: f64| (-hh * tt * tt).exp();
+        let mut sum = f(g.tan[0]) + f(g.tan[SIMPSON_INTERVALS]);
+        for i in 1..SIMPSON_INTERVALS {
+            let w = if i % 2 == 1 { 4.0 } else { 2.0 };
+            sum += w * f(g.tan[i]);
+        }
+        return (sum * step / 3.0).ln();
+    }
     let f = |t: f64| {
         let tt = t.tan();
         (-hh * tt * tt).exp()
     };
-    let step = upper / SIMPSON_INTERVALS as f64;
     let mut sum = f(0.0) + f(upper);
     for i in 1..SIMPSON_INTERVALS {
         let w = if i % 2 == 1 { 4.0 } else { 2.0 };
@@ -81,6 +125,12 @@ fn ln_owen_integral(h: f64, a: f64) -> f64 {
 /// ln p_up(u) = ln P(X_k ≤ u, X_{k+1} > u) for a standard bivariate normal
 /// pair with correlation `rho1`, u ≥ 0.
 pub fn ln_upcrossing_prob(u: f64, rho1: f64) -> f64 {
+    ln_upcrossing_prob_on(u, rho1, None)
+}
+
+/// [`ln_upcrossing_prob`] with the integral's tangents from `grid` where it
+/// covers the interval.
+fn ln_upcrossing_prob_on(u: f64, rho1: f64, grid: Option<&TanGrid>) -> f64 {
     let rho = rho1.clamp(-1.0, 1.0);
     if rho >= 1.0 {
         return f64::NEG_INFINITY;
@@ -88,11 +138,16 @@ pub fn ln_upcrossing_prob(u: f64, rho1: f64) -> f64 {
     let a = ((1.0 - rho) / (1.0 + rho)).sqrt(); // +∞ at ρ = −1: θ_max = π/2
     let h = u.abs();
     // 2 T(h, a) = 2 φ(h)/√(2π) · I; for u < 0 use T(−h, a) = T(h, a).
-    std::f64::consts::LN_2 + ln_phi(h) - LN_SQRT_2PI + ln_owen_integral(h, a)
+    std::f64::consts::LN_2 + ln_phi(h) - LN_SQRT_2PI + ln_owen_integral(h, a, grid)
 }
 
 /// ln P(max of `n` cells > u) under the up-crossing approximation.
 pub fn ln_max_exceed_prob(u: f64, n: usize, rho1: f64) -> f64 {
+    ln_max_exceed_prob_on(u, n, rho1, None)
+}
+
+/// [`ln_max_exceed_prob`] with the tangents of [`ln_upcrossing_prob_on`].
+fn ln_max_exceed_prob_on(u: f64, n: usize, rho1: f64, grid: Option<&TanGrid>) -> f64 {
     if u.is_nan() || rho1.is_nan() {
         return f64::NAN;
     }
@@ -103,7 +158,7 @@ pub fn ln_max_exceed_prob(u: f64, n: usize, rho1: f64) -> f64 {
     }
     let qv = lq.exp();
     // transition probability P(X_{k+1} > u | X_k ≤ u) = p_up / (1 − Q)
-    let lup = ln_upcrossing_prob(u, rho1) - (-qv).ln_1p();
+    let lup = ln_upcrossing_prob_on(u, rho1, grid) - (-qv).ln_1p();
     // p_tr/Q ≤ 1/(1 − Q); ln(Q + (n−1) p_tr)
     let r = (lup - lq).exp();
     let ln_sum = lq + ((n - 1.0) * r).ln_1p();
@@ -162,7 +217,8 @@ pub fn threshold_for_report(p_report: f64, n: usize, rho1: f64) -> ReportThresho
         u_single
     } else {
         let u_union = ln_q_inv(ln_p - (cells as f64).ln());
-        let f = |u: f64| ln_max_exceed_prob(u, cells, rho1) - ln_p;
+        let grid = TanGrid::for_rho1(rho1);
+        let f = |u: f64| ln_max_exceed_prob_on(u, cells, rho1, grid.as_ref()) - ln_p;
         // Illinois false position on the bracket: 6–10 evaluations of the
         // quadrature (each ~40 µs) to its last ulps, where halving took ~50.
         crate::math::roots::illinois(u_single, u_union.max(u_single), 0.0, f)
@@ -185,6 +241,21 @@ pub fn threshold_for_report(p_report: f64, n: usize, rho1: f64) -> ReportThresho
 mod tests {
     use super::*;
     use crate::math::special::{per_cell_pfa, q_inv};
+
+    #[test]
+    fn tangents_taken_once_give_the_same_integral() {
+        for rho1 in [-0.5, 0.0, 0.3, 0.9, 0.985, 0.9999] {
+            let grid = TanGrid::for_rho1(rho1).expect("a non-empty interval");
+            for u in [0.0, 0.5, 2.0, 4.75, 5.5, 7.0, 12.0, 40.0] {
+                for n in [1usize, 2, 1000, 1_000_000] {
+                    let want = ln_max_exceed_prob(u, n, rho1);
+                    let got = ln_max_exceed_prob_on(u, n, rho1, Some(&grid));
+                    assert_eq!(got.to_bits(), want.to_bits(), "u {u} n {n} rho1 {rho1}");
+                }
+            }
+        }
+        assert!(TanGrid::for_rho1(1.0).is_none());
+    }
 
     #[test]
     fn white_noise_reduces_to_independent_cells() {

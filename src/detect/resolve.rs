@@ -168,7 +168,9 @@ impl Resolver {
                 _ => plan.output(),
             };
             let end = range.end.min(y.len());
-            let Some(p) = (range.start.min(end)..end).max_by(|&a, &b| y[a].total_cmp(&y[b])) else {
+            // The last largest output of the range (as `max_by` over total_cmp), in eight lanes.
+            let first = range.start.min(end);
+            let Some(p) = crate::math::select::last_max_index(&y[first..end]).map(|i| first + i) else {
                 break;
             };
             if !(y[p] > threshold) {

@@ -10,7 +10,7 @@
 //! N = 0 (the default) every frame is fitted on its own gates alone.
 
 use super::{FrameError, Stage, Work};
-use crate::frame::FrameFlag;
+use crate::frame::{FrameFlag, Samples};
 use crate::detect::events::{EventTestConfig, GateScreen};
 use crate::detect::gates::{GateCleaner, GatePlacer};
 use crate::detect::noise_model::{NoiseFitter, NoiseTracker};
@@ -114,7 +114,11 @@ impl Stage for Noise {
         w.noise.gates = w.place_gates(&mut self.gates);
         // Non-finite samples (a float capture's NaN/Inf) are held at the last
         // finite value so nothing downstream sees them; the report says how many.
-        let bad = stop_v.iter().filter(|v| !v.is_finite()).count();
+        // (Small integer codes on a finite scale decode to finite volts: none to count.)
+        let ch = &w.frame.channels[w.source.stop];
+        let codes = matches!(ch.samples, Samples::I8(_) | Samples::I16(_));
+        let finite_scale = ch.volts_per_code.abs() <= 1e300 && ch.offset_v.abs() <= 1e300;
+        let bad = if codes && finite_scale { 0 } else { stop_v.iter().filter(|v| !v.is_finite()).count() };
         if bad > 0 {
             let mut last = stop_v.iter().copied().find(|v| v.is_finite()).unwrap_or(0.0);
             for v in stop_v.iter_mut() {

@@ -4,7 +4,7 @@
 //! plus `channels.reference_offset_s`, and the report says so.
 
 use super::{FrameError, Stage, Work};
-use crate::frame::FrameFlag;
+use crate::frame::{FrameFlag, Samples};
 use crate::detect::kernels::DetectorPlan;
 use crate::math::select::mad_sigma;
 use crate::math::sum;
@@ -80,8 +80,13 @@ impl Stage for Start {
         let dt = w.frame.sample_interval_s;
         w.frame.channels[s].volts_into(&mut self.volts);
         let x = &mut self.volts;
+        let ch = &w.frame.channels[s];
+        // Integer codes on a finite scale decode to finite volts (|code| ≤ 2¹⁵):
+        // nothing to check.
+        let (g, o) = (ch.volts_per_code, ch.offset_v);
+        let codes_finite = matches!(ch.samples, Samples::I16(_)) && g.abs() <= 1e300 && o.abs() <= 1e300;
         // Keep the reference finite whatever the samples hold.
-        if !sum::all_finite(x) {
+        if !codes_finite && !sum::all_finite(x) {
             let (sum, n) = x.iter().filter(|v| v.is_finite()).fold((0.0, 0usize), |(s, n), v| (s + v, n + 1));
             let finite_mean = if n > 0 { sum / n as f64 } else { 0.0 };
             x.iter_mut().filter(|v| !v.is_finite()).for_each(|v| *v = finite_mean);
@@ -91,7 +96,12 @@ impl Stage for Start {
         // measured on the samples well away from it (the median and MAD of
         // the whole channel when too few are left).
         let n = x.len();
-        let peak = crate::math::select::last_max_index(x).unwrap_or(0);
+        let peak = match &ch.samples {
+            Samples::I16(c) if codes_finite => last_max_code(c, g, o),
+            _ => None,
+        }
+        .or_else(|| crate::math::select::last_max_index(x))
+        .unwrap_or(0);
         if self.plan.as_ref().is_none_or(|p| p.0 != dt || p.2.len() > n + 1) {
             let pulse = self.pulse_cfg.shape(dt);
             let plan = DetectorPlan::matched_filter(&pulse, n);
@@ -122,7 +132,6 @@ impl Stage for Start {
         // quantisation error is not dithered away: its edge sweeps through
         // the codes, so each edge sample carries the full uniform error of
         // one step (LSB²/12), whatever the quiet baseline shows.
-        let ch = &w.frame.channels[s];
         let lsb = if ch.samples.is_integer() { ch.volts_per_code.abs() } else { 0.0 };
         let sigma = (sigma * sigma + lsb * lsb / 12.0).sqrt().max(f64::MIN_POSITIVE);
         let amplitude = x[peak] - baseline;
@@ -198,5 +207,81 @@ impl Stage for Start {
         w.report.t_start_sigma_s = w.reference.t_ref_sigma_s;
         out.push(w);
         Ok(())
+    }
+}
+
+/// `last_max_index` of the volts `code · g + o` (a multiply, then an add, as
+/// `Channel::volts_into` decodes them) found on the codes: the last sample
+/// holding the largest code, where that code's volts are above every other
+/// code's (g > 0 and the next code down decodes strictly lower: the decoding
+/// is monotone, so then the samples at the maximum in volts are exactly those
+/// at the largest code) and not zero (where the total order tells −0 from
+/// +0). None (the caller searches the volts) otherwise.
+fn last_max_code(codes: &[i16], g: f64, o: f64) -> Option<usize> {
+    if !(g > 0.0) {
+        return None;
+    }
+    // In eight lanes (vectorised), then the last index holding it.
+    let mut acc = [i16::MIN; 8];
+    let chunks = codes.chunks_exact(8);
+    let rest = chunks.remainder();
+    for c in chunks {
+        for l in 0..8 {
+            acc[l] = acc[l].max(c[l]);
+        }
+    }
+    let top = rest.iter().copied().chain(acc).max()?;
+    let volts = |c: i16| c as f64 * g + o;
+    if top == i16::MIN || !(volts(top - 1) < volts(top)) || volts(top) == 0.0 {
+        return None;
+    }
+    // From the end sixteen at a time (one compare per lane, no branch per
+    // sample: the start pulse is early in the channel), then within the
+    // sixteen that hold it.
+    let mut end = codes.len() - rest.len();
+    if let Some(i) = rest.iter().rposition(|&c| c == top) {
+        return Some(end + i);
+    }
+    while end >= 16 {
+        let mut hits = 0u32;
+        for (l, &c) in codes[end - 16..end].iter().enumerate() {
+            hits |= ((c == top) as u32) << l;
+        }
+        if hits != 0 {
+            return Some(end - 16 + (31 - hits.leading_zeros()) as usize);
+        }
+        end -= 16;
+    }
+    codes[..end].iter().rposition(|&c| c == top)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_largest_code_is_the_largest_volts() {
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        };
+        for len in [0usize, 1, 7, 8, 15, 16, 17, 31, 33, 250, 2500] {
+            for (g, o) in [(1.0 / 4096.0, 0.0), (2.4e-4, -0.3), (1e-3, 1e-3), (-1e-3, 0.0), (1e-20, 1.0), (0.0, 0.0)] {
+                for spread in [3u64, 200, 65536] {
+                    let codes: Vec<i16> = (0..len).map(|_| ((next() % spread) as i64 - (spread / 2) as i64) as i16).collect();
+                    let volts: Vec<f64> = codes.iter().map(|&c| c as f64 * g + o).collect();
+                    let want = crate::math::select::last_max_index(&volts);
+                    // Where the codes decide it, the same index; else the caller searches the volts.
+                    if let Some(got) = last_max_code(&codes, g, o) {
+                        assert_eq!(Some(got), want, "len {len} g {g} o {o} spread {spread}");
+                    } else {
+                        assert!(!(g > 0.0) || (g < 1e-15) || len == 0 || volts.iter().any(|&v| v == 0.0), "len {len} g {g} o {o}");
+                    }
+                }
+            }
+        }
     }
 }

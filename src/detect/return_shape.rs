@@ -183,7 +183,7 @@ impl ReturnShapeLearner {
         self.xs.extend(x[first..=last].iter().map(|v| (v - mean_v) / sigma_v));
         let peaks_at = self.peaks.len();
         self.peaks.extend(peaks.iter().map(|&p| (p, 0.0)));
-        let mut k = Kept { at, len: last + 1 - first, first, peaks_at, count: peaks.len(), used: true };
+        let k = Kept { at, len: last + 1 - first, first, peaks_at, count: peaks.len(), used: true };
         let fitted = self.fit_amplitudes(&k, |t| scene_shape.value_and_slope(t).0);
         let strong = self.peaks[peaks_at..].iter().filter(|p| p.1 >= STRONG_SIGMAS).count();
         if !fitted || strong == 0 {
@@ -191,7 +191,6 @@ impl ReturnShapeLearner {
             self.peaks.truncate(peaks_at);
             return false;
         }
-        k.used = true;
         self.kept.push(k);
         self.strong += strong;
         if self.strong >= LEARN_RETURNS || self.kept.len() >= MAX_FRAMES {
@@ -351,19 +350,7 @@ impl ReturnShapeLearner {
         }
         let values: Vec<f64> = grid.iter().map(|v| v / peak).collect();
         // The scene's shape, amplitude and slope fitted to the learned one.
-        let (mut pp, mut pd, mut dd, mut px, mut dx, mut xx) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
-        for (i, &v) in values.iter().enumerate() {
-            let (p, d) = scene_shape.value_and_slope(lo + i as f64 / GRID as f64);
-            pp += p * p;
-            pd += p * d;
-            dd += d * d;
-            px += p * v;
-            dx += d * v;
-            xx += v * v;
-        }
-        let det = pp * dd - pd * pd;
-        let explained = if det > 0.0 { (dd * px * px - 2.0 * pd * px * dx + pp * dx * dx) / det } else { px * px / pp };
-        let misfit = ((xx - explained) / xx).max(0.0);
+        let misfit = slope_fit_misfit(values.iter().enumerate().map(|(i, &v)| (scene_shape.value_and_slope(lo + i as f64 / GRID as f64), v)));
         let frames = self.kept.iter().filter(|k| k.used).count();
         let returns = self.kept.iter().filter(|k| k.used).map(|k| k.count).sum();
         let shape = Shape::Table(TablePulse::new(values, 1.0 / GRID as f64, lo));
@@ -373,6 +360,24 @@ impl ReturnShapeLearner {
         self.peaks = Vec::new();
         self.ata = Vec::new();
     }
+}
+
+/// Fraction of the energy of v left unexplained by a·p + b·ṗ (least
+/// squares over the points given as ((p, ṗ), v)): how far a shape fitted
+/// with its amplitude and slope, as step 1 fits it, is from v.
+fn slope_fit_misfit(points: impl Iterator<Item = ((f64, f64), f64)>) -> f64 {
+    let (mut pp, mut pd, mut dd, mut px, mut dx, mut xx) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+    for ((p, d), v) in points {
+        pp += p * p;
+        pd += p * d;
+        dd += d * d;
+        px += p * v;
+        dx += d * v;
+        xx += v * v;
+    }
+    let det = pp * dd - pd * pd;
+    let explained = if det > 0.0 { (dd * px * px - 2.0 * pd * px * dx + pp * dx * dx) / det } else { px * px / pp };
+    ((xx - explained) / xx).max(0.0)
 }
 
 #[cfg(test)]
@@ -431,22 +436,10 @@ mod tests {
             // The learned shape fits the truth (amplitude and slope fitted
             // as step 1 does) within 1 % of its energy.
             let (lo, hi) = l.shape.support();
-            let (mut pp, mut pd, mut dd, mut px, mut dx, mut xx) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
-            let mut t = lo;
-            while t <= hi {
-                let (p, d) = truth.value_and_slope(t);
-                let v = l.shape.value_and_slope(t).0;
-                pp += p * p;
-                pd += p * d;
-                dd += d * d;
-                px += p * v;
-                dx += d * v;
-                xx += v * v;
-                t += 0.25;
-            }
-            let explained = (dd * px * px - 2.0 * pd * px * dx + pp * dx * dx) / (pp * dd - pd * pd);
-            eprintln!("learned vs truth: {:.5}", (xx - explained) / xx);
-            assert!((xx - explained) / xx < 0.01, "learned vs truth misfit {} (events {events})", (xx - explained) / xx);
+            let points = ((lo * 4.0).ceil() as i64..=(hi * 4.0).floor() as i64).map(|k| k as f64 / 4.0);
+            let misfit = slope_fit_misfit(points.map(|t| (truth.value_and_slope(t), l.shape.value_and_slope(t).0)));
+            eprintln!("learned vs truth: {misfit:.5}");
+            assert!(misfit < 0.01, "learned vs truth misfit {misfit} (events {events})");
         }
     }
 

@@ -250,11 +250,20 @@ struct EmpiricalNull {
 /// Gate windows kept for the learned null.
 const NULL_CAP: usize = 2048;
 
-/// Gate windows before the learned null replaces the one from the noise colour.
-const NULL_MIN: usize = 64;
+/// Gate windows before the learned null replaces the one from the noise
+/// colour (with an event in every frame, the colour's null holds the
+/// events' slow correlation: the sooner it is replaced the better).
+const NULL_MIN: usize = 16;
 
 /// The learned null is refitted after this many new windows.
 const NULL_REFIT: usize = 64;
+
+/// New windows before the learned null of `count` windows is refitted: half
+/// as many again while it is young (its first fits rest on a few dozen
+/// quartile samples), then every [`NULL_REFIT`].
+fn refit_after(count: usize) -> usize {
+    NULL_REFIT.min(count / 2).max(1)
+}
 
 impl EventTest {
     /// A test with `cfg`.
@@ -594,7 +603,7 @@ impl EventTest {
                 start += len;
             }
         }
-        if null.values.len() >= NULL_MIN && (null.fresh >= NULL_REFIT || null.limit.is_none()) {
+        if null.values.len() >= NULL_MIN && (null.fresh >= refit_after(null.values.len()) || null.limit.is_none()) {
             null.fresh = 0;
             null.sorted.clear();
             null.sorted.extend_from_slice(&null.values);
@@ -1206,7 +1215,7 @@ impl GateScreen {
         if self.values.len() < NULL_MIN {
             return;
         }
-        if self.fresh < NULL_REFIT && self.limit.is_some() {
+        if self.fresh < refit_after(self.values.len()) && self.limit.is_some() {
             return;
         }
         self.fresh = 0;

@@ -26,7 +26,7 @@
 //!   gate noise) and Pd uses the Student-t form with 2·training degrees of
 //!   freedom (exact in form for CA, an approximation for OS).
 
-use super::{FrameError, Stage, Work};
+use super::{FrameError, GateCount, Stage, Work};
 use crate::frame::FrameFlag;
 use crate::detect::cfar::{CfarMethod, CfarPlan};
 use crate::detect::colour::{output_gain_from_acf, taps_acf, NoiseColour, OutputColour};
@@ -373,7 +373,7 @@ impl Level<'_> {
 /// training cells that exclude it: the cells above it are counted against
 /// the design per-cell probability (see `exceedance_dispersion`).
 #[derive(Debug, Default)]
-struct FalseAlarmCounter {
+pub(super) struct FalseAlarmCounter {
     /// Noise-gate crossings since the pipeline started.
     observed: u64,
     /// Effective noise-gate cells since the pipeline started.
@@ -461,7 +461,7 @@ impl FalseAlarmCounter {
     /// at design per-cell probability `p_cell`, with `dispersion` the
     /// variance of the frame's count over its binomial variance; returns the
     /// running statistics.
-    fn record(&mut self, observed: u64, gate_cells: f64, p_cell: f64, dispersion: f64) -> FalseAlarmStats {
+    pub(super) fn record(&mut self, observed: u64, gate_cells: f64, p_cell: f64, dispersion: f64) -> FalseAlarmStats {
         self.observed += observed;
         self.cells += gate_cells;
         self.expected += gate_cells * p_cell;
@@ -481,6 +481,15 @@ impl FalseAlarmCounter {
             rate: if self.cells > 0.0 { self.observed as f64 / self.cells } else { 0.0 },
             ci95: [lo, hi],
             excess: trials > 0 && lo_strict > p_cell,
+        }
+    }
+
+    /// Counts the frame's gates (`count`, less `events` of its crossings
+    /// judged interference events) into the report's statistics and flags.
+    pub(super) fn count(&mut self, report: &mut crate::frame::Report, count: GateCount, events: u64) {
+        report.false_alarm = self.record(count.observed - events, count.gate_cells, count.p_cell, count.dispersion);
+        if report.false_alarm.excess {
+            report.flags.push(FrameFlag::FalseAlarmExcess);
         }
     }
 
@@ -531,6 +540,53 @@ fn exceedance_dispersion(p: f64, rho1: f64) -> f64 {
     (1.0 + lambda) / (1.0 - lambda)
 }
 
+/// The excursions of `y` above a level (`above(p)`) over the gate runs
+/// `runs`, into `out`: each excursion's highest position and what it
+/// counts, one up-crossing (an excursion starting at a run's first position
+/// counts, as in `upcrossings`) or, with `exceedances`, its cells above.
+fn excursions(y: &[f64], runs: &[std::ops::Range<usize>], above: impl Fn(usize) -> bool, exceedances: bool, out: &mut Vec<(usize, u64)>) {
+    for r in runs {
+        let mut open: Option<(usize, u64)> = None;
+        for p in r.clone() {
+            match (above(p), &mut open) {
+                (true, Some((top, n))) => {
+                    if y[p] > y[*top] {
+                        *top = p;
+                    }
+                    *n += exceedances as u64;
+                }
+                (true, None) => open = Some((p, 1)),
+                (false, Some(e)) => {
+                    out.push(*e);
+                    open = None;
+                }
+                (false, None) => {}
+            }
+        }
+        out.extend(open);
+    }
+}
+
+/// The excursions above the level over the whole gates `gates` whose
+/// highest position lies outside the counted runs `counted` (what the
+/// cleaning of a contaminated gate left out: pulses, an event's lobes),
+/// appended to `out` as counting nothing: the events stage judges them
+/// with the counted ones, so that an event found there reaches the
+/// excursions of its tail.
+fn context_excursions(y: &[f64], gates: &[std::ops::Range<usize>], counted: &[std::ops::Range<usize>], above: impl Fn(usize) -> bool, out: &mut Vec<(usize, u64)>) {
+    let from = out.len();
+    excursions(y, gates, above, false, out);
+    let mut k = from;
+    for i in from..out.len() {
+        let top = out[i].0;
+        if !counted.iter().any(|r| r.contains(&top)) {
+            out[k] = (top, 0);
+            k += 1;
+        }
+    }
+    out.truncate(k);
+}
+
 /// Most gate runs the noise colour is pooled over in one frame (a cleaned
 /// gate's runs beyond it are left out of the colour, not of the noise fit).
 const MAX_RUNS: usize = 64;
@@ -554,6 +610,9 @@ pub struct Detect {
     /// Normalised gate outputs, for the empirical threshold mode.
     tail: Option<EmpiricalTail>,
     false_alarms: FalseAlarmCounter,
+    /// The events stage runs after this one: it judges the gates'
+    /// crossings and counts them (see `ThresholdTerms::gate_count`).
+    events_count: bool,
     /// The previous frame's threshold, for counting this frame's gates.
     held_out: Option<HeldOut>,
     t_cache: TCache,
@@ -602,6 +661,7 @@ impl Detect {
             }),
             tail: (scene.detector.threshold_mode == ThresholdMode::Empirical).then(EmpiricalTail::default),
             false_alarms: FalseAlarmCounter::default(),
+            events_count: scene.events.enabled,
             held_out: None,
             t_cache: TCache::default(),
             gate_pos: Vec::new(),
@@ -710,6 +770,8 @@ impl Stage for Detect {
         let dc_gain = plan.dc_gain();
         gate_pos.clear();
         gate_pos.extend(w.buffers.quiet.iter().map(|r| plan.positions_inside(r)).filter(|p| !p.is_empty()));
+        // The whole gates' positions, what the cleaning left out included.
+        let full_gates = [plan.positions_inside(&w.noise.gates.pre), plan.positions_inside(&w.noise.gates.beyond)];
         w.buffers.detector_output.clear();
         if scale == 1.0 {
             // v · 1 is v: a plain copy.
@@ -846,6 +908,10 @@ impl Stage for Detect {
             _ => 1.0,
         };
         let dc_out = dc_gain * wh_dc * scale;
+        w.buffers.gate_excursions.clear();
+        // Taken once: a gate's excursions are rare, and a first one in the
+        // steady state allocates nothing.
+        w.buffers.gate_excursions.reserve(MAX_RUNS);
         let (observed, gate_cells, p_cell, dispersion) = match (&self.cfar, cfar_on) {
             // Each cell's CFAR threshold comes from training cells that
             // exclude it (and its guard cells): already independent of the
@@ -860,6 +926,10 @@ impl Stage for Detect {
             (Some(cs), true) => {
                 let thr = &cs.thresholds;
                 let observed = gate_pos.iter().flat_map(|r| r.clone()).filter(|&p| y[p] > thr[p]).count() as u64;
+                if self.events_count && observed > 0 {
+                    excursions(y, &gate_pos, |p| y[p] > thr[p], true, &mut w.buffers.gate_excursions);
+                    context_excursions(y, &full_gates, &gate_pos, |p| y[p] > thr[p], &mut w.buffers.gate_excursions);
+                }
                 (observed, gate_positions, t.p_cell, exceedance_dispersion(t.p_cell, rho1))
             }
             _ => match self.held_out {
@@ -868,6 +938,11 @@ impl Stage for Detect {
                     // that mean is y + dc_out (μ − μ_prev).
                     let level = Level::Fixed(h.level - h.dc_out * (mean_v - h.mean_v));
                     let observed = gate_pos.iter().map(|r| level.upcrossings(y, r.clone())).sum();
+                    if self.events_count && observed > 0 {
+                        let Level::Fixed(l) = level else { unreachable!("a fixed level") };
+                        excursions(y, &gate_pos, |p| y[p] > l, false, &mut w.buffers.gate_excursions);
+                        context_excursions(y, &full_gates, &gate_pos, |p| y[p] > l, &mut w.buffers.gate_excursions);
+                    }
                     let gate_cells = gate_positions * h.per_position;
                     let d = self.false_alarms.dispersion(gate_cells, h.t, h.kappa, h.gate);
                     (observed, gate_cells, h.p_cell, d)
@@ -875,7 +950,13 @@ impl Stage for Detect {
                 _ => (0, 0.0, t.p_cell, 1.0),
             },
         };
-        w.report.false_alarm = self.false_alarms.record(observed, gate_cells, p_cell, dispersion);
+        debug_assert!(!self.events_count || observed == 0 || w.buffers.gate_excursions.iter().map(|e| e.1).sum::<u64>() == observed);
+        if self.events_count {
+            w.threshold.gate_count = Some(GateCount { observed, gate_cells, p_cell, dispersion });
+        } else {
+            w.threshold.gate_count = None;
+            self.false_alarms.count(&mut w.report, GateCount { observed, gate_cells, p_cell, dispersion }, 0);
+        }
         self.held_out = (samples >= 2 && !cfar_on && thr.is_finite()).then_some(HeldOut {
             level: thr,
             mean_v,
@@ -895,9 +976,6 @@ impl Stage for Detect {
             pfa_cell: t.p_cell,
             cells_effective: t.cells_effective,
         };
-        if w.report.false_alarm.excess {
-            w.report.flags.push(FrameFlag::FalseAlarmExcess);
-        }
         self.gate_pos = gate_pos;
         out.push(w);
         Ok(())
@@ -1036,6 +1114,35 @@ mod tests {
             let cells = Level::PerCell(&per_cell).upcrossings(&y, range.clone());
             assert_eq!(cells, naive_upcrossings(&y, range.clone(), &|p| per_cell[p]), "{range:?}");
         }
+    }
+
+    #[test]
+    fn gate_excursions_count_what_the_self_check_counts() {
+        let y: Vec<f64> = (0..400).map(|i| ((i as f64) * 0.37).sin() + 0.3 * ((i as f64) * 1.9).cos()).collect();
+        let per_cell: Vec<f64> = (0..400).map(|i| 0.5 + 0.001 * i as f64).collect();
+        let runs = [1..120, 150..151, 200..399];
+        let mut out = Vec::new();
+        // One per up-crossing, at each excursion's highest position.
+        excursions(&y, &runs, |p| y[p] > 0.8, false, &mut out);
+        let crossings: u64 = runs.iter().map(|r| Level::Fixed(0.8).upcrossings(&y, r.clone())).sum();
+        assert!(crossings > 10);
+        assert_eq!(out.iter().map(|e| e.1).sum::<u64>(), crossings);
+        for &(top, n) in &out {
+            assert_eq!(n, 1);
+            assert!(y[top] > 0.8 && y[top] >= y[top - 1] && y[top] >= y[top + 1], "{top}");
+        }
+        // CFAR: every cell above its own threshold.
+        out.clear();
+        excursions(&y, &runs, |p| y[p] > per_cell[p], true, &mut out);
+        let cells = runs.iter().flat_map(|r| r.clone()).filter(|&p| y[p] > per_cell[p]).count() as u64;
+        assert_eq!(out.iter().map(|e| e.1).sum::<u64>(), cells);
+        // Context: the whole gate's excursions outside the counted runs count nothing.
+        out.clear();
+        excursions(&y, &runs[..1], |p| y[p] > 0.8, false, &mut out);
+        let counted = out.len();
+        context_excursions(&y, &[0..400], &runs[..1], |p| y[p] > 0.8, &mut out);
+        assert!(out.len() > counted);
+        assert!(out[counted..].iter().all(|&(top, n)| n == 0 && !(1..120).contains(&top)));
     }
 
     #[test]

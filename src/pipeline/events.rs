@@ -8,6 +8,7 @@
 //! ([`EventTest::event_under`]). Runs between detect and timing when
 //! `[events] enabled`.
 
+use super::detect::FalseAlarmCounter;
 use super::{FrameError, Stage, Work};
 use crate::detect::events::{EventTemplate, EventTest, EventTestConfig, NoiseTerms, Verdict};
 use crate::detect::return_shape::ReturnShapeLearner;
@@ -54,6 +55,13 @@ pub struct Events {
     /// returns and no event; the test takes it where the scene's misfits
     /// (see [`ReturnShapeLearner`]).
     learner: Option<ReturnShapeLearner>,
+    /// The false-alarm self-check, counting the noise gates' crossings that
+    /// are not judged events (detect leaves the count to this stage).
+    false_alarms: FalseAlarmCounter,
+    /// The frame's detections then the noise gates' excursions, and their
+    /// verdicts (scratch).
+    gate_peaks: Vec<f64>,
+    gate_verdicts: Vec<Verdict>,
 }
 
 impl Events {
@@ -70,6 +78,9 @@ impl Events {
             anchors: Vec::new(),
             under: Vec::new(),
             learner: None,
+            false_alarms: FalseAlarmCounter::default(),
+            gate_peaks: Vec::new(),
+            gate_verdicts: Vec::new(),
         }
     }
 }
@@ -99,6 +110,75 @@ fn reached(peaks: &[f64], verdicts: &[Verdict], p: f64, before: f64, after: f64)
     peaks.iter().zip(verdicts).any(|(&e, v)| matches!(v, Verdict::Event(_)) && p >= e - before && p <= e + after)
 }
 
+/// Judges the noise gates' excursions for the false-alarm self-check as
+/// the frame's detections are judged: the test on each, then, where an
+/// event found in the frame (among the detections or the excursions)
+/// reaches it, the test near an event, repeated while that finds more. The
+/// detections' verdicts are not changed. The self-check so counts what
+/// the stage would report were the gates range: an event in a gate, or its
+/// tail, is not read as false alarms the range gate never reports.
+struct GateJudge<'a> {
+    x: &'a [f64],
+    noise: NoiseTerms<'a>,
+    /// Threshold, noise sigmas.
+    u: f64,
+    /// An event's reach before and after its detection, samples.
+    before: f64,
+    after: f64,
+}
+
+impl GateJudge<'_> {
+    /// The crossings of `excursions` (highest position, crossings) judged
+    /// events beside the detections at `peaks` with `verdicts`; `all` and
+    /// `all_v` are scratch.
+    #[allow(clippy::too_many_arguments)]
+    fn events(
+        &self,
+        test: &mut EventTest,
+        shape: &Shape,
+        peaks: &[f64],
+        verdicts: &[Verdict],
+        excursions: &[(usize, u64)],
+        all: &mut Vec<f64>,
+        all_v: &mut Vec<Verdict>,
+    ) -> u64 {
+        if excursions.is_empty() {
+            return 0;
+        }
+        let n = peaks.len();
+        all.clear();
+        all.extend_from_slice(peaks);
+        all.extend(excursions.iter().map(|e| e.0 as f64));
+        all_v.clear();
+        all_v.extend_from_slice(verdicts);
+        test.set_search(true);
+        for k in n..all.len() {
+            let v = test.judge(self.x, self.noise, shape, all, k, self.u);
+            all_v.push(v);
+            if let Some(m) = test.moved_to() {
+                all[k] = m;
+            }
+        }
+        loop {
+            let mut found = false;
+            for k in n..all.len() {
+                if all_v[k] == Verdict::Return && reached(all, all_v, all[k], self.before, self.after) {
+                    let v = test.judge_near_event(self.x, self.noise, shape, all, k, self.u);
+                    found |= matches!(v, Verdict::Event(_));
+                    all_v[k] = v;
+                    if let Some(m) = test.moved_to() {
+                        all[k] = m;
+                    }
+                }
+            }
+            if !found {
+                break;
+            }
+        }
+        excursions.iter().zip(&all_v[n..]).filter(|(_, v)| matches!(v, Verdict::Event(_))).map(|(e, _)| e.1).sum()
+    }
+}
+
 impl Stage for Events {
     fn name(&self) -> &'static str {
         "events"
@@ -111,12 +191,15 @@ impl Stage for Events {
         self.verdicts.reserve(MAX_DETECTIONS);
         self.moves.reserve(MAX_DETECTIONS);
         self.anchors.reserve(MAX_DETECTIONS);
+        self.gate_peaks.reserve(2 * MAX_DETECTIONS);
+        self.gate_verdicts.reserve(2 * MAX_DETECTIONS);
         let dt = w.frame.sample_interval_s;
         self.refresh(dt);
         let (_, shape, test) = self.plan.as_mut().expect("set above");
         let noise = NoiseTerms { mean_v: w.noise.summary.mean_v, sigma_v: w.noise.raw_sigma_v, rho: &w.noise.rho };
         // The test's null distribution, learned from this frame's noise gates.
         test.learn_null(&w.buffers.stop_v, noise, &w.buffers.quiet, shape);
+        let gate_count = w.threshold.gate_count.take();
         let resolved = !w.buffers.components.is_empty();
         self.peaks.clear();
         if resolved {
@@ -124,7 +207,13 @@ impl Stage for Events {
         } else {
             self.peaks.extend(w.buffers.detections.iter().map(|&p| p as f64));
         }
+        let (before, after) = ((TEMPLATE_BEFORE_S / dt).ceil(), (TEMPLATE_AFTER_S / dt).ceil());
         if self.peaks.is_empty() {
+            if let Some(count) = gate_count {
+                let gates = GateJudge { x: &w.buffers.stop_v, noise, u: w.threshold.u, before, after };
+                let events = gates.events(test, shape, &[], &[], &w.buffers.gate_excursions, &mut self.gate_peaks, &mut self.gate_verdicts);
+                self.false_alarms.count(&mut w.report, count, events);
+            }
             out.push(w);
             return Ok(());
         }
@@ -145,7 +234,6 @@ impl Stage for Events {
         // tail lasts a good part of the frame): those step 1 passed must
         // stand out of the event subspace too. Repeated while that finds
         // more events.
-        let (before, after) = ((TEMPLATE_BEFORE_S / dt).ceil(), (TEMPLATE_AFTER_S / dt).ceil());
         loop {
             let mut found = false;
             for k in 0..self.peaks.len() {
@@ -162,6 +250,12 @@ impl Stage for Events {
             if !found {
                 break;
             }
+        }
+        // The noise gates' excursions, judged beside the frame's detections.
+        if let Some(count) = gate_count {
+            let gates = GateJudge { x: &w.buffers.stop_v, noise, u: w.threshold.u, before, after };
+            let events = gates.events(test, shape, &self.peaks, &self.verdicts, &w.buffers.gate_excursions, &mut self.gate_peaks, &mut self.gate_verdicts);
+            self.false_alarms.count(&mut w.report, count, events);
         }
         // The frame's event, when it holds one: its detections (the one on
         // the highest sample first) anchor the learned waveform. Where the

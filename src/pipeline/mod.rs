@@ -108,6 +108,11 @@ pub struct Buffers {
     /// Detections (their `detections` entry or component's `detected_at`)
     /// that an interference event overlaps. Written by events; read by timing.
     pub interfered: Vec<usize>,
+    /// The noise gates' excursions above the false-alarm self-check's level
+    /// (each excursion's highest position and the crossings it counts),
+    /// for the events stage to judge. Written by detect (only when the
+    /// events stage runs and the gates crossed); read by events.
+    pub gate_excursions: Vec<(usize, u64)>,
     /// The noise gates' samples the noise model was fitted on: the gates,
     /// less what the cleaning of a contaminated gate dropped (sample ranges,
     /// in frame order). Written by noise; read by detect (noise colour,
@@ -168,6 +173,25 @@ pub struct ThresholdTerms {
     pub nu: f64,
     /// Detector output sigma per unit of `sigma_v` (√g of the noise colour; 1 for white noise).
     pub out_gain: f64,
+    /// This frame's noise-gate count for the false-alarm self-check, left
+    /// by detect for the events stage, which takes off the crossings it
+    /// judges interference events before counting (as it drops such
+    /// detections from the range gate). `None` where detect counted itself.
+    pub gate_count: Option<GateCount>,
+}
+
+/// One frame's noise-gate threshold crossings and what they are counted
+/// against (see `detect::FalseAlarmCounter`).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct GateCount {
+    /// Crossings (exceedances with CFAR) observed in the noise gates.
+    pub observed: u64,
+    /// Effective noise-gate cells examined.
+    pub gate_cells: f64,
+    /// Design per-cell probability.
+    pub p_cell: f64,
+    /// Variance of the frame's count over its binomial variance.
+    pub dispersion: f64,
 }
 
 impl Default for ThresholdTerms {
@@ -178,6 +202,7 @@ impl Default for ThresholdTerms {
             kappa: 1.0,
             nu: f64::INFINITY,
             out_gain: 1.0,
+            gate_count: None,
         }
     }
 }
@@ -191,6 +216,7 @@ impl Buffers {
         self.detections.clear();
         self.components.clear();
         self.interfered.clear();
+        self.gate_excursions.clear();
     }
 }
 

@@ -21,7 +21,8 @@ fn interval_99(n: u64, p: f64) -> (f64, f64) {
     (mean - half, mean + half)
 }
 
-/// Reports with at least one return, out of `frames` white-noise frames.
+/// Reports with at least one return, out of `frames` white-noise frames;
+/// asserts the false-alarm self-check's count over them.
 fn reports_with_returns(pfa: f64, frames: u64, seed: u64) -> u64 {
     let mut scene = Scene::default_scene();
     scene.detector.pfa = pfa;
@@ -40,6 +41,22 @@ fn reports_with_returns(pfa: f64, frames: u64, seed: u64) -> u64 {
             hits += 1;
         }
     }
+    // The self-check: its gate crossings over the run against their
+    // expectation at the design per-cell rate. In the default scene the
+    // events stage judges each crossing before it is counted (as it judges
+    // detections): on noise alone it must leave the count at the design.
+    let last = &out[0];
+    let fa = &last.false_alarm;
+    let expected = fa.cells * last.detector.pfa_cell;
+    let half = 2.576 * expected.sqrt() + 0.5;
+    eprintln!(
+        "pfa {pfa:e}: self-check {} gate crossings, {expected:.1} expected (99 % [{:.1}, {:.1}]), excess {}",
+        fa.observed,
+        expected - half,
+        expected + half,
+        fa.excess
+    );
+    assert!((fa.observed as f64 - expected).abs() <= half && !fa.excess, "pfa {pfa}: self-check {fa:?}, {expected} expected");
     hits
 }
 

@@ -313,7 +313,8 @@ pub struct DetectorSummary {
 pub struct FalseAlarmStats {
     /// Crossings expected in the noise gate at the design per-cell rate.
     pub expected_per_frame: f64,
-    /// Crossings observed in the noise gate.
+    /// Crossings observed in the noise gate (less those the events stage
+    /// judged interference events, where it runs).
     pub observed: u64,
     /// Effectively independent noise-gate cells examined.
     pub cells: f64,

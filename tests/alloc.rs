@@ -202,6 +202,17 @@ fn lab_scene_with_whitening_cfar_and_baseline_allocates_nothing_per_frame() {
     ]);
 }
 
+/// At pfa 0.4 the noise gates cross the self-check's level in about every
+/// other frame: the events stage judges those excursions (and the context ones
+/// over what the cleaning left out) with its scratch taken once.
+#[test]
+fn lab_scene_with_gate_crossings_judged_by_the_events_stage_allocates_nothing_per_frame() {
+    assert_counts(&[
+        ("pfa 0.4", lab(&[("detector.pfa", "0.4")]), 0),
+        ("pfa 0.4, cfar ca", lab(&[("detector.pfa", "0.4"), ("detector.cfar", "\"ca\"")]), 0),
+    ]);
+}
+
 /// The cleaned stop channel becomes the frame's F64 samples; its storage is
 /// lent to the frame (`Work::set_volts`) and comes back when the report goes
 /// out, so the next frame reuses it.

@@ -258,9 +258,10 @@ const NULL_MIN: usize = 16;
 /// The learned null is refitted after this many new windows.
 const NULL_REFIT: usize = 64;
 
-/// New windows before the learned null of `count` windows is refitted: half
-/// as many again while it is young (its first fits rest on a few dozen
-/// quartile samples), then every [`NULL_REFIT`].
+/// New windows before the learned null of `count` windows (the new ones
+/// included) is refitted: while it is young, when its count has doubled
+/// (16, 32, 64, 128: its first fits rest on a few dozen quartile samples),
+/// then every [`NULL_REFIT`].
 fn refit_after(count: usize) -> usize {
     NULL_REFIT.min(count / 2).max(1)
 }
@@ -650,6 +651,10 @@ struct BandCache {
     next: usize,
     /// Scratch column for building.
     col: Vec<f64>,
+    /// Most values any entry has held: a replaced entry's storage is kept
+    /// at least this large, so that windows cut by the frame's edges (a
+    /// length for each place) rebuild in place rather than allocate.
+    largest: usize,
 }
 
 impl BandCache {
@@ -662,17 +667,22 @@ impl BandCache {
         let at = match self.entries.iter().position(|e| e.0 == len && e.1 == key) {
             Some(i) => i,
             None => {
-                let mut cols = Vec::new();
-                band_columns(len, f_max, &mut cols, &mut self.col);
-                if self.entries.len() < Self::CAPACITY {
-                    self.entries.push((len, key, cols));
+                let i = if self.entries.len() < Self::CAPACITY {
+                    self.entries.push((len, key, Vec::new()));
                     self.entries.len() - 1
                 } else {
                     let i = self.next;
                     self.next = (self.next + 1) % Self::CAPACITY;
-                    self.entries[i] = (len, key, cols);
                     i
-                }
+                };
+                let entry = &mut self.entries[i];
+                entry.0 = len;
+                entry.1 = key;
+                entry.2.clear();
+                entry.2.reserve(self.largest);
+                band_columns(len, f_max, &mut entry.2, &mut self.col);
+                self.largest = self.largest.max(entry.2.len());
+                i
             }
         };
         &self.entries[at].2

@@ -372,9 +372,18 @@ impl Level<'_> {
 /// With CFAR each gate cell is judged against its own threshold, from
 /// training cells that exclude it: the cells above it are counted against
 /// the design per-cell probability (see `exceedance_dispersion`).
+///
+/// Where the events stage runs, it keeps the counter: detect leaves it the
+/// frame's count and excursions (`ThresholdTerms::gate_count`,
+/// `Buffers::gate_excursions`), and the crossings the events test judges
+/// interference events are not counted, as such detections are not
+/// reported. Their cells stay in the count's expectation: near frequent
+/// events the check reads low (conservative), as the range gate's reported
+/// rate does there.
 #[derive(Debug, Default)]
 pub(super) struct FalseAlarmCounter {
-    /// Noise-gate crossings since the pipeline started.
+    /// Noise-gate crossings since the pipeline started (less those judged
+    /// interference events, where the events stage counts).
     observed: u64,
     /// Effective noise-gate cells since the pipeline started.
     cells: f64,
@@ -487,7 +496,8 @@ impl FalseAlarmCounter {
     /// Counts the frame's gates (`count`, less `events` of its crossings
     /// judged interference events) into the report's statistics and flags.
     pub(super) fn count(&mut self, report: &mut crate::frame::Report, count: GateCount, events: u64) {
-        report.false_alarm = self.record(count.observed - events, count.gate_cells, count.p_cell, count.dispersion);
+        debug_assert!(events <= count.observed);
+        report.false_alarm = self.record(count.observed.saturating_sub(events), count.gate_cells, count.p_cell, count.dispersion);
         if report.false_alarm.excess {
             report.flags.push(FrameFlag::FalseAlarmExcess);
         }
@@ -545,6 +555,12 @@ fn exceedance_dispersion(p: f64, rho1: f64) -> f64 {
 /// counts, one up-crossing (an excursion starting at a run's first position
 /// counts, as in `upcrossings`) or, with `exceedances`, its cells above.
 fn excursions(y: &[f64], runs: &[std::ops::Range<usize>], above: impl Fn(usize) -> bool, exceedances: bool, out: &mut Vec<(usize, u64)>) {
+    // Beyond the cap an excursion is left unlisted: unjudged, it counts.
+    let push = |out: &mut Vec<(usize, u64)>, e: (usize, u64)| {
+        if out.len() < MAX_GATE_EXCURSIONS {
+            out.push(e);
+        }
+    };
     for r in runs {
         let mut open: Option<(usize, u64)> = None;
         for p in r.clone() {
@@ -557,15 +573,21 @@ fn excursions(y: &[f64], runs: &[std::ops::Range<usize>], above: impl Fn(usize) 
                 }
                 (true, None) => open = Some((p, 1)),
                 (false, Some(e)) => {
-                    out.push(*e);
+                    push(out, *e);
                     open = None;
                 }
                 (false, None) => {}
             }
         }
-        out.extend(open);
+        if let Some(e) = open {
+            push(out, e);
+        }
     }
 }
+
+/// Most noise-gate excursions listed for the events stage per frame (those
+/// counted and the context ones together; more are left unjudged and count).
+const MAX_GATE_EXCURSIONS: usize = 64;
 
 /// The excursions above the level over the whole gates `gates` whose
 /// highest position lies outside the counted runs `counted` (what the
@@ -909,9 +931,10 @@ impl Stage for Detect {
         };
         let dc_out = dc_gain * wh_dc * scale;
         w.buffers.gate_excursions.clear();
-        // Taken once: a gate's excursions are rare, and a first one in the
-        // steady state allocates nothing.
-        w.buffers.gate_excursions.reserve(MAX_RUNS);
+        if self.events_count {
+            // Room for the most that are listed, taken once per unit.
+            w.buffers.gate_excursions.reserve(MAX_GATE_EXCURSIONS);
+        }
         let (observed, gate_cells, p_cell, dispersion) = match (&self.cfar, cfar_on) {
             // Each cell's CFAR threshold comes from training cells that
             // exclude it (and its guard cells): already independent of the
@@ -950,7 +973,7 @@ impl Stage for Detect {
                 _ => (0, 0.0, t.p_cell, 1.0),
             },
         };
-        debug_assert!(!self.events_count || observed == 0 || w.buffers.gate_excursions.iter().map(|e| e.1).sum::<u64>() == observed);
+        debug_assert!(w.buffers.gate_excursions.iter().map(|e| e.1).sum::<u64>() <= observed);
         if self.events_count {
             w.threshold.gate_count = Some(GateCount { observed, gate_cells, p_cell, dispersion });
         } else {

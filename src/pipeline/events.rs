@@ -5,7 +5,9 @@
 //! detections that no longer stand above the threshold once the event is
 //! taken off. A return with an event on it, alone in its window, is timed
 //! on the samples less the event fitted under it
-//! ([`EventTest::event_under`]). Runs between detect and timing when
+//! ([`EventTest::event_under`]). Keeps the false-alarm self-check: the noise
+//! gates' excursions are judged as detections are, and those judged events
+//! are not counted (see `GateJudge`). Runs between detect and timing when
 //! `[events] enabled`.
 
 use super::detect::FalseAlarmCounter;
@@ -116,7 +118,10 @@ fn reached(peaks: &[f64], verdicts: &[Verdict], p: f64, before: f64, after: f64)
 /// reaches it, the test near an event, repeated while that finds more. The
 /// detections' verdicts are not changed. The self-check so counts what
 /// the stage would report were the gates range: an event in a gate, or its
-/// tail, is not read as false alarms the range gate never reports.
+/// tail, is not read as false alarms the range gate never reports. (The
+/// learned event waveform's second look is left out: the excursions are
+/// judged before it, and detections it turns into events do not reach
+/// them.)
 struct GateJudge<'a> {
     x: &'a [f64],
     noise: NoiseTerms<'a>,
@@ -187,6 +192,14 @@ impl Stage for Events {
     fn process(&mut self, mut w: Work, out: &mut Vec<Work>) -> Result<(), FrameError> {
         w.buffers.interfered.clear();
         w.buffers.interfered.reserve(MAX_DETECTIONS);
+        // Scratch emptied before it is reserved (reserve counts from the
+        // length): the room is taken once.
+        self.peaks.clear();
+        self.verdicts.clear();
+        self.moves.clear();
+        self.anchors.clear();
+        self.gate_peaks.clear();
+        self.gate_verdicts.clear();
         self.peaks.reserve(MAX_DETECTIONS);
         self.verdicts.reserve(MAX_DETECTIONS);
         self.moves.reserve(MAX_DETECTIONS);

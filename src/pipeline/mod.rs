@@ -54,7 +54,7 @@ impl FrameError {
 /// and what the stages have found so far, in named parts. Each part says
 /// which stage writes it and which stages read it; a stage reads only parts
 /// written before it (validate → start → baseline → denoise → average →
-/// noise → detect → timing).
+/// noise → detect → events → timing).
 #[derive(Debug, Clone)]
 pub struct Work {
     /// The frame (after averaging: the mean frame, F64 volts).
@@ -109,9 +109,11 @@ pub struct Buffers {
     /// that an interference event overlaps. Written by events; read by timing.
     pub interfered: Vec<usize>,
     /// The noise gates' excursions above the false-alarm self-check's level
-    /// (each excursion's highest position and the crossings it counts),
-    /// for the events stage to judge. Written by detect (only when the
-    /// events stage runs and the gates crossed); read by events.
+    /// (each excursion's highest position and the crossings it counts; 0
+    /// for those over the gates' samples the cleaning left out, listed as
+    /// context), for the events stage to judge. Written by detect (cleared
+    /// every frame; filled only when the events stage runs and the kept
+    /// gate runs crossed); read by events.
     pub gate_excursions: Vec<(usize, u64)>,
     /// The noise gates' samples the noise model was fitted on: the gates,
     /// less what the cleaning of a contaminated gate dropped (sample ranges,
@@ -160,7 +162,8 @@ pub struct NoiseModel {
 
 /// What the threshold is in noise units and how the detector output's sigma
 /// relates to the noise sigma. Written by detect; read by timing (scores and
-/// the probability of detection).
+/// the probability of detection) and events (the threshold; it takes
+/// `gate_count`).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ThresholdTerms {
     /// Threshold in units of the fitted noise sigma.

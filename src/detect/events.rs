@@ -608,9 +608,7 @@ impl EventTest {
             null.fresh = 0;
             null.sorted.clear();
             null.sorted.extend_from_slice(&null.values);
-            null.sorted.sort_unstable_by(f64::total_cmp);
-            let at = |p: f64| null.sorted[((null.sorted.len() - 1) as f64 * p).round() as usize];
-            let (q1, med, q3) = (at(0.25), at(0.5), at(0.75));
+            let [q1, med, q3] = order_statistics(&mut null.sorted, [0.25, 0.5, 0.75]);
             if med > 0.0 {
                 let nu = dof_from_spread((q3 - q1) / med);
                 let a = med / chi2_upper(nu, 0.5);
@@ -1231,15 +1229,34 @@ impl GateScreen {
         self.fresh = 0;
         self.sorted.clear();
         self.sorted.extend_from_slice(&self.values);
-        self.sorted.sort_unstable_by(f64::total_cmp);
-        let at = |p: f64| self.sorted[((self.sorted.len() - 1) as f64 * p).round() as usize];
-        let (q25, q50) = (at(0.25), at(0.5));
+        let [q25, q50] = order_statistics(&mut self.sorted, [0.25, 0.5]);
         if q25 > 0.0 && q50 > q25 {
             let nu = dof_from_lower(q25 / q50);
             let a = q50 / chi2_upper(nu, 0.5);
             self.limit = Some(a * chi2_upper(nu, self.alpha));
         }
     }
+}
+
+/// The values of `v` (at least one) at the sorted positions
+/// round((n − 1)·p) for the increasing fractions `ps`, as a full sort by
+/// `total_cmp` would place them (bit for bit), by selection: O(n) each
+/// instead of a sort's O(n log n) (the nulls refit from 2048 values every
+/// dozen frames). `v` is left partly ordered.
+fn order_statistics<const N: usize>(v: &mut [f64], ps: [f64; N]) -> [f64; N] {
+    let n = v.len();
+    let mut out = [0.0; N];
+    // Each selection leaves everything at or below its place before it:
+    // the next (higher) place is selected in the part after it.
+    let mut from = 0;
+    for (o, p) in out.iter_mut().zip(ps) {
+        let at = ((n - 1) as f64 * p).round() as usize;
+        debug_assert!(at >= from, "increasing fractions");
+        let (_, x, _) = v[from..].select_nth_unstable_by(at - from, f64::total_cmp);
+        *o = *x;
+        from = at;
+    }
+    out
 }
 
 /// Degrees of freedom ν of the χ² whose 25 % quantile over its median is
@@ -1481,6 +1498,24 @@ mod tests {
     }
 
     use crate::detect::gates::test_noise as noise;
+
+    #[test]
+    fn order_statistics_are_the_sorted_values_bit_for_bit() {
+        for (n, seed) in [(1usize, 1u64), (2, 2), (16, 3), (17, 4), (2048, 5), (2047, 6)] {
+            // Noise with repeats (rounded) and signed zeros among it.
+            let mut v: Vec<f64> = noise(n, seed).iter().map(|x| (x * 4.0).round() / 4.0).collect();
+            if n > 4 {
+                v[1] = -0.0;
+                v[3] = 0.0;
+            }
+            let mut sorted = v.clone();
+            sorted.sort_unstable_by(f64::total_cmp);
+            let at = |p: f64| sorted[((n - 1) as f64 * p).round() as usize];
+            let got = order_statistics(&mut v.clone(), [0.05, 0.25, 0.5, 0.75]);
+            let want = [at(0.05), at(0.25), at(0.5), at(0.75)];
+            assert_eq!(got.map(f64::to_bits), want.map(f64::to_bits), "n {n}");
+        }
+    }
 
     const WHITE: NoiseTerms<'static> = NoiseTerms { mean_v: 0.0, sigma_v: 1.0, rho: &[] };
 

@@ -7,7 +7,7 @@
 //! on the samples less the event fitted under it
 //! ([`EventTest::event_under`]). Keeps the false-alarm self-check: the noise
 //! gates' excursions are judged as detections are, and those judged events
-//! are not counted (see `GateJudge`). Runs between detect and timing when
+//! are not counted (see `FrameJudge`). Runs between detect and timing when
 //! `[events] enabled`.
 
 use super::detect::FalseAlarmCounter;
@@ -112,8 +112,10 @@ fn reached(peaks: &[f64], verdicts: &[Verdict], p: f64, before: f64, after: f64)
     peaks.iter().zip(verdicts).any(|(&e, v)| matches!(v, Verdict::Event(_)) && p >= e - before && p <= e + after)
 }
 
-/// Judges the noise gates' excursions for the false-alarm self-check as
-/// the frame's detections are judged: the test on each, then, where an
+/// The events test's frame-wide terms, for judging places near the events
+/// found in the frame ([`FrameJudge::near_events`], the detections' second
+/// pass) and the noise gates' excursions for the false-alarm self-check as
+/// the frame's detections are judged ([`FrameJudge::events`]): the test on each, then, where an
 /// event found in the frame (among the detections or the excursions)
 /// reaches it, the test near an event, repeated while that finds more. The
 /// detections' verdicts are not changed. The self-check so counts what
@@ -122,7 +124,7 @@ fn reached(peaks: &[f64], verdicts: &[Verdict], p: f64, before: f64, after: f64)
 /// learned event waveform's second look is left out: the excursions are
 /// judged before it, and detections it turns into events do not reach
 /// them.)
-struct GateJudge<'a> {
+struct FrameJudge<'a> {
     x: &'a [f64],
     noise: NoiseTerms<'a>,
     /// Threshold, noise sigmas.
@@ -132,7 +134,32 @@ struct GateJudge<'a> {
     after: f64,
 }
 
-impl GateJudge<'_> {
+impl FrameJudge<'_> {
+    /// Judges again, near an event, the places `peaks[from..]` judged
+    /// returns that an event found in the frame reaches (their window may
+    /// look like noise to step 1 while it holds the event's weak lobe),
+    /// repeated while that finds more events; a return found beside its
+    /// place moves there (`moved(k, place)` is told).
+    fn near_events(&self, test: &mut EventTest, shape: &Shape, peaks: &mut [f64], verdicts: &mut [Verdict], from: usize, mut moved: impl FnMut(usize, f64)) {
+        loop {
+            let mut found = false;
+            for k in from..peaks.len() {
+                if verdicts[k] == Verdict::Return && reached(peaks, verdicts, peaks[k], self.before, self.after) {
+                    let v = test.judge_near_event(self.x, self.noise, shape, peaks, k, self.u);
+                    found |= matches!(v, Verdict::Event(_));
+                    verdicts[k] = v;
+                    if let Some(m) = test.moved_to() {
+                        moved(k, m);
+                        peaks[k] = m;
+                    }
+                }
+            }
+            if !found {
+                break;
+            }
+        }
+    }
+
     /// The crossings of `excursions` (highest position, crossings) judged
     /// events beside the detections at `peaks` with `verdicts`; `all` and
     /// `all_v` are scratch.
@@ -164,22 +191,7 @@ impl GateJudge<'_> {
                 all[k] = m;
             }
         }
-        loop {
-            let mut found = false;
-            for k in n..all.len() {
-                if all_v[k] == Verdict::Return && reached(all, all_v, all[k], self.before, self.after) {
-                    let v = test.judge_near_event(self.x, self.noise, shape, all, k, self.u);
-                    found |= matches!(v, Verdict::Event(_));
-                    all_v[k] = v;
-                    if let Some(m) = test.moved_to() {
-                        all[k] = m;
-                    }
-                }
-            }
-            if !found {
-                break;
-            }
-        }
+        self.near_events(test, shape, all, all_v, n, |_, _| {});
         excursions.iter().zip(&all_v[n..]).filter(|(_, v)| matches!(v, Verdict::Event(_))).map(|(e, _)| e.1).sum()
     }
 }
@@ -223,7 +235,7 @@ impl Stage for Events {
         let (before, after) = ((TEMPLATE_BEFORE_S / dt).ceil(), (TEMPLATE_AFTER_S / dt).ceil());
         if self.peaks.is_empty() {
             if let Some(count) = gate_count {
-                let gates = GateJudge { x: &w.buffers.stop_v, noise, u: w.threshold.u, before, after };
+                let gates = FrameJudge { x: &w.buffers.stop_v, noise, u: w.threshold.u, before, after };
                 let events = gates.events(test, shape, &[], &[], &w.buffers.gate_excursions, &mut self.gate_peaks, &mut self.gate_verdicts);
                 self.false_alarms.count(&mut w.report, count, events);
             }
@@ -247,27 +259,12 @@ impl Stage for Events {
         // tail lasts a good part of the frame): those step 1 passed must
         // stand out of the event subspace too. Repeated while that finds
         // more events.
-        loop {
-            let mut found = false;
-            for k in 0..self.peaks.len() {
-                if self.verdicts[k] == Verdict::Return && reached(&self.peaks, &self.verdicts, self.peaks[k], before, after) {
-                    let v = test.judge_near_event(&w.buffers.stop_v, noise, shape, &self.peaks, k, w.threshold.u);
-                    found |= matches!(v, Verdict::Event(_));
-                    self.verdicts[k] = v;
-                    if let Some(m) = test.moved_to() {
-                        self.moves[k] = Some(m);
-                        self.peaks[k] = m;
-                    }
-                }
-            }
-            if !found {
-                break;
-            }
-        }
+        let judge = FrameJudge { x: &w.buffers.stop_v, noise, u: w.threshold.u, before, after };
+        let moves = &mut self.moves;
+        judge.near_events(test, shape, &mut self.peaks, &mut self.verdicts, 0, |k, m| moves[k] = Some(m));
         // The noise gates' excursions, judged beside the frame's detections.
         if let Some(count) = gate_count {
-            let gates = GateJudge { x: &w.buffers.stop_v, noise, u: w.threshold.u, before, after };
-            let events = gates.events(test, shape, &self.peaks, &self.verdicts, &w.buffers.gate_excursions, &mut self.gate_peaks, &mut self.gate_verdicts);
+            let events = judge.events(test, shape, &self.peaks, &self.verdicts, &w.buffers.gate_excursions, &mut self.gate_peaks, &mut self.gate_verdicts);
             self.false_alarms.count(&mut w.report, count, events);
         }
         // The frame's event, when it holds one: its detections (the one on

@@ -3,7 +3,9 @@
 //! overlaps. Learns the waveform of events that repeat
 //! (`detect::events::EventTemplate`) and, where it fits a frame, drops the
 //! detections that no longer stand above the threshold once the event is
-//! taken off. A return with an event on it, alone in its window, is timed
+//! taken off. Where the frame holds an event, seeks the returns its
+//! troughs hid from the detector (`hidden_returns`; their score is the
+//! events test's). A return with an event on it, alone in its window, is timed
 //! on the samples less the event fitted under it
 //! ([`EventTest::event_under`]). Keeps the false-alarm self-check: the noise
 //! gates' excursions are judged as detections are, and those judged events
@@ -64,6 +66,8 @@ pub struct Events {
     /// verdicts (scratch).
     gate_peaks: Vec<f64>,
     gate_verdicts: Vec<Verdict>,
+    /// Places a hidden return is sought at: (prominence, index) (scratch).
+    candidates: Vec<(f64, usize)>,
 }
 
 impl Events {
@@ -83,6 +87,7 @@ impl Events {
             false_alarms: FalseAlarmCounter::default(),
             gate_peaks: Vec::new(),
             gate_verdicts: Vec::new(),
+            candidates: Vec::new(),
         }
     }
 }
@@ -196,6 +201,113 @@ impl FrameJudge<'_> {
     }
 }
 
+/// Most places a frame's hidden returns are sought at (the most prominent).
+const MAX_HIDDEN_CANDIDATES: usize = 16;
+
+/// Most places listed before the most prominent are chosen (scratch room
+/// taken once; places past it are not listed).
+const MAX_CANDIDATE_PLACES: usize = 256;
+
+/// Prominence, in detector-output sigmas, that a place needs to be sought
+/// for a hidden return: the output's height there above the mean of the
+/// output a pulse width before and after it (its second difference over a
+/// pulse width), at a local maximum of that prominence. It keeps about three
+/// quarters of a pulse's answer and takes off an event's slope and most of
+/// its slow curvature; noise alone gives it about one output sigma.
+const HIDDEN_PROMINENCE: f64 = 3.0;
+
+/// Returns an event hid from the detector, sought where the frame holds an
+/// event (a detection judged one): an event's trough under a return takes
+/// the detector's answer down with it, below the threshold (or off its
+/// local maximum, on the event's slope), and only the event's crests are
+/// detected. Places within an event's reach, in `range`, where the detector
+/// output `y` stands [`HIDDEN_PROMINENCE`] output sigmas (`sigma_y`) above
+/// its neighbourhood a pulse width each side, and no detection lies within
+/// a pulse width, are judged with [`EventTest::judge_hidden`] (the most
+/// prominent first, at most [`MAX_HIDDEN_CANDIDATES`]): a return must stand
+/// out of the event model (less the clipped samples, with the event's onset
+/// where the window shows one) by the threshold and by the model's misfit.
+/// Those found are appended to `peaks` and `verdicts` (at their place, a
+/// `None` in `moves`); the detections not judged events whose window they
+/// reach are judged again with them in the model (an event's crest beside a
+/// hidden return took the return's answer as its own). Returns how many
+/// were found. `candidates` is scratch. (The test's rails must be set.)
+#[allow(clippy::too_many_arguments)]
+fn hidden_returns(
+    judge: &FrameJudge,
+    test: &mut EventTest,
+    shape: &Shape,
+    y: &[f64],
+    range: std::ops::Range<usize>,
+    sigma_y: f64,
+    peaks: &mut Vec<f64>,
+    verdicts: &mut Vec<Verdict>,
+    moves: &mut Vec<Option<f64>>,
+    candidates: &mut Vec<(f64, usize)>,
+) -> usize {
+    let d = shape.fwhm().round().max(1.0) as usize;
+    let apart = shape.fwhm();
+    let end = range.end.min(y.len().saturating_sub(d + 1));
+    candidates.clear();
+    if !(sigma_y > 0.0) {
+        return 0;
+    }
+    let h = |p: usize| y[p] - 0.5 * (y[p - d] + y[p + d]);
+    for p in range.start.max(d + 1)..end {
+        let v = h(p);
+        if !(v > HIDDEN_PROMINENCE * sigma_y && v > h(p - 1) && v >= h(p + 1)) {
+            continue;
+        }
+        let prominence = v / sigma_y;
+        if candidates.len() < MAX_CANDIDATE_PLACES
+            && reached(peaks, verdicts, p as f64, judge.before, judge.after)
+            && !peaks.iter().any(|&o| (o - p as f64).abs() < apart)
+        {
+            candidates.push((prominence, p));
+        }
+    }
+    candidates.sort_unstable_by(|a, b| b.0.total_cmp(&a.0));
+    candidates.truncate(MAX_HIDDEN_CANDIDATES);
+    let before = peaks.len();
+    test.set_search(true);
+    let reach = test.window_len(shape);
+    for &(_, p) in candidates.iter() {
+        // Not where a return found already stands.
+        if peaks[before..].iter().any(|&o| (o - p as f64).abs() < apart) {
+            continue;
+        }
+        peaks.push(p as f64);
+        let k = peaks.len() - 1;
+        let v = test.judge_hidden(judge.x, judge.noise, shape, peaks, k, judge.u);
+        match (v, test.moved_to()) {
+            (Verdict::ReturnWithEvent(_), m) if m.is_none_or(|m| !peaks[..k].iter().any(|&o| (o - m).abs() < apart)) => {
+                if let Some(m) = m {
+                    peaks[k] = m;
+                }
+                verdicts.push(v);
+                moves.push(None);
+            }
+            _ => {
+                peaks.pop();
+            }
+        }
+    }
+    let found = peaks.len() - before;
+    if found > 0 {
+        for k in 0..before {
+            if matches!(verdicts[k], Verdict::Event(_)) || !peaks[before..].iter().any(|&h| (h - peaks[k]).abs() < reach as f64) {
+                continue;
+            }
+            verdicts[k] = test.judge_near_event(judge.x, judge.noise, shape, peaks, k, judge.u);
+            if let Some(m) = test.moved_to() {
+                moves[k] = Some(m);
+                peaks[k] = m;
+            }
+        }
+    }
+    found
+}
+
 impl Stage for Events {
     fn name(&self) -> &'static str {
         "events"
@@ -204,6 +316,8 @@ impl Stage for Events {
     fn process(&mut self, mut w: Work, out: &mut Vec<Work>) -> Result<(), FrameError> {
         w.buffers.interfered.clear();
         w.buffers.interfered.reserve(MAX_DETECTIONS);
+        w.buffers.placed.clear();
+        w.buffers.placed.reserve(MAX_DETECTIONS);
         // Scratch emptied before it is reserved (reserve counts from the
         // length): the room is taken once.
         self.peaks.clear();
@@ -212,11 +326,13 @@ impl Stage for Events {
         self.anchors.clear();
         self.gate_peaks.clear();
         self.gate_verdicts.clear();
-        self.peaks.reserve(MAX_DETECTIONS);
-        self.verdicts.reserve(MAX_DETECTIONS);
-        self.moves.reserve(MAX_DETECTIONS);
+        self.peaks.reserve(MAX_DETECTIONS + MAX_HIDDEN_CANDIDATES);
+        self.verdicts.reserve(MAX_DETECTIONS + MAX_HIDDEN_CANDIDATES);
+        self.moves.reserve(MAX_DETECTIONS + MAX_HIDDEN_CANDIDATES);
         self.anchors.reserve(MAX_DETECTIONS);
         self.gate_peaks.reserve(2 * MAX_DETECTIONS);
+        self.candidates.clear();
+        self.candidates.reserve(MAX_CANDIDATE_PLACES);
         self.gate_verdicts.reserve(2 * MAX_DETECTIONS);
         let dt = w.frame.sample_interval_s;
         self.refresh(dt);
@@ -262,6 +378,32 @@ impl Stage for Events {
         let judge = FrameJudge { x: &w.buffers.stop_v, noise, u: w.threshold.u, before, after };
         let moves = &mut self.moves;
         judge.near_events(test, shape, &mut self.peaks, &mut self.verdicts, 0, |k, m| moves[k] = Some(m));
+        // The ADC's rails, a quarter code inside (samples there are clipped).
+        let rails = w.source.clip_v.map(|(lo, hi)| (lo + 0.25 * w.source.lsb_v, hi - 0.25 * w.source.lsb_v));
+        // Returns an event's trough hid from the detector (see `hidden_returns`).
+        if !resolved && self.verdicts.iter().any(|v| matches!(v, Verdict::Event(_))) {
+            test.set_rails(rails);
+            let sigma_y = w.noise.sigma_v * w.threshold.out_gain;
+            let found = hidden_returns(
+                &judge,
+                test,
+                shape,
+                &w.buffers.detector_output,
+                w.noise.gates.range.clone(),
+                sigma_y,
+                &mut self.peaks,
+                &mut self.verdicts,
+                &mut self.moves,
+                &mut self.candidates,
+            );
+            // Placed where they were found (below).
+            let n = self.peaks.len();
+            w.buffers.detections.reserve(found);
+            for k in n - found..n {
+                w.buffers.detections.push(self.peaks[k].round().max(0.0) as usize);
+                self.moves[k] = Some(self.peaks[k]);
+            }
+        }
         // The noise gates' excursions, judged beside the frame's detections.
         if let Some(count) = gate_count {
             let events = judge.events(test, shape, &self.peaks, &self.verdicts, &w.buffers.gate_excursions, &mut self.gate_peaks, &mut self.gate_verdicts);
@@ -309,7 +451,6 @@ impl Stage for Events {
         // The sensor's return shape, from frames that hold no event and no
         // sample at a rail: once learned, the test takes it where the
         // scene's misfits.
-        let rails = w.source.clip_v.map(|(lo, hi)| (lo + 0.25 * w.source.lsb_v, hi - 0.25 * w.source.lsb_v));
         if let Some(learner) = self.learner.as_mut().filter(|l| !l.done())
             && !self.verdicts.iter().any(|v| matches!(v, Verdict::Event(_)))
             && !rails.is_some_and(|(lo, hi)| x.iter().any(|&v| v <= lo || v >= hi))
@@ -364,9 +505,13 @@ impl Stage for Events {
         // Returns found beside their detection are timed at their place.
         if !resolved {
             let last = w.buffers.stop_v.len().saturating_sub(1) as f64;
-            for (d, m) in w.buffers.detections.iter_mut().zip(&self.moves) {
+            for ((d, m), v) in w.buffers.detections.iter_mut().zip(&self.moves).zip(&self.verdicts) {
                 if let Some(m) = m {
                     *d = m.round().clamp(0.0, last) as usize;
+                    // The detector's output there is not what found it.
+                    if let Verdict::ReturnWithEvent(z) = v {
+                        w.buffers.placed.push((*d, z / w.threshold.u));
+                    }
                 }
             }
         }

@@ -108,6 +108,13 @@ pub struct Buffers {
     /// Detections (their `detections` entry or component's `detected_at`)
     /// that an interference event overlaps. Written by events; read by timing.
     pub interfered: Vec<usize>,
+    /// Detections the events stage placed away from the detector's local
+    /// maxima (a return found beside its detection, or one an event's
+    /// trough hid from the detector) and their statistic over the
+    /// threshold (the events test's z over u), which the report gives as the
+    /// return's score: the detector output there is not what found it.
+    /// Written by events; read by timing.
+    pub placed: Vec<(usize, f64)>,
     /// The noise gates' excursions above the false-alarm self-check's level
     /// (each excursion's highest position and the crossings it counts; 0
     /// for those over the gates' samples the cleaning left out, listed as
@@ -219,6 +226,7 @@ impl Buffers {
         self.detections.clear();
         self.components.clear();
         self.interfered.clear();
+        self.placed.clear();
         self.gate_excursions.clear();
     }
 }

@@ -660,7 +660,10 @@ impl Stage for Timing {
                 tof_s,
                 amplitude_v,
                 snr_db: 20.0 * (amplitude_v.abs().max(f64::MIN_POSITIVE) / w.noise.raw_sigma_v).log10(),
-                score: w.buffers.detector_output[p] / (w.threshold.u * w.noise.sigma_v * w.threshold.out_gain),
+                score: match w.buffers.placed.iter().find(|h| h.0 == p) {
+                    Some(&(_, score)) => score,
+                    None => w.buffers.detector_output[p] / (w.threshold.u * w.noise.sigma_v * w.threshold.out_gain),
+                },
                 pd,
                 t_stop_s,
                 t_peak_s: w.frame.sample_time_s(one.peak_index),

@@ -128,7 +128,8 @@ const EVENT_MISFIT: f64 = 0.02;
 /// at 0.02 a third of the hidden returns on clipped troughs stay lost; at
 /// 0.002 and below the spurious returns grow (Ringing 350 mV 6 → 8–11 of
 /// 900), while the laser-off reports stay as they are. The seeds 3000–5000
-/// had no part in the choice.
+/// did not set the value (they showed the losses that led to the hidden
+/// search, so they are not independent of its design).
 const HIDDEN_MISFIT: f64 = 0.005;
 
 /// Columns whose norm falls below this fraction of their own before
@@ -387,7 +388,7 @@ impl EventTest {
         // Beyond the threshold and beyond what the event model's misfit (a
         // fraction EVENT_MISFIT of the event's band energy) could answer
         // (Cauchy–Schwarz: √(misfit energy)/σ): asked of a return sought
-        // beside a detection, and of every hidden one.
+        // beside a detection (a hidden one has its own, HIDDEN_MISFIT).
         let beyond_misfit = threshold + (EVENT_MISFIT * explained).sqrt() / sigma;
         // Step 2: the event subspace and the other detections, then this
         // detection's pulse projected off them.
@@ -458,7 +459,7 @@ impl EventTest {
         // something the window holds all along.
         let before = dot(&self.xw[..step], &self.xw[..step]) / (sigma * sigma);
         let rho_sq = rho_squared_sum(noise.rho);
-        if before > rho_sq * chi2_upper(step as f64 / rho_sq, cfg.fit_alpha) {
+        if before > noise_only_limit(step, rho_sq, crate::math::special::q_inv(cfg.fit_alpha)) {
             return self.moved(at, c, z);
         }
         basis.event_model(band, len, &self.xw, &mut self.pulses, pulse, others(), first);
@@ -477,66 +478,85 @@ impl EventTest {
     /// pulses) with every sample at an ADC rail left out (a unit column
     /// each: a clipped trough is no longer in the event subspace, and a
     /// return on it lifts only its own samples off the rail). The pulse is
-    /// sought at the place and around it. Where the samples before some
-    /// point of the window hold noise only, the event may start there, with
-    /// a jump either way and its oscillation after it: the strongest such
-    /// onset (a step or a ramp) and the band columns gated at it join the
-    /// model, and the pulse must stand out of that too. (A decaying
+    /// sought at the place and around it (up to 1.5 widths: some 80 places,
+    /// each against the same threshold; the misfit margin, chosen on
+    /// measured frames, stands for that search too). Where the samples
+    /// before some point of the window hold noise only, the event may start
+    /// there, with a jump either way and its oscillation after it: the
+    /// strongest such onset (a step or a ramp) and the band columns gated
+    /// at it join the model, and the pulse must stand out of that too. (A decaying
     /// oscillation that starts with a jump and runs into a rail leaves a
-    /// half pulse at its onset, which the ungated model answers as a return.)
+    /// half pulse at its onset, which the ungated model answers as a
+    /// return.) A window whose model would not fit in [`CAP_COLS`] columns
+    /// is not judged (an event).
     #[allow(clippy::too_many_arguments)]
     fn hidden_verdict(&mut self, x: &[f64], noise: NoiseTerms, pulse: &Shape, peaks: &[f64], c: f64, first: usize, len: usize, threshold: f64) -> Verdict {
         let cfg = self.cfg();
         let sigma = noise.sigma_v;
         let band = self.bands.get(len, cfg.max_frequency);
+        let bands = band.len() / len;
         let basis = &mut self.basis;
         let (lo, hi) = pulse.support();
         let last = first + len - 1;
         let apart = pulse.fwhm();
-        let others = peaks.iter().copied().filter(|&p| p != c && p + hi >= first as f64 && p + lo <= last as f64 && (p - c).abs() >= apart);
-        basis.event_model(band, len, &self.xw, &mut self.pulses, pulse, others, first);
-        if let Some((rail_lo, rail_hi)) = self.rails {
-            let clipped = x[first..first + len].iter().filter(|&&v| v <= rail_lo || v >= rail_hi).count();
-            if clipped > MAX_CENSORED {
-                return Verdict::Event(0.0);
-            }
-            for (i, &v) in x[first..first + len].iter().enumerate() {
-                if v <= rail_lo || v >= rail_hi {
-                    basis.push_sample(band, len, &self.xw, i);
-                }
+        let others = || peaks.iter().copied().filter(|&p| p != c && p + hi >= first as f64 && p + lo <= last as f64 && (p - c).abs() >= apart);
+        let rails = self.rails;
+        let clipped = |v: f64| rails.is_some_and(|(rail_lo, rail_hi)| v <= rail_lo || v >= rail_hi);
+        let window = &x[first..first + len];
+        // The whole model must fit in the columns (a column left out would
+        // let the pulse explain more): else the window is not judged.
+        let censored = window.iter().filter(|&&v| clipped(v)).count();
+        if censored > MAX_CENSORED || 2 * bands + 2 * others().count() + censored + 2 > CAP_COLS {
+            return Verdict::Event(0.0);
+        }
+        // The other detections' pulses, the samples at the rails left out,
+        // then the event subspace. The model may miss a fraction
+        // HIDDEN_MISFIT of what it explains off the rails: the other
+        // detections' pulses included, for in a frame with an event they
+        // are mostly the event's crests (judged events), whose energy is the
+        // event's. (Taking the subspace's share alone, the energy beyond the
+        // pulses as step 1 does, lowered the margin: Ringing 350 mV 19 -> 22
+        // spurious of 1800.)
+        basis.reset(band, len, &self.xw);
+        for p in others() {
+            basis.push_pulse(band, len, &self.xw, self.pulses.get(pulse, p), first);
+        }
+        for (i, &v) in window.iter().enumerate() {
+            if clipped(v) {
+                basis.push_sample(band, len, &self.xw, i);
             }
         }
-        // The misfit the model may leave: a fraction HIDDEN_MISFIT of the
-        // energy it explains on the samples off the rails.
-        let on_rails: f64 = match self.rails {
-            Some((rail_lo, rail_hi)) => x[first..first + len].iter().zip(&self.xw).filter(|(v, _)| **v <= rail_lo || **v >= rail_hi).map(|(_, w)| w * w).sum(),
-            None => 0.0,
-        };
+        for j in 0..bands {
+            basis.push(band, len, &self.xw, Col::Band(j));
+        }
+        let on_rails: f64 = window.iter().zip(&self.xw).filter(|(v, _)| clipped(**v)).map(|(_, w)| w * w).sum();
         let threshold = threshold + (HIDDEN_MISFIT * (basis.energy() - on_rails).max(0.0)).sqrt() / sigma;
-        let z_of = |(num, var): (f64, f64)| if var > 0.0 { num / (sigma * var.sqrt()) } else { 0.0 };
-        let mut at = c;
-        let mut z = z_of(basis.off_span(band, len, &self.xw, self.pulses.get(pulse, c), first, noise.rho, &mut self.col));
+        // The pulse at the place and around it (never at another detection's).
         let taken = |p: f64| peaks.iter().any(|&o| o != c && (o - p).abs() < apart);
-        if let Some((num, var, p)) = basis.search_beside(band, len, &self.xw, &mut self.pulses, pulse, c, first, noise.rho, &mut self.col, taken) {
-            let zz = z_of((num, var));
-            if zz > z {
-                (z, at) = (zz, p);
-            }
-        }
+        let Some((num, var, at)) = basis.search_beside(band, len, &self.xw, &mut self.pulses, pulse, c, first, noise.rho, &mut self.col, taken) else {
+            return Verdict::Event(0.0);
+        };
+        let z_of = |(num, var): (f64, f64)| if var > 0.0 { num / (sigma * var.sqrt()) } else { 0.0 };
+        let z = z_of((num, var));
         if !(z > threshold) {
             return Verdict::Event(z);
         }
-        // The onsets the window allows: every start whose samples before it
-        // hold noise only (at level `fit_alpha`; Wilson–Hilferty, as `chi2_upper`).
+        // The event's onset: the start, of those whose samples before it
+        // hold noise only, where a step or a ramp (either sign) stands out
+        // of the model most. It joins the model whatever its size (it can
+        // only lower z): a return right after noise-only samples would lose
+        // to it, but there the event's trough does not hide it (the
+        // detector answers it). Asking the onset to stand out by the
+        // threshold, or to start before the pulse's support, let through
+        // the onsets the pulse answered (Ringing 350 mV: 19 -> 24 spurious
+        // of 1800; 28 -> 115 laser-off reports).
         let rho_sq = rho_squared_sum(noise.rho);
         let q = crate::math::special::q_inv(cfg.fit_alpha);
         let mut noise_until = 0;
         let mut before = 0.0;
         for s in 1..len {
             before += self.xw[s - 1] * self.xw[s - 1] / (sigma * sigma);
-            let nu = s as f64 / rho_sq;
-            let a = 2.0 / (9.0 * nu);
-            if before > rho_sq * nu * (1.0 - a + q * a.sqrt()).powi(3).max(0.0) {
+            if before > noise_only_limit(s, rho_sq, q) {
                 break;
             }
             noise_until = s;
@@ -1169,6 +1189,15 @@ impl Basis {
     }
 }
 
+/// The most energy (σ² units) `s` samples of noise hold at level α, with
+/// `z` = Q⁻¹(α) and ρ²-sum `rho_sq` (correlated noise: a scaled χ² of
+/// s/rho_sq degrees of freedom): [`chi2_upper`]'s Wilson–Hilferty quantile.
+fn noise_only_limit(s: usize, rho_sq: f64, z: f64) -> f64 {
+    let nu = s as f64 / rho_sq;
+    let a = 2.0 / (9.0 * nu);
+    rho_sq * (nu * (1.0 - a + z * a.sqrt()).powi(3)).max(0.0)
+}
+
 /// Σ aᵢbᵢ over the shorter of the two.
 #[inline]
 fn dot(a: &[f64], b: &[f64]) -> f64 {
@@ -1728,10 +1757,8 @@ mod tests {
         with.iter_mut().enumerate().for_each(|(i, v)| *v += 25.0 * s.value_and_slope(i as f64 - 412.4).0);
         // The crest is a detection (an event); the return's place is sought.
         let peaks = [250.0, 410.0];
-        match t.judge_hidden(&with, WHITE, &s, &peaks, 1, 5.0) {
-            Verdict::ReturnWithEvent(z) => assert!(z > 5.0, "{z}"),
-            v => panic!("{v:?}"),
-        }
+        let v = t.judge_hidden(&with, WHITE, &s, &peaks, 1, 5.0);
+        assert!(matches!(v, Verdict::ReturnWithEvent(_)), "{v:?}");
         let at = t.moved_to().unwrap_or(410.0);
         assert!((at - 412.4).abs() <= 2.0, "found at {at}");
         assert!(matches!(t.judge_hidden(&x, WHITE, &s, &peaks, 1, 5.0), Verdict::Event(_)));

@@ -128,7 +128,8 @@ fn reached(peaks: &[f64], verdicts: &[Verdict], p: f64, before: f64, after: f64)
 /// tail, is not read as false alarms the range gate never reports. (The
 /// learned event waveform's second look is left out: the excursions are
 /// judged before it, and detections it turns into events do not reach
-/// them.)
+/// them. Nor are the gates sought for hidden returns: the returns
+/// `hidden_returns` reports, right or wrong, are not in the count.)
 struct FrameJudge<'a> {
     x: &'a [f64],
     noise: NoiseTerms<'a>,
@@ -205,7 +206,7 @@ impl FrameJudge<'_> {
 const MAX_HIDDEN_CANDIDATES: usize = 16;
 
 /// Most places listed before the most prominent are chosen (scratch room
-/// taken once; places past it are not listed).
+/// taken once; past it a place replaces the least prominent listed).
 const MAX_CANDIDATE_PLACES: usize = 256;
 
 /// Prominence, in detector-output sigmas, that a place needs to be sought
@@ -227,11 +228,13 @@ const HIDDEN_PROMINENCE: f64 = 3.0;
 /// prominent first, at most [`MAX_HIDDEN_CANDIDATES`]): a return must stand
 /// out of the event model (less the clipped samples, with the event's onset
 /// where the window shows one) by the threshold and by the model's misfit.
-/// Those found are appended to `peaks` and `verdicts` (at their place, a
-/// `None` in `moves`); the detections not judged events whose window they
-/// reach are judged again with them in the model (an event's crest beside a
-/// hidden return took the return's answer as its own). Returns how many
-/// were found. `candidates` is scratch. (The test's rails must be set.)
+/// Those found are appended to `peaks`, `verdicts` and `moves` (their
+/// place); the detections not judged events, within an event's reach, whose
+/// window they reach are judged again with them in the model (an event's
+/// crest beside a hidden return took the return's answer as its own; an
+/// event this finds does not start another round). Returns how many were
+/// found. `candidates` is scratch (past [`MAX_CANDIDATE_PLACES`] the least
+/// prominent make way). (The test's rails must be set.)
 #[allow(clippy::too_many_arguments)]
 fn hidden_returns(
     judge: &FrameJudge,
@@ -259,11 +262,12 @@ fn hidden_returns(
             continue;
         }
         let prominence = v / sigma_y;
-        if candidates.len() < MAX_CANDIDATE_PLACES
-            && reached(peaks, verdicts, p as f64, judge.before, judge.after)
-            && !peaks.iter().any(|&o| (o - p as f64).abs() < apart)
-        {
-            candidates.push((prominence, p));
+        if reached(peaks, verdicts, p as f64, judge.before, judge.after) && !peaks.iter().any(|&o| (o - p as f64).abs() < apart) {
+            if candidates.len() < MAX_CANDIDATE_PLACES {
+                candidates.push((prominence, p));
+            } else if let Some(least) = candidates.iter_mut().min_by(|a, b| a.0.total_cmp(&b.0)).filter(|l| l.0 < prominence) {
+                *least = (prominence, p);
+            }
         }
     }
     candidates.sort_unstable_by(|a, b| b.0.total_cmp(&a.0));
@@ -285,7 +289,7 @@ fn hidden_returns(
                     peaks[k] = m;
                 }
                 verdicts.push(v);
-                moves.push(None);
+                moves.push(Some(peaks[k]));
             }
             _ => {
                 peaks.pop();
@@ -295,7 +299,10 @@ fn hidden_returns(
     let found = peaks.len() - before;
     if found > 0 {
         for k in 0..before {
-            if matches!(verdicts[k], Verdict::Event(_)) || !peaks[before..].iter().any(|&h| (h - peaks[k]).abs() < reach as f64) {
+            if matches!(verdicts[k], Verdict::Event(_))
+                || !reached(peaks, verdicts, peaks[k], judge.before, judge.after)
+                || !peaks[before..].iter().any(|&h| (h - peaks[k]).abs() < reach as f64)
+            {
                 continue;
             }
             verdicts[k] = test.judge_near_event(judge.x, judge.noise, shape, peaks, k, judge.u);
@@ -330,10 +337,10 @@ impl Stage for Events {
         self.verdicts.reserve(MAX_DETECTIONS + MAX_HIDDEN_CANDIDATES);
         self.moves.reserve(MAX_DETECTIONS + MAX_HIDDEN_CANDIDATES);
         self.anchors.reserve(MAX_DETECTIONS);
-        self.gate_peaks.reserve(2 * MAX_DETECTIONS);
+        self.gate_peaks.reserve(2 * MAX_DETECTIONS + MAX_HIDDEN_CANDIDATES);
         self.candidates.clear();
         self.candidates.reserve(MAX_CANDIDATE_PLACES);
-        self.gate_verdicts.reserve(2 * MAX_DETECTIONS);
+        self.gate_verdicts.reserve(2 * MAX_DETECTIONS + MAX_HIDDEN_CANDIDATES);
         let dt = w.frame.sample_interval_s;
         self.refresh(dt);
         let (_, shape, test) = self.plan.as_mut().expect("set above");
@@ -398,11 +405,7 @@ impl Stage for Events {
             );
             // Placed where they were found (below).
             let n = self.peaks.len();
-            w.buffers.detections.reserve(found);
-            for k in n - found..n {
-                w.buffers.detections.push(self.peaks[k].round().max(0.0) as usize);
-                self.moves[k] = Some(self.peaks[k]);
-            }
+            w.buffers.detections.extend(self.peaks[n - found..].iter().map(|&p| p.round().max(0.0) as usize));
         }
         // The noise gates' excursions, judged beside the frame's detections.
         if let Some(count) = gate_count {

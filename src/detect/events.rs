@@ -1762,6 +1762,15 @@ mod tests {
         let at = t.moved_to().unwrap_or(410.0);
         assert!((at - 412.4).abs() <= 2.0, "found at {at}");
         assert!(matches!(t.judge_hidden(&x, WHITE, &s, &peaks, 1, 5.0), Verdict::Event(_)));
+        // The trough clipped at a rail 8 sigma down (the return lifts its
+        // core off it): found with the rails known (the clipped samples
+        // left out); the trough alone still not.
+        let rail = -8.0;
+        let clip = |v: &Vec<f64>| v.iter().map(|&u| u.max(rail)).collect::<Vec<f64>>();
+        t.set_rails(Some((rail + 1e-9, 1e9)));
+        let v = t.judge_hidden(&clip(&with), WHITE, &s, &peaks, 1, 5.0);
+        assert!(matches!(v, Verdict::ReturnWithEvent(_)), "clipped, rails known: {v:?}");
+        assert!(matches!(t.judge_hidden(&clip(&x), WHITE, &s, &peaks, 1, 5.0), Verdict::Event(_)));
     }
 
     #[test]

@@ -505,7 +505,8 @@ impl EventTest {
         let window = &x[first..first + len];
         // The whole model must fit in the columns (a column left out would
         // let the pulse explain more): else the window is not judged.
-        let censored = window.iter().filter(|&&v| clipped(v)).count();
+        // The samples at the rails: how many, and their energy (off the model's).
+        let (censored, on_rails) = window.iter().zip(&self.xw).filter(|(v, _)| clipped(**v)).fold((0, 0.0), |(n, e), (_, w)| (n + 1, e + w * w));
         if censored > MAX_CENSORED || 2 * bands + 2 * others().count() + censored + 2 > CAP_COLS {
             return Verdict::Event(0.0);
         }
@@ -529,7 +530,6 @@ impl EventTest {
         for j in 0..bands {
             basis.push(band, len, &self.xw, Col::Band(j));
         }
-        let on_rails: f64 = window.iter().zip(&self.xw).filter(|(v, _)| clipped(**v)).map(|(_, w)| w * w).sum();
         let threshold = threshold + (HIDDEN_MISFIT * (basis.energy() - on_rails).max(0.0)).sqrt() / sigma;
         // The pulse at the place and around it (never at another detection's).
         let taken = |p: f64| peaks.iter().any(|&o| o != c && (o - p).abs() < apart);

@@ -315,32 +315,29 @@ fn hidden_returns(
     found
 }
 
+/// Empties `v` and gives it room for `n` (emptied first: `reserve` counts
+/// from the length, so the room is taken once and kept).
+fn emptied_with_room<T>(v: &mut Vec<T>, n: usize) {
+    v.clear();
+    v.reserve(n);
+}
+
 impl Stage for Events {
     fn name(&self) -> &'static str {
         "events"
     }
 
     fn process(&mut self, mut w: Work, out: &mut Vec<Work>) -> Result<(), FrameError> {
-        w.buffers.interfered.clear();
-        w.buffers.interfered.reserve(MAX_DETECTIONS);
-        w.buffers.placed.clear();
-        w.buffers.placed.reserve(MAX_DETECTIONS);
-        // Scratch emptied before it is reserved (reserve counts from the
-        // length): the room is taken once.
-        self.peaks.clear();
-        self.verdicts.clear();
-        self.moves.clear();
-        self.anchors.clear();
-        self.gate_peaks.clear();
-        self.gate_verdicts.clear();
-        self.peaks.reserve(MAX_DETECTIONS + MAX_HIDDEN_CANDIDATES);
-        self.verdicts.reserve(MAX_DETECTIONS + MAX_HIDDEN_CANDIDATES);
-        self.moves.reserve(MAX_DETECTIONS + MAX_HIDDEN_CANDIDATES);
-        self.anchors.reserve(MAX_DETECTIONS);
-        self.gate_peaks.reserve(2 * MAX_DETECTIONS + MAX_HIDDEN_CANDIDATES);
-        self.candidates.clear();
-        self.candidates.reserve(MAX_CANDIDATE_PLACES);
-        self.gate_verdicts.reserve(2 * MAX_DETECTIONS + MAX_HIDDEN_CANDIDATES);
+        let (frame, gates) = (MAX_DETECTIONS + MAX_HIDDEN_CANDIDATES, 2 * MAX_DETECTIONS + MAX_HIDDEN_CANDIDATES);
+        emptied_with_room(&mut w.buffers.interfered, MAX_DETECTIONS);
+        emptied_with_room(&mut w.buffers.placed, MAX_DETECTIONS);
+        emptied_with_room(&mut self.peaks, frame);
+        emptied_with_room(&mut self.verdicts, frame);
+        emptied_with_room(&mut self.moves, frame);
+        emptied_with_room(&mut self.anchors, MAX_DETECTIONS);
+        emptied_with_room(&mut self.gate_peaks, gates);
+        emptied_with_room(&mut self.gate_verdicts, gates);
+        emptied_with_room(&mut self.candidates, MAX_CANDIDATE_PLACES);
         let dt = w.frame.sample_interval_s;
         self.refresh(dt);
         let (_, shape, test) = self.plan.as_mut().expect("set above");

@@ -379,7 +379,9 @@ impl Level<'_> {
 /// interference events are not counted, as such detections are not
 /// reported. Their cells stay in the count's expectation: near frequent
 /// events the check reads low (conservative), as the range gate's reported
-/// rate does there.
+/// rate does there. It counts from the frame on which the events test has
+/// learned its null from the gates (before, an event in the gates is in the
+/// frame's σ̂ and its crossings cannot be judged against the noise's).
 #[derive(Debug, Default)]
 pub(super) struct FalseAlarmCounter {
     /// Noise-gate crossings since the pipeline started (less those judged

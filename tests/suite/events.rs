@@ -99,10 +99,12 @@ fn models() -> Vec<(String, EventConfig)> {
 
 /// Seeds of the runs per row: each adds 300 frames with the laser on and
 /// 300 with it off (one seed's 300 frames decide nothing at a 1 % bound:
-/// 3 of 300 is as likely from a 1 % rate as from 2 %; the last three were
-/// added after the first three had been used to tune the stage, and showed
-/// rows the first three called met falling short).
-const SEEDS: [u64; 6] = [0, 1000, 2000, 3000, 4000, 5000];
+/// 3 of 300 is as likely from a 1 % rate as from 2 %). Seeds 3000-5000
+/// were added after 0-2000 had been used to tune the stage, and showed rows
+/// the first three called met falling short; both were then used in turn.
+/// Seeds 6000-11000 were added untouched by any tuning, to check the last
+/// changes (step 2b's prefix and parabola) on frames they were not made on.
+const SEEDS: [u64; 12] = [0, 1000, 2000, 3000, 4000, 5000, 6000, 7000, 8000, 9000, 10000, 11000];
 
 impl Tally {
     fn add(&mut self, t: Tally) {
@@ -117,19 +119,19 @@ impl Tally {
     }
 }
 
-/// Per row over [`SEEDS`] (1800 frames each): found, spurious, laser-off
+/// Per row over [`SEEDS`] (3600 frames each): found, spurious, laser-off
 /// reports with a return.
 const MEASURED: [(&str, usize, usize, usize); 10] = [
-    ("MultiMode 4 sigma, random position", 1800, 0, 0),
-    ("MultiMode 350 mV, random position", 1792, 8, 9),
-    ("Ringing 4 sigma, random position", 1800, 4, 18),
-    ("Ringing 350 mV, random position", 1780, 19, 28),
-    ("WavePacket 4 sigma, random position", 1800, 0, 0),
-    ("WavePacket 350 mV, random position", 1794, 0, 7),
-    ("Doublet 4 sigma, random position", 1800, 0, 1),
-    ("Doublet 350 mV, random position", 1794, 6, 0),
-    ("MultiMode 4 sigma, on the return", 1800, 0, 0),
-    ("MultiMode 350 mV, on the return", 1789, 6, 2),
+    ("MultiMode 4 sigma, random position", 3600, 0, 1),
+    ("MultiMode 350 mV, random position", 3581, 15, 17),
+    ("Ringing 4 sigma, random position", 3600, 5, 31),
+    ("Ringing 350 mV, random position", 3568, 18, 35),
+    ("WavePacket 4 sigma, random position", 3600, 0, 0),
+    ("WavePacket 350 mV, random position", 3587, 1, 8),
+    ("Doublet 4 sigma, random position", 3600, 0, 1),
+    ("Doublet 350 mV, random position", 3587, 12, 1),
+    ("MultiMode 4 sigma, on the return", 3600, 0, 0),
+    ("MultiMode 350 mV, on the return", 3570, 15, 5),
 ];
 
 /// Runs every model (300 frames a seed, [`SEEDS`]) and prints the table; returns it.
@@ -167,15 +169,19 @@ fn table(scene: &Scene) -> Vec<(String, Tally, Tally)> {
 fn events_are_not_reported_as_returns() {
     let scene = Scene::default_scene();
     let rows = table(&scene);
-    // Rows meeting the acceptance over all their seeds: the return in
+    // Every row meets the acceptance over all its seeds: the return in
     // >= 99 % of the frames, <= 1 spurious return per 100 frames, <= 1 % of
     // the laser-off reports with a return. Ringing 350 mV at random
-    // positions meets none of the three (1780 found, 19 spurious, 28
-    // laser-off reports of 1800): not met.
+    // positions meets it by the least margin (3568 found, 18 spurious, 35
+    // laser-off reports of 3600; the 95 % intervals of the found and
+    // laser-off rates straddle their bounds): on the six tuning seeds alone
+    // 1779 of 1800 were found (98.8 %), on the six fresh ones 19 of 1800
+    // laser-off reports carried a return (1.06 %).
     let met = [
         "MultiMode 4 sigma, random position",
         "MultiMode 350 mV, random position",
         "Ringing 4 sigma, random position",
+        "Ringing 350 mV, random position",
         "WavePacket 4 sigma, random position",
         "WavePacket 350 mV, random position",
         "Doublet 4 sigma, random position",
@@ -198,7 +204,11 @@ fn events_are_not_reported_as_returns() {
     // 300 frames where 0.1 were expected); after it, in 59 of 900 (Ringing
     // 4 sigma, three crossings in the first frames, while the events
     // test's and the gate screen's nulls were still being learned); with
-    // the nulls learned from 16 gate windows instead of 64, in none.
+    // the nulls learned from 16 gate windows instead of 64, in none. The
+    // fresh seeds 6000-11000 then showed 2 runs of Ringing 4 sigma with two
+    // crossings in their second frame, before any null was learned (140
+    // reports with an excess); the self-check now starts once step 1's null
+    // is learned (3-5 frames a run), and none does.
     for (name, _, dark) in &rows {
         assert_eq!(dark.excess, 0, "{name}: {dark:?}");
     }
@@ -251,7 +261,18 @@ fn events_are_not_reported_as_returns() {
     // are now sought there (`hidden_returns`, `EventTest::judge_hidden`,
     // with the clipped samples left out and the event's onset in the
     // model): 1792, 1780 and 1794 found, the spurious and laser-off counts
-    // as they were or lower.
+    // as they were or lower. Ringing 350 mV still had 19 spurious returns
+    // and 28 laser-off reports of 1800: 7 spurious were an event's onset
+    // 50-120 ns after the return, whose window before the onset held the
+    // return (step 2b's noise-only test failed); the return's pulse is now
+    // taken off there first (19 -> 12). 12 of the laser-off reports were
+    // onsets whose ringing bends at once, which step and ramp leave to the
+    // pulse; a parabola from the onset now joins where the data ask for it
+    // (28 -> 16 laser-off, 12 -> 9 spurious; MultiMode 350 mV on the return
+    // 1789 -> 1784 found: returns 10-15 ns after an event's corner). Six
+    // fresh seeds (6000-11000), with the code before and after these two:
+    // Ringing 350 mV 1789 / 13 / 34 -> 1789 / 9 / 19, MultiMode 350 mV on
+    // the return 1791 -> 1786 found, every other row the same.
     for (name, found, spurious, dark_reports) in MEASURED {
         let (_, on, dark) = rows.iter().find(|r| r.0 == name).expect("row");
         assert!(on.found >= found, "{name}: {on:?}");
@@ -506,3 +527,4 @@ fn the_default_scene_learns_its_sensors_return_shape() {
     assert!(flagged * 100 <= returns, "{flagged} of {returns} returns flagged interference on clean frames");
     assert_eq!(found_on, found_off, "the events stage lost strong returns on clean frames");
 }
+

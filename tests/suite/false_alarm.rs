@@ -60,8 +60,13 @@ fn check_rate(pfa: f64, frames: u64, seed: u64) {
     let (_, all) = reports_with_returns(pfa, frames, seed, false);
     eprintln!("pfa {pfa:e}: self-check {} gate crossings counted with the events stage, {} without", fa.observed, all.observed);
     assert!(all.observed >= 5, "enough crossings to compare: {all:?}");
+    // With the events stage the count starts once its null is learned from
+    // the gates (16 gate windows: 15 frames of these short gates), so a
+    // few frames' cells are not in it (nor their crossings, 0.04 expected
+    // at 1e-2).
     assert!(fa.observed <= all.observed && all.observed - fa.observed <= 2, "events stage on: {fa:?}; off: {all:?}");
-    assert_eq!(fa.cells, all.cells, "the same gate cells");
+    let per_frame = all.cells / frames as f64;
+    assert!(fa.cells < all.cells && all.cells - fa.cells <= 20.0 * per_frame, "the same gate cells but a few frames': {fa:?}; off: {all:?}");
 }
 
 #[test]

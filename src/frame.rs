@@ -308,7 +308,10 @@ pub struct DetectorSummary {
     pub cells_effective: f64,
 }
 
-/// Empirical false-alarm statistics (JSON contract `false_alarm`).
+/// Empirical false-alarm statistics (JSON contract `false_alarm`),
+/// cumulative per sensor. With the events stage on, the count starts once
+/// its test has learned its null from the gates (at most 16 frames): until
+/// then `cells` is 0 (as for a frame without a noise gate).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
 pub struct FalseAlarmStats {
     /// Crossings expected in the noise gate at the design per-cell rate.

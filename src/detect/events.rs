@@ -113,6 +113,7 @@
 
 use crate::dsp::pulse::{PulseShape, Shape};
 use crate::detect::finite_gate::rho_squared_sum;
+use crate::detect::gates::at_rail;
 use crate::math::stats::chi2_upper;
 
 /// Pulses (each with its slope) whose columns one judgement reserves room
@@ -533,7 +534,7 @@ impl EventTest {
         let apart = pulse.fwhm();
         let others = || peaks.iter().copied().filter(|&p| p != c && p + hi >= first as f64 && p + lo <= last as f64 && (p - c).abs() >= apart);
         let rails = self.rails;
-        let clipped = |v: f64| rails.is_some_and(|(rail_lo, rail_hi)| v <= rail_lo || v >= rail_hi);
+        let clipped = |v: f64| at_rail(rails, v);
         let window = &x[first..first + len];
         // The whole model must fit in the columns (a column left out would
         // let the pulse explain more): else the window is not judged.

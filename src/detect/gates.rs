@@ -220,6 +220,13 @@ const QUIET_BLOCK_BIAS: f64 = 1.25;
 /// Most cleaning passes (each pass refits the centre and sigma on what it kept).
 const CLEAN_PASSES: usize = 8;
 
+/// Whether sample `v` lies at an ADC rail: at or beyond `rails` (low,
+/// high), the clip levels a quarter step inside (see
+/// `pipeline::Source::rails`); never where the rails are unknown.
+pub fn at_rail(rails: Option<(f64, f64)>, v: f64) -> bool {
+    rails.is_some_and(|(lo, hi)| v <= lo || v >= hi)
+}
+
 /// Cleans noise gates that hold pulses or interference events (a contaminated
 /// gate): the samples kept are those that look like the noise around them.
 ///
@@ -289,7 +296,7 @@ impl GateCleaner {
         let block = block.max(4);
         // Pulses or events may cover most of a gate (a pulse train): its
         // quietest block, about its own mean, bounds the starting sigma.
-        let railed = |v: f64| rails.is_some_and(|(lo, hi)| v <= lo || v >= hi);
+        let railed = |v: f64| at_rail(rails, v);
         let quiet_block = self.quiet_block_sigma(x, gates, block.max(4), &railed);
         let sigma = if quiet_block > 0.0 { sigma.min(QUIET_BLOCK_BIAS * quiet_block) } else { sigma };
         let g = self.own_colour(x, gates, sigma);

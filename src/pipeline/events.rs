@@ -15,6 +15,7 @@
 use super::detect::FalseAlarmCounter;
 use super::{FrameError, GateCount, Stage, Work};
 use crate::detect::events::{EventTemplate, EventTest, EventTestConfig, NoiseTerms, Verdict};
+use crate::detect::gates::at_rail;
 use crate::detect::return_shape::ReturnShapeLearner;
 use crate::dsp::pulse::Shape;
 use crate::frame::FrameFlag;
@@ -411,8 +412,7 @@ impl Stage for Events {
         let judge = FrameJudge { x: &w.buffers.stop_v, noise, u: w.threshold.u, before, after };
         let moves = &mut self.moves;
         judge.near_events(test, shape, &mut self.peaks, &mut self.verdicts, 0, |k, m| moves[k] = Some(m));
-        // The ADC's rails, a quarter code inside (samples there are clipped).
-        let rails = w.source.clip_v.map(|(lo, hi)| (lo + 0.25 * w.source.lsb_v, hi - 0.25 * w.source.lsb_v));
+        let rails = w.source.rails();
         // Returns an event's trough hid from the detector (see `hidden_returns`).
         if !resolved && self.verdicts.iter().any(|v| matches!(v, Verdict::Event(_))) {
             test.set_rails(rails);
@@ -482,7 +482,7 @@ impl Stage for Events {
         // scene's misfits.
         if let Some(learner) = self.learner.as_mut().filter(|l| !l.done())
             && !self.verdicts.iter().any(|v| matches!(v, Verdict::Event(_)))
-            && !rails.is_some_and(|(lo, hi)| x.iter().any(|&v| v <= lo || v >= hi))
+            && !x.iter().any(|&v| at_rail(rails, v))
             && learner.offer(x, noise.mean_v, noise.sigma_v, &self.peaks, shape)
             && let Some(learned) = learner.learned()
         {
@@ -521,7 +521,7 @@ impl Stage for Events {
             let x = &mut w.buffers.stop_v;
             let Some(first) = test.event_under(x, noise, shape, &self.peaks, k, &mut self.under) else { continue };
             let window = &mut x[first..first + self.under.len()];
-            if rails.is_some_and(|(lo, hi)| window.iter().any(|&v| v <= lo || v >= hi)) {
+            if window.iter().any(|&v| at_rail(rails, v)) {
                 continue;
             }
             let support = ((p + lo).ceil().max(first as f64) as usize - first)..(((p + hi).floor() + 1.0).max(0.0) as usize).saturating_sub(first).min(self.under.len());

@@ -91,6 +91,16 @@ pub struct Source {
     pub lsb_v: f64,
 }
 
+impl Source {
+    /// The stop channel's rails: its clip levels a quarter step inside
+    /// (a sample within a quarter step of a clip level is clipped; see
+    /// [`crate::detect::gates::at_rail`]), if known.
+    pub fn rails(&self) -> Option<(f64, f64)> {
+        let margin = 0.25 * self.lsb_v;
+        self.clip_v.map(|(lo, hi)| (lo + margin, hi - margin))
+    }
+}
+
 /// Buffers sized by the frame, reused across frames so that the per-frame
 /// path does not allocate once they have grown.
 #[derive(Debug, Clone, Default)]

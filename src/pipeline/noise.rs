@@ -165,9 +165,7 @@ impl Stage for Noise {
                 Some(last) if last > 0.0 => last.min(noise.robust_sigma_v),
                 _ => noise.robust_sigma_v,
             };
-            // Within a quarter step of a rail counts as clipped (as timing's saturation flag).
-            let margin = 0.25 * w.source.lsb_v;
-            let rails = w.source.clip_v.map(|(lo, hi)| (lo + margin, hi - margin));
+            let rails = w.source.rails();
             let kept = self.cleaner.clean(&stop_v, quiet, median, start, dilate, block, rails);
             // Too little left to rest a noise model on (coloured noise whose
             // quiet blocks read low can clip nearly everything): the raw gates.

@@ -6,6 +6,7 @@ use super::{FrameError, Stage, Work};
 use crate::detect::finite_gate::{detection_probability, rho_squared_sum};
 use crate::detect::resolve::MISFIT_LIMIT;
 use crate::detect::error_table::ErrorTable;
+use crate::detect::gates::at_rail;
 use crate::detect::pulse_timing::{crlb_samples, crossing_colour_gain, joint_crlb_samples, time_pulse, JointScratch, mismatch_gap, ShapeFit, Timed, TimingInput, MISMATCH_Z};
 use crate::detect::walk::WalkTable;
 use std::sync::Arc;
@@ -626,12 +627,11 @@ impl Stage for Timing {
             if first < 0.0 || last > (n - 1) as f64 {
                 flags.insert(ReturnFlag::FrameEdge);
             }
-            if let Some((clip_lo, clip_hi)) = w.source.clip_v {
+            let rails = w.source.rails();
+            if rails.is_some() {
                 let a = first.clamp(0.0, (n - 1) as f64) as usize;
                 let b = last.clamp(0.0, (n - 1) as f64) as usize;
-                // Within a quarter step of the rail counts as clipped.
-                let margin = 0.25 * w.source.lsb_v;
-                if x[a..=b].iter().any(|&v| v >= clip_hi - margin || v <= clip_lo + margin) {
+                if x[a..=b].iter().any(|&v| at_rail(rails, v)) {
                     flags.insert(ReturnFlag::Saturated);
                 }
             }

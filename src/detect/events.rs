@@ -111,7 +111,7 @@
 //! gives it for a shape (about 5 dB for the prototype's return); it is paid
 //! only where the flanks show something that is not noise.
 
-use crate::dsp::pulse::{PulseShape, Shape};
+use crate::dsp::pulse::Shape;
 use crate::detect::finite_gate::rho_squared_sum;
 use crate::detect::gates::at_rail;
 use crate::math::stats::chi2_upper;
@@ -254,7 +254,7 @@ impl PulseCache {
                     self.vals.reserve(need - self.vals.len());
                 }
                 let off = self.vals.len();
-                self.vals.extend((a..=b).map(|j| pulse.value_and_slope(j as f64 - p)));
+                pulse.values_on_grid(a as f64 - p, (b + 1 - a).max(0) as usize, &mut self.vals);
                 self.keys.push((key, a, off, self.vals.len() - off));
                 self.keys.len() - 1
             }
@@ -823,7 +823,7 @@ impl EventTest {
         self.q.clear();
         band_columns(len, cfg.max_frequency, &mut self.q, &mut self.col);
         self.col.clear();
-        self.col.extend((0..len).map(|i| pulse.value_and_slope(i as f64 - c).0));
+        pulse.for_each_on_grid(-c, len, |_, v, _| self.col.push(v));
         let e0: f64 = self.col.iter().map(|v| v * v).sum();
         project_off(&self.q, len, &mut self.col);
         let e1: f64 = self.col.iter().map(|v| v * v).sum();
@@ -1777,6 +1777,7 @@ impl EventTemplate {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::dsp::pulse::PulseShape;
     use crate::dsp::pulse::Pulse;
 
     fn shape() -> Shape {

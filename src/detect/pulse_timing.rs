@@ -216,7 +216,8 @@ pub fn crlb_samples(pulse: &Shape, n: usize, peak_index: f64, amplitude_v: f64, 
     let (lo, hi) = pulse.support();
     let first = (peak_index + lo).floor().max(0.0) as usize;
     let last = ((peak_index + hi).ceil().max(0.0) as usize).min(n.saturating_sub(1));
-    let energy: f64 = (first..=last).map(|k| pulse.value_and_slope(k as f64 - peak_index).1.powi(2)).sum();
+    let mut energy = 0.0;
+    pulse.for_each_on_grid(first as f64 - peak_index, (last + 1).saturating_sub(first), |_, _, s| energy += s * s);
     let a = amplitude_v.abs();
     if energy > 0.0 && a > 0.0 {
         sigma_v / (a * energy.sqrt())

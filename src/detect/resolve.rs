@@ -11,7 +11,7 @@
 use super::kernels::DetectorPlan;
 use crate::math::linalg::solve_in_place;
 use crate::dsp::mlfit::fit_delay;
-use crate::dsp::pulse::{PulseShape, Shape};
+use crate::dsp::pulse::Shape;
 use std::ops::Range;
 
 /// One resolved pulse.
@@ -61,6 +61,8 @@ pub struct Resolver {
     cluster: Vec<Component>,
     /// The pulses outside it (held fixed).
     others: Vec<Component>,
+    /// The residual over a region with one pulse added back.
+    added: Vec<f64>,
 }
 
 /// Buffers of one Levenberg-Marquardt refit (`m` = 2 × components unknowns).
@@ -252,12 +254,11 @@ impl Resolver {
                     // Alone in its cluster: the residual with it added back.
                     let c = comps[j];
                     let w = window(c.peak_index);
-                    (a..b)
-                        .map(|t| {
-                            let add = if w.contains(&t) { c.amplitude_v * shape.value_and_slope(t as f64 - c.peak_index).0 } else { 0.0 };
-                            (self.residual[t] + add).powi(2)
-                        })
-                        .sum()
+                    self.added.clear();
+                    self.added.extend_from_slice(&self.residual[a..b]);
+                    let (lo, hi) = (w.start.clamp(a, b), w.end.clamp(a, b));
+                    shape.add_scaled(c.peak_index - a as f64, lo - a..hi.max(lo) - a, c.amplitude_v, &mut self.added);
+                    self.added.iter().map(|v| v * v).sum()
                 } else {
                     // The rest of the cluster refitted, the other pulses held.
                     let mut others = std::mem::take(&mut self.others);
@@ -306,9 +307,8 @@ impl Resolver {
         }
         for c in groups.iter().flat_map(|g| g.iter()) {
             let w = window(c.peak_index);
-            for k in w.start.max(a)..w.end.min(b) {
-                self.residual[k] -= c.amplitude_v * shape.value_and_slope(k as f64 - c.peak_index).0;
-            }
+            let (lo, hi) = (w.start.clamp(a, b), w.end.clamp(a, b));
+            shape.add_scaled(c.peak_index, lo..hi.max(lo), -c.amplitude_v, &mut self.residual);
         }
     }
 
@@ -538,9 +538,7 @@ impl Resolver {
 
     /// Adds `sign` times the component's pulse to the residual.
     fn subtract(&mut self, shape: &Shape, c: &Component, window: &dyn Fn(f64) -> Range<usize>, sign: f64) {
-        for k in window(c.peak_index) {
-            self.residual[k] += sign * c.amplitude_v * shape.value_and_slope(k as f64 - c.peak_index).0;
-        }
+        shape.add_scaled(c.peak_index, window(c.peak_index), sign * c.amplitude_v, &mut self.residual);
     }
 }
 

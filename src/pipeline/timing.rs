@@ -10,7 +10,7 @@ use crate::detect::gates::at_rail;
 use crate::detect::pulse_timing::{crlb_samples, crossing_colour_gain, joint_crlb_samples, time_pulse, JointScratch, mismatch_gap, ShapeFit, Timed, TimingInput, MISMATCH_Z};
 use crate::detect::walk::WalkTable;
 use std::sync::Arc;
-use crate::dsp::pulse::{PulseShape, Shape};
+use crate::dsp::pulse::Shape;
 use crate::frame::{Return, ReturnFlag, ReturnFlags};
 use crate::scene::{DetectorKind, Scene, TimingMethod};
 
@@ -331,9 +331,7 @@ impl Neighbours {
         let n = self.x.len();
         let first = (peak_index + lo).ceil().max(0.0) as usize;
         let last = ((peak_index + hi).floor().max(-1.0) + 1.0).min(n as f64) as usize;
-        for k in first..last.max(first) {
-            self.x[k] += sign * amplitude_v * pulse.value_and_slope(k as f64 - peak_index).0;
-        }
+        pulse.add_scaled(peak_index, first..last.max(first), sign * amplitude_v, &mut self.x);
     }
 
     /// Refreshes the detector output near `p` from the samples as they now
@@ -369,7 +367,7 @@ fn slope_colour_gain(pulse: &Shape, n: usize, peak_index: f64, rho: &[f64], slop
     let first = (peak_index + lo).floor().max(0.0) as usize;
     let last = ((peak_index + hi).ceil().max(0.0) as usize).min(n.saturating_sub(1));
     slope.clear();
-    slope.extend((first..=last).map(|k| pulse.value_and_slope(k as f64 - peak_index).1));
+    pulse.for_each_on_grid(first as f64 - peak_index, last + 1 - first, |_, _, s| slope.push(s));
     let e = slope.iter().map(|v| v * v).sum::<f64>().sqrt();
     if !(e > 0.0) {
         return 1.0;

@@ -762,7 +762,10 @@ impl EventTest {
     /// median and interquartile range stay put when a minority of windows
     /// hold events, and the noise's colour (whatever it is) is in the data.
     /// The fit replaces the one from ρ once [`NULL_MIN`] windows are in.
-    pub fn learn_null(&mut self, x: &[f64], noise: NoiseTerms, runs: &[std::ops::Range<usize>], pulse: &Shape) {
+    /// `shared`: the gate screen's band energies of this frame, read
+    /// instead of computed again where they are for these runs and this
+    /// window.
+    pub fn learn_null(&mut self, x: &[f64], noise: NoiseTerms, runs: &[std::ops::Range<usize>], pulse: &Shape, shared: &GateBand) {
         let cfg = self.cfg();
         let len = self.window_len(pulse);
         if !(noise.sigma_v > 0.0) {
@@ -778,20 +781,36 @@ impl EventTest {
         }
         let band = self.bands.get(len, cfg.max_frequency);
         let null = &mut self.null;
-        for r in runs {
-            let mut start = r.start;
-            while start + len <= r.end {
-                self.xw.clear();
-                self.xw.extend(x[start..start + len].iter().map(|v| v - noise.mean_v));
-                let v = energy(band, len, &self.xw) / (noise.sigma_v * noise.sigma_v);
-                if null.values.len() < NULL_CAP {
-                    null.values.push(v);
-                } else {
-                    null.values[null.next] = v;
+        let s2 = noise.sigma_v * noise.sigma_v;
+        let mut push = |v: f64| {
+            if null.values.len() < NULL_CAP {
+                null.values.push(v);
+            } else {
+                null.values[null.next] = v;
+            }
+            null.next = (null.next + 1) % NULL_CAP;
+            null.fresh += 1;
+        };
+        if shared.len == len && shared.f_max == cfg.max_frequency && shared.runs == runs {
+            // The screen's windows are these runs' consecutive windows plus
+            // one aligned on each run's end; the constant column's
+            // projection moves by the difference of the means times its sum.
+            let shift = (shared.mean_v - noise.mean_v) * band[..len].iter().sum::<f64>();
+            for &(raw, first, aligned) in &shared.windows {
+                if !aligned {
+                    let moved = first + shift;
+                    push((raw + (moved - first) * (moved + first)) / s2);
                 }
-                null.next = (null.next + 1) % NULL_CAP;
-                null.fresh += 1;
-                start += len;
+            }
+        } else {
+            for r in runs {
+                let mut start = r.start;
+                while start + len <= r.end {
+                    self.xw.clear();
+                    self.xw.extend(x[start..start + len].iter().map(|v| v - noise.mean_v));
+                    push(energy(band, len, &self.xw) / s2);
+                    start += len;
+                }
             }
         }
         if null.values.len() >= NULL_MIN && (null.fresh >= refit_after(null.values.len()) || null.limit.is_none()) {
@@ -1310,6 +1329,19 @@ fn energy(q: &[f64], len: usize, v: &[f64]) -> f64 {
     q.chunks_exact(len).map(|col| dot(col, v).powi(2)).sum()
 }
 
+/// [`energy`] (the same bits) and the projection on the first column.
+fn energy_and_first(q: &[f64], len: usize, v: &[f64]) -> (f64, f64) {
+    let (mut e, mut first) = (0.0, 0.0);
+    for (j, col) in q.chunks_exact(len).enumerate() {
+        let p = dot(col, v);
+        if j == 0 {
+            first = p;
+        }
+        e += p.powi(2);
+    }
+    (e, first)
+}
+
 /// Removes from `v` its components along the orthonormal columns of `q`.
 fn project_off(q: &[f64], len: usize, v: &mut [f64]) {
     for col in q.chunks_exact(len) {
@@ -1402,6 +1434,37 @@ pub struct GateScreen {
     xw: Vec<f64>,
 }
 
+/// The noise gates' band energies as the gate screen computed them, window
+/// by window, for the events test's null ([`EventTest::learn_null`]), which
+/// reads the same windows of the same runs: computed once a frame, not
+/// twice. Only the band's constant column depends on the mean taken off,
+/// so the null, whose mean may differ (the reported model's), corrects
+/// that one projection.
+#[derive(Debug, Clone, Default)]
+pub struct GateBand {
+    /// Window length, samples (0: nothing held).
+    len: usize,
+    /// Highest frequency of the band, cycles per sample.
+    f_max: f64,
+    /// The mean taken off the samples, V.
+    mean_v: f64,
+    /// The runs screened.
+    runs: Vec<std::ops::Range<usize>>,
+    /// Per window, in the screen's order: band energy of x − `mean_v` (V²),
+    /// its projection on the constant column (V), and whether it is the
+    /// extra window aligned on its run's end (which the null does not read).
+    windows: Vec<(f64, f64, bool)>,
+}
+
+impl GateBand {
+    /// Holds nothing (every frame starts so: a unit's buffers are reused).
+    pub fn clear(&mut self) {
+        self.len = 0;
+        self.runs.clear();
+        self.windows.clear();
+    }
+}
+
 /// Most runs a screening keeps (windows dropped split runs).
 const SCREEN_MAX_RUNS: usize = 64;
 
@@ -1455,18 +1518,27 @@ impl GateScreen {
     /// the runs left after dropping the windows that hold slow structure
     /// (None when none does, or when less than one window's samples would
     /// be left).
-    pub fn screen(&mut self, x: &[f64], mean_v: f64, sigma_v: f64, runs: &[std::ops::Range<usize>]) -> Option<&[std::ops::Range<usize>]> {
+    /// The windows' band energies are left in `shared` for the events
+    /// test's null (cleared first).
+    pub fn screen(&mut self, x: &[f64], mean_v: f64, sigma_v: f64, runs: &[std::ops::Range<usize>], shared: &mut GateBand) -> Option<&[std::ops::Range<usize>]> {
+        shared.clear();
         let len = self.len;
         if len == 0 || !(sigma_v > 0.0) || 4 * (self.band.len() / len) > len {
             return None;
         }
         self.energies.clear();
+        shared.len = len;
+        shared.f_max = self.f_max;
+        shared.mean_v = mean_v;
+        shared.runs.extend_from_slice(runs);
         let s2 = sigma_v * sigma_v;
         for r in runs {
-            for start in Self::windows(len, r) {
+            for (k, start) in Self::windows(len, r).enumerate() {
                 self.xw.clear();
                 self.xw.extend(x[start..start + len].iter().map(|v| v - mean_v));
-                let e = energy(&self.band, len, &self.xw) / s2;
+                let (raw, first) = energy_and_first(&self.band, len, &self.xw);
+                shared.windows.push((raw, first, (k + 1) * len > r.len()));
+                let e = raw / s2;
                 if self.values.len() < NULL_CAP {
                     self.values.push(e);
                 } else {
@@ -1982,6 +2054,52 @@ mod tests {
     }
 
     #[test]
+    fn the_null_read_from_the_screens_energies_is_the_null_computed_again() {
+        let s = shape();
+        let cfg = EventTestConfig { max_frequency: 0.01, flank: 60, fit_alpha: 1e-3 };
+        let mut screen = GateScreen::new(cfg, &s, 1e-3);
+        let (mut read, mut computed) = (EventTest::new(cfg), EventTest::new(cfg));
+        // Runs that leave a remainder (the screen's extra window aligned on
+        // the end, which the null does not read), on an offset.
+        let runs = [3..237usize, 1300..2497];
+        let mut shared = GateBand::default();
+        let rho = [1.0];
+        for frame in 0..40u64 {
+            let x: Vec<f64> = noise(2500, 77 + frame).iter().map(|v| 0.3 + 0.01 * v).collect();
+            // The screen's mean and the model's differ (a tracked mean), by
+            // up to a tenth of sigma; the same on every third frame.
+            let screen_mean = 0.3 + 1e-4 * (frame as f64 * 0.7).sin();
+            let model_mean = if frame % 3 == 0 { screen_mean } else { 0.3 };
+            screen.screen(&x, screen_mean, 0.01, &runs, &mut shared);
+            assert!(!shared.windows.is_empty());
+            let noise = NoiseTerms { mean_v: model_mean, sigma_v: 0.0101, rho: &rho };
+            let old = read.null.values.len();
+            read.learn_null(&x, noise, &runs, &s, &shared);
+            computed.learn_null(&x, noise, &runs, &s, &GateBand::default());
+            assert_eq!(read.null.values.len(), computed.null.values.len());
+            assert!(read.null.values.len() > old);
+            // This frame's windows (the null holds fewer than its cap here).
+            for (a, b) in read.null.values[old..].iter().zip(&computed.null.values[old..]) {
+                if frame % 3 == 0 {
+                    assert_eq!(a.to_bits(), b.to_bits(), "frame {frame}: {a} vs {b}");
+                } else {
+                    assert!((a - b).abs() <= 1e-12 * b.abs().max(1.0), "frame {frame}: {a} vs {b}");
+                }
+            }
+        }
+        let (a, b) = (read.null.limit.unwrap(), computed.null.limit.unwrap());
+        assert!((a - b).abs() <= 1e-12 * b, "{a} vs {b}");
+        // Other runs than the screen's (it dropped windows): computed.
+        let x = noise(2500, 5);
+        screen.screen(&x, 0.0, 1.0, &runs, &mut shared);
+        let before = read.null.values.len();
+        read.learn_null(&x, NoiseTerms { mean_v: 0.0, sigma_v: 1.0, rho: &rho }, &[1300..2000], &s, &shared);
+        computed.learn_null(&x, NoiseTerms { mean_v: 0.0, sigma_v: 1.0, rho: &rho }, &[1300..2000], &s, &GateBand::default());
+        assert!(read.null.values.len() > before);
+        assert_eq!(read.null.values[before..], computed.null.values[before..]);
+    }
+
+    #[test]
     fn the_screen_drops_event_windows_and_few_clean_ones() {
         let s = shape();
         let cfg = EventTestConfig { max_frequency: 0.01, flank: 60, fit_alpha: 1e-3 };
@@ -2000,7 +2118,7 @@ mod tests {
                 }
             }
             let ready = screen.limit().is_some();
-            let kept = screen.screen(&x, 0.0, 1.0, &runs).map(|k| k.to_vec()).unwrap_or_else(|| runs.to_vec());
+            let kept = screen.screen(&x, 0.0, 1.0, &runs, &mut GateBand::default()).map(|k| k.to_vec()).unwrap_or_else(|| runs.to_vec());
             if !ready {
                 continue;
             }

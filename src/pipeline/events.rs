@@ -357,7 +357,7 @@ impl Stage for Events {
         let (_, shape, test) = self.plan.as_mut().expect("set above");
         let noise = NoiseTerms { mean_v: w.noise.summary.mean_v, sigma_v: w.noise.raw_sigma_v, rho: &w.noise.rho };
         // The test's null distribution, learned from this frame's noise gates.
-        test.learn_null(&w.buffers.stop_v, noise, &w.buffers.quiet, shape);
+        test.learn_null(&w.buffers.stop_v, noise, &w.buffers.quiet, shape, &w.buffers.gate_band);
         // The self-check counts the gates from the frame on which step 1's
         // null is learned from them (or the WARMUP_FRAMES-th, for gates too
         // short to give its windows): before, the gate screen has no null

@@ -137,6 +137,11 @@ pub struct Buffers {
     /// in frame order). Written by noise; read by detect (noise colour,
     /// whitener, false-alarm self-check).
     pub quiet: Vec<std::ops::Range<usize>>,
+    /// The noise gates' band energies, window by window, as the events gate
+    /// screen computed them (empty where it did not run). Written by noise
+    /// (cleared every frame); read by events (its test's null, for the same
+    /// runs: the screen dropped nothing).
+    pub gate_band: crate::detect::events::GateBand,
     /// Storage for channel samples a stage rewrites in volts (denoise: the
     /// cleaned stop channel; average: the mean channels). Lent to the frame
     /// by [`Work::set_volts`] and taken back when the unit is done, so the

@@ -198,8 +198,9 @@ impl Stage for Noise {
         // out, where the scene tests for events: the model is then the
         // receiver's noise, and so are the colour, the self-check and the
         // events test's null, which all read these runs.
+        w.buffers.gate_band.clear();
         let noise = match screen_for(&mut self.screen, s, w.frame.sample_interval_s) {
-            Some(screen) if noise.samples >= 2 => match screen.screen(&stop_v, noise.mean_v, noise.sigma_v, quiet) {
+            Some(screen) if noise.samples >= 2 => match screen.screen(&stop_v, noise.mean_v, noise.sigma_v, quiet, &mut w.buffers.gate_band) {
                 Some(kept) if kept.iter().map(|r| r.len()).sum::<usize>() >= s.noise_gate.min_samples.max(MIN_KEPT) => {
                     quiet.clear();
                     quiet.extend_from_slice(kept);

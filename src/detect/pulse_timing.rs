@@ -91,27 +91,28 @@ impl ShapeFit {
         let k_max = (near + 2.0 + hi).floor() as i64;
         let m_min = 4 * k_min - 8;
         let len = (4 * (k_max - k_min) + 17).max(0) as usize;
-        let mut table = [0.0; SHAPE_TABLE];
-        let fit = |j: i64, values: Option<&[f64]>| ShapeFit::at(x, mean_v, sigma_v, pulse, near + 0.25 * j as f64, j, m_min, values);
+        let mut table = [[0.0; SHAPE_TABLE / 4 + 1]; 4];
+        let fit = |j: i64, values: Option<&Phases>| ShapeFit::at(x, mean_v, sigma_v, pulse, near + 0.25 * j as f64, j, m_min, values);
         let values = (len <= SHAPE_TABLE).then(|| {
-            let values = &mut table[..len];
-            // Slot i holds the pulse at (i + m_min)/4 − near: four grids of
-            // whole samples, each filled at once (a Gaussian half by
-            // recurrence rather than an exponential per slot).
+            // Slot i = 4q + r holds the pulse at (i + m_min)/4 − near, kept
+            // as four grids of whole samples (phase r, index q), each filled
+            // at once: a position reads one of them, contiguously.
             let mut grid = [(0.0, 0.0); SHAPE_TABLE / 4 + 1];
+            let mut lens = [0; 4];
             for r in 0..4usize.min(len) {
-                let g = &mut grid[..(len - r).div_ceil(4)];
+                lens[r] = (len - r).div_ceil(4);
+                let g = &mut grid[..lens[r]];
                 pulse.fill_grid((r as i64 + m_min) as f64 * 0.25 - near, g);
-                for (q, &(v, _)) in g.iter().enumerate() {
-                    values[4 * q + r] = v;
+                for (t, &(v, _)) in table[r].iter_mut().zip(g.iter()) {
+                    *t = v;
                 }
             }
-            &*values
+            Phases { grids: &table, lens }
         });
         let mut chi2 = [f64::NAN; 17];
         let mut best: Option<(i64, ShapeFit)> = None;
         for j in -8..=8 {
-            let f = fit(j, values);
+            let f = fit(j, values.as_ref());
             chi2[(j + 8) as usize] = f.chi2;
             if best.as_ref().is_none_or(|b| f.chi2 < b.1.chi2) {
                 best = Some((j, f));
@@ -138,10 +139,11 @@ impl ShapeFit {
 
     /// The fit with the peak at `peak_index` = near + j/4 (amplitude by
     /// least squares); `values`, when given, holds the pulse's values by
-    /// 4k − j − `m_min` (read every fourth slot from the first sample's),
-    /// else the pulse is evaluated at each sample.
+    /// 4k − j − `m_min` (slot 4q + r in phase r at q: the samples read one
+    /// phase, contiguously, summed in `math::sum`'s lane order), else the
+    /// pulse is evaluated at each sample.
     #[allow(clippy::too_many_arguments)]
-    fn at(x: &[f64], mean_v: f64, sigma_v: f64, pulse: &Shape, peak_index: f64, j: i64, m_min: i64, values: Option<&[f64]>) -> ShapeFit {
+    fn at(x: &[f64], mean_v: f64, sigma_v: f64, pulse: &Shape, peak_index: f64, j: i64, m_min: i64, values: Option<&Phases>) -> ShapeFit {
         let (lo, hi) = pulse.support();
         let n = x.len();
         let first = (peak_index + lo).ceil().max(0.0) as usize;
@@ -149,26 +151,26 @@ impl ShapeFit {
         if first > last || !(sigma_v > 0.0) {
             return ShapeFit { chi2: 0.0, samples: 0, peak_index, at_edge: false };
         }
-        let (mut ss, mut xs, mut xx) = (0.0, 0.0, 0.0);
-        let mut add = |v: f64, s: f64| {
-            let v = v - mean_v;
-            ss += s * s;
-            xs += v * s;
-            xx += v * v;
-        };
         let base = 4 * first as i64 - j - m_min;
-        match values {
-            Some(t) if base >= 0 && (base as usize) + 4 * (last - first) < t.len() => {
-                for (&v, &s) in x[first..=last].iter().zip(t[base as usize..].iter().step_by(4)) {
-                    add(v, s);
-                }
-            }
-            _ => {
+        let count = last + 1 - first;
+        let phase = values.and_then(|t| {
+            let (r, q) = ((base.rem_euclid(4)) as usize, base.div_euclid(4));
+            (base >= 0 && q as usize + count <= t.lens[r]).then(|| &t.grids[r][q as usize..q as usize + count])
+        });
+        let (ss, xs, xx) = match phase {
+            Some(s) => crate::math::sum::fit_sums(&x[first..=last], s, mean_v),
+            None => {
+                let (mut ss, mut xs, mut xx) = (0.0, 0.0, 0.0);
                 for (k, &v) in x.iter().enumerate().take(last + 1).skip(first) {
-                    add(v, pulse.value_and_slope(k as f64 - peak_index).0);
+                    let s = pulse.value_and_slope(k as f64 - peak_index).0;
+                    let v = v - mean_v;
+                    ss += s * s;
+                    xs += v * s;
+                    xx += v * v;
                 }
+                (ss, xs, xx)
             }
-        }
+        };
         let chi2 = if ss > 0.0 { (xx - xs * xs / ss).max(0.0) } else { xx } / (sigma_v * sigma_v);
         ShapeFit { chi2, samples: last + 1 - first, peak_index, at_edge: false }
     }
@@ -206,6 +208,14 @@ pub fn mismatch_gap(input: &TimingInput, fit: &ShapeFit) -> Option<f64> {
 /// Pulse values [`ShapeFit::measure`] caches on the stack (4 per sample of
 /// the support plus margins); longer supports are evaluated directly.
 const SHAPE_TABLE: usize = 1024;
+
+/// The pulse's values at quarter-sample offsets for [`ShapeFit::measure`]:
+/// four grids of whole samples (phase r at q is slot 4q + r).
+struct Phases<'a> {
+    grids: &'a [[f64; SHAPE_TABLE / 4 + 1]; 4],
+    /// Filled length of each grid.
+    lens: [usize; 4],
+}
 
 /// Standard deviations of χ² beyond its mean at which a fit is called a
 /// shape mismatch (one-sided Gaussian tail 1.3e-3 per pulse).
@@ -280,14 +290,26 @@ pub fn joint_crlb_samples(pulse: &Shape, n: usize, pulses: &[(f64, f64)], sigma_
                     continue;
                 }
                 let (mut vv, mut vd, mut dv, mut dd) = (0.0, 0.0, 0.0, 0.0);
-                for t in first..=last {
-                    let (vi, di) = pulse.value_and_slope(t as f64 - pulses[i].0);
-                    let (vj, dj) = pulse.value_and_slope(t as f64 - pulses[j].0);
-                    let (di, dj) = (-pulses[i].1 * di, -pulses[j].1 * dj);
-                    vv += vi * vj;
-                    vd += vi * dj;
-                    dv += di * vj;
-                    dd += di * dj;
+                // Both pulses on the grid (vectorised), a block at a time.
+                const BLOCK: usize = 64;
+                let (mut gi, mut gj) = ([(0.0, 0.0); BLOCK], [(0.0, 0.0); BLOCK]);
+                let mut t = first;
+                while t <= last {
+                    let len = (last + 1 - t).min(BLOCK);
+                    pulse.fill_grid(t as f64 - pulses[i].0, &mut gi[..len]);
+                    if i == j {
+                        gj[..len].copy_from_slice(&gi[..len]);
+                    } else {
+                        pulse.fill_grid(t as f64 - pulses[j].0, &mut gj[..len]);
+                    }
+                    for (&(vi, di), &(vj, dj)) in gi[..len].iter().zip(&gj[..len]) {
+                        let (di, dj) = (-pulses[i].1 * di, -pulses[j].1 * dj);
+                        vv += vi * vj;
+                        vd += vi * dj;
+                        dv += di * vj;
+                        dd += di * dj;
+                    }
+                    t += len;
                 }
                 for (p, q, v) in [(2 * a, 2 * b, vv), (2 * a, 2 * b + 1, vd), (2 * a + 1, 2 * b, dv), (2 * a + 1, 2 * b + 1, dd)] {
                     f[p * m + q] = v;

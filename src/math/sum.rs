@@ -60,6 +60,32 @@ pub fn sum_sq_dev(x: &[f64], mean: f64) -> f64 {
     })
 }
 
+/// (Σ s², Σ d·s, Σ d²) of d_i = x_i − mean over the pairs (x_i, s_i) (the
+/// shorter slice sets the length): a least-squares amplitude fit's sums,
+/// in one pass.
+pub fn fit_sums(x: &[f64], s: &[f64], mean: f64) -> (f64, f64, f64) {
+    let n = x.len().min(s.len());
+    let (x, s) = (&x[..n], &s[..n]);
+    let (mut ss, mut xs, mut xx) = ([-0.0f64; LANES], [-0.0f64; LANES], [-0.0f64; LANES]);
+    let mut add = |l: usize, v: f64, s: f64| {
+        let d = v - mean;
+        ss[l] += s * s;
+        xs[l] += d * s;
+        xx[l] += d * d;
+    };
+    let (xc, sc) = (x.chunks_exact(LANES), s.chunks_exact(LANES));
+    let (xr, sr) = (xc.remainder(), sc.remainder());
+    for (a, b) in xc.zip(sc) {
+        for l in 0..LANES {
+            add(l, a[l], b[l]);
+        }
+    }
+    for (l, (&v, &s)) in xr.iter().zip(sr).enumerate() {
+        add(l, v, s);
+    }
+    (fold(ss), fold(xs), fold(xx))
+}
+
 /// (Σ d², Σ d³, Σ d⁴) of d_i = (x_i − shift) − mean, in one pass (in
 /// AVX-512 registers where the CPU has them: 1.5x faster than SSE2's).
 pub fn central_power_sums(x: &[f64], shift: f64, mean: f64) -> (f64, f64, f64) {

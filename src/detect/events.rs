@@ -1315,7 +1315,22 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
     ra.iter().zip(rb).fold(head, |s, (x, y)| s + x * y)
 }
 
-/// Σ (q_jᵀv)² over the orthonormal columns of `q`: the energy of `v` in their span.
+/// Σ (aᵢ − centre)·bᵢ over the shorter of the two, in [`dot`]'s order.
+fn centred_dot(a: &[f64], centre: f64, b: &[f64]) -> f64 {
+    let n = a.len().min(b.len());
+    let (a, b) = (&a[..n], &b[..n]);
+    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
+    let (ra, rb) = (ca.remainder(), cb.remainder());
+    let mut acc = [0.0f64; 8];
+    for (x, y) in ca.zip(cb) {
+        for k in 0..8 {
+            acc[k] += (x[k] - centre) * y[k];
+        }
+    }
+    let head = ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7]));
+    ra.iter().zip(rb).fold(head, |s, (x, y)| s + (x - centre) * y)
+}
+
 /// The part of a cached pulse ([`PulseCache::get`]) inside the window
 /// `first..first + len`: its start in the window and its (value, slope) there.
 fn clip(pulse: (i64, &[(f64, f64)]), first: usize, len: usize) -> Option<(usize, &[(f64, f64)])> {
@@ -1325,6 +1340,7 @@ fn clip(pulse: (i64, &[(f64, f64)]), first: usize, len: usize) -> Option<(usize,
     (hi > lo).then(|| ((lo - first as i64) as usize, &values[(lo - a) as usize..(hi - a) as usize]))
 }
 
+/// Σ (q_jᵀv)² over the orthonormal columns of `q`: the energy of `v` in their span.
 fn energy(q: &[f64], len: usize, v: &[f64]) -> f64 {
     q.chunks_exact(len).map(|col| dot(col, v).powi(2)).sum()
 }
@@ -1738,7 +1754,7 @@ impl EventTemplate {
             return (0.0, 0.0);
         }
         let first = (start + lo as isize) as usize;
-        let xt: f64 = x[first..first + (hi - lo)].iter().zip(&self.mean[lo..hi]).map(|(v, t)| (v - mean_v) * t).sum();
+        let xt = centred_dot(&x[first..first + (hi - lo)], mean_v, &self.mean[lo..hi]);
         (xt, self.energy[hi] - self.energy[lo])
     }
 

@@ -12,20 +12,29 @@
 //! a JSON header (sampling, scales, pulse shapes and templates, gates, the
 //! per-cell false-alarm probability, the events test's settings). Both sides
 //! are timed best of [`REPEATS`] passes over the frames (alternating between
-//! the sides), file reading excluded. Ranges are compared per tofwave return: the peer's return of the
+//! the sides), file reading excluded, the first [`WARMUP_FRAMES`] of each
+//! pass off the clock on both sides (start-up). Ranges are compared per tofwave return: the peer's return of the
 //! same frame nearest in range (within 1.5 FWHM), |Δrange| / tofwave's
 //! `range_sigma_m`.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use super::grid::{BenchConfig, process_frames, reference_frames};
+use super::grid::{BenchConfig, process_frames_steady, reference_frames};
 use crate::dsp::pulse::Shape;
 use crate::frame::{Frame, Report, Samples};
 use crate::scene::Scene;
 
 /// Passes over the frames on each side; the fastest counts.
 pub const REPEATS: usize = 3;
+
+/// Frames at the start of each pass that neither side's clock counts (two
+/// of the peer's batches): one-off start-up, not per-frame work. tofwave's
+/// first frames build its plans, measure the timing methods' error tables
+/// (a few milliseconds of simulation) and learn the noise colour and the
+/// events test's nulls; the peer builds its state before its clock and
+/// spends its first batches warming numpy's and scipy's caches.
+pub const WARMUP_FRAMES: usize = 256;
 
 /// What each side computes per frame in the stage-matched row: (stage,
 /// tofwave, peer).
@@ -164,10 +173,14 @@ impl PeerComparison {
         let _ = writeln!(
             md,
             "The same {} reference frames through tofwave and `bench/peer/peer.py` ({}), in one run. Times per \
-             frame are the best of {REPEATS} passes (alternating between the sides), file reading excluded, one core each. Range agreement: for \
+             frame are the best of {REPEATS} passes (alternating between the sides), file reading excluded, one core each, over the frames \
+             after the first {WARMUP_FRAMES} of each pass (start-up, off the clock on both sides; none when there are fewer than \
+             {} frames). Range agreement: for \
              every return tofwave reports, the peer's return of the same frame nearest in range (within 1.5 FWHM), \
              |range_tofwave − range_peer| / tofwave's `range_sigma_m`.\n",
-            self.frames, self.peer_versions
+            self.frames,
+            self.peer_versions,
+            2 * WARMUP_FRAMES
         );
         let _ = writeln!(
             md,
@@ -361,7 +374,8 @@ fn run_row(
 ) -> Result<(PeerRow, String), String> {
     let mode = if name == "minimal" { "minimal" } else { "full" };
     // tofwave's first pass gives the per-cell false-alarm probability the peer thresholds at.
-    let (mut reports, mut best) = process_frames(scene, frames).map_err(|e| e.to_string())?;
+    let warmup = if frames.len() >= 2 * WARMUP_FRAMES { WARMUP_FRAMES } else { 0 };
+    let (mut reports, mut best) = process_frames_steady(scene, frames, warmup).map_err(|e| e.to_string())?;
     let pfa_cell = reports
         .iter()
         .map(|r| r.detector.pfa_cell)
@@ -384,6 +398,7 @@ fn run_row(
     let header = serde_json::json!({
         "mode": mode,
         "repeats": 1,
+        "warmup_frames": warmup,
         "frames": frames.len(),
         "samples": len,
         "stop_file": stop_file,
@@ -421,7 +436,7 @@ fn run_row(
     let mut v = serde_json::Value::Null;
     for pass in 0..REPEATS {
         if pass > 0 {
-            let (r, seconds) = process_frames(scene, frames).map_err(|e| e.to_string())?;
+            let (r, seconds) = process_frames_steady(scene, frames, warmup).map_err(|e| e.to_string())?;
             best = best.min(seconds);
             reports = r;
         }
@@ -451,7 +466,7 @@ fn run_row(
         .collect();
     let versions = v["versions"].as_str().unwrap_or("unknown versions").to_string();
     let window_m = 1.5 * super::grid::pulse_fwhm_s(scene) * 0.5 * scene.c_medium_m_per_s();
-    let row = compare(name, &reports, &peer, window_m, peer_ns, best * 1e9 / frames.len() as f64);
+    let row = compare(name, &reports, &peer, window_m, peer_ns, best * 1e9 / (frames.len() - warmup) as f64);
     Ok((row, versions))
 }
 

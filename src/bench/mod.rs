@@ -28,7 +28,7 @@ pub use grid::{
 pub use limits::{Limits, StageLimit, Yardsticks, fma_chains, fma_rate, measure_limits};
 pub use membw::{Bandwidth, measure_bandwidth};
 pub use output::{CSV_COLUMNS, ROC_COLUMNS, write_csv, write_roc_csv};
-pub use peer::{FULL_STAGES, MINIMAL_STAGES, PeerComparison, PeerOutcome, PeerRow, REPEATS, run_peer};
+pub use peer::{FULL_STAGES, MINIMAL_STAGES, PeerComparison, PeerOutcome, PeerRow, REPEATS, WARMUP_FRAMES as PEER_WARMUP_FRAMES, run_peer};
 pub use service::{DASHBOARD_SENSORS, DashboardCost, LATENCY_LOADS, LatencyPoint, ServiceThroughput, measure_dashboard_cost, measure_service};
 pub use threads::{ThreadsCost, measure_threads_cost};
 pub use soak::{ChaoticSummary, RssLife, SoakConfig, SoakReport, run_soak};

@@ -62,6 +62,37 @@ pub fn exp(x: f64) -> f64 {
     }
 }
 
+/// e^x as [`exp`] computes it, with fused multiply-adds (each exactly
+/// rounded, so again the same bits on every CPU: in hardware where the
+/// caller is compiled for FMA, in libm's software `fma` elsewhere, which is
+/// slow). A third fewer operations in a vectorised loop; accuracy as
+/// [`exp`]'s (the bits may differ from it by an ulp).
+#[inline(always)]
+pub fn exp_fused(x: f64) -> f64 {
+    let xc = if x < LOWEST { LOWEST } else if x > HIGHEST { HIGHEST } else { x };
+    let t = xc.mul_add(INV_LN2, SHIFT);
+    let k = t - SHIFT;
+    let ki = (t.to_bits() as i64).wrapping_sub(SHIFT.to_bits() as i64);
+    let r = (-k).mul_add(LN2_LO, (-k).mul_add(LN2_HI, xc));
+    let r2 = r * r;
+    let r4 = r2 * r2;
+    let a = r2.mul_add(r.mul_add(1.0 / 120.0, 1.0 / 24.0), r.mul_add(1.0 / 6.0, 1.0 / 2.0));
+    let b = r2.mul_add(r.mul_add(1.0 / 362_880.0, 1.0 / 40_320.0), r.mul_add(1.0 / 5_040.0, 1.0 / 720.0));
+    let c = r2.mul_add(r.mul_add(1.0 / 6_227_020_800.0, 1.0 / 479_001_600.0), r.mul_add(1.0 / 39_916_800.0, 1.0 / 3_628_800.0));
+    let p = r4.mul_add(r4.mul_add(c, b), a);
+    let er = 1.0 + r2.mul_add(p, r);
+    let y = er * f64::from_bits(((ki + 1023) as u64) << 52);
+    if x < LOWEST {
+        0.0
+    } else if x > HIGHEST {
+        f64::INFINITY
+    } else if x.is_nan() {
+        x
+    } else {
+        y
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -86,6 +117,8 @@ mod tests {
             let d = ulps(exp(x), x.exp());
             worst = worst.max(d);
             assert!(d <= 2, "x = {x:e}: {:e} vs libm {:e}", exp(x), x.exp());
+            let d = ulps(exp_fused(x), x.exp());
+            assert!(d <= 2, "x = {x:e}: fused {:e} vs libm {:e}", exp_fused(x), x.exp());
         }
         assert!(worst >= 1, "compared nothing");
     }
@@ -100,6 +133,13 @@ mod tests {
         assert_eq!(exp(709.5), f64::INFINITY);
         assert_eq!(exp(f64::INFINITY), f64::INFINITY);
         assert!(exp(f64::NAN).is_nan());
+        for f in [exp, exp_fused] {
+            assert_eq!(f(0.0), 1.0);
+            assert_eq!(f(-708.31), 0.0);
+            assert_eq!(f(f64::NEG_INFINITY), 0.0);
+            assert_eq!(f(709.5), f64::INFINITY);
+            assert!(f(f64::NAN).is_nan());
+        }
         // The last normal results, and either side of the clamps.
         assert!(ulps(exp(-708.3), (-708.3f64).exp()) <= 2);
         assert!(ulps(exp(709.0), 709f64.exp()) <= 2);

@@ -3,7 +3,7 @@
 //! Built from plain parameters (seconds and a sampling period); the scene's
 //! `PulseConfig` picks the constructor (`PulseConfig::shape`, `PulseConfig::pulse`).
 
-use crate::math::exp::exp_fused;
+use crate::math::exp::exp;
 
 /// sqrt(2 ln 2): half width at half maximum of a unit-sigma Gaussian.
 const HWHM_PER_SIGMA: f64 = 1.177_410_022_515_474_6;
@@ -115,12 +115,12 @@ impl PulseShape for Pulse {
 #[inline(always)]
 fn gaussian_half(inv: f64, t: f64) -> (f64, f64) {
     let z = t * inv;
-    let v = exp_fused(-0.5 * z * z);
+    let v = exp(-0.5 * z * z);
     (v, -v * z * inv)
 }
 
 /// (value, slope) of `p` at t0, t0 + 1, … into `out`, with
-/// [`crate::math::exp::exp_fused`] (exactly rounded operations, so scalar
+/// [`crate::math::exp::exp`] (exactly rounded operations, so scalar
 /// and vectorised give the same bits; without hardware FMA, slowly) and the sigmas' reciprocals: within a few ulp of
 /// [`Pulse::value_and_slope`] (libm's `exp` and two divisions) near the
 /// peak, growing with z² in the tails (z·2e-16 in z, times z² in the value).

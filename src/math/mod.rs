@@ -5,7 +5,7 @@
 
 /// Gaussian tail Q(x), its logarithm and inverse, φ, erf/erfc; per-cell probabilities.
 pub mod special;
-/// e^x in plain arithmetic: inlined, vectorisable, the same bits on every CPU.
+/// e^x in exactly rounded arithmetic: inlined, vectorisable, the same bits on every CPU.
 pub mod exp;
 /// Incomplete beta/gamma, binomial and Poisson intervals, Jarque-Bera, Student-t quantile.
 pub mod stats;

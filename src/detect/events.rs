@@ -782,15 +782,7 @@ impl EventTest {
         let band = self.bands.get(len, cfg.max_frequency);
         let null = &mut self.null;
         let s2 = noise.sigma_v * noise.sigma_v;
-        let mut push = |v: f64| {
-            if null.values.len() < NULL_CAP {
-                null.values.push(v);
-            } else {
-                null.values[null.next] = v;
-            }
-            null.next = (null.next + 1) % NULL_CAP;
-            null.fresh += 1;
-        };
+        let mut push = |v: f64| ring_push(&mut null.values, &mut null.next, &mut null.fresh, v);
         if shared.len == len && shared.f_max == cfg.max_frequency && shared.runs == runs {
             // The screen's windows are these runs' consecutive windows plus
             // one aligned on each run's end; the constant column's
@@ -1340,6 +1332,18 @@ fn clip(pulse: (i64, &[(f64, f64)]), first: usize, len: usize) -> Option<(usize,
     (hi > lo).then(|| ((lo - first as i64) as usize, &values[(lo - a) as usize..(hi - a) as usize]))
 }
 
+/// Adds `v` to a learned null's last [`NULL_CAP`] values (`next`: the slot
+/// to overwrite once full) and counts it among those since the last fit.
+fn ring_push(values: &mut Vec<f64>, next: &mut usize, fresh: &mut usize, v: f64) {
+    if values.len() < NULL_CAP {
+        values.push(v);
+    } else {
+        values[*next] = v;
+    }
+    *next = (*next + 1) % NULL_CAP;
+    *fresh += 1;
+}
+
 /// Σ (q_jᵀv)² over the orthonormal columns of `q`: the energy of `v` in their span.
 fn energy(q: &[f64], len: usize, v: &[f64]) -> f64 {
     q.chunks_exact(len).map(|col| dot(col, v).powi(2)).sum()
@@ -1621,13 +1625,7 @@ impl GateScreen {
                 };
                 shared.windows.push((raw, first, (k + 1) * len > r.len()));
                 let e = raw / s2;
-                if self.values.len() < NULL_CAP {
-                    self.values.push(e);
-                } else {
-                    self.values[self.next] = e;
-                }
-                self.next = (self.next + 1) % NULL_CAP;
-                self.fresh += 1;
+                ring_push(&mut self.values, &mut self.next, &mut self.fresh, e);
                 self.energies.push(e);
             }
         }

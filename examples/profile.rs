@@ -12,8 +12,10 @@
 //! ```
 //!
 //! Prints CPU µs/frame of the calling thread (best of PASSES passes over the same frames, frames
-//! cloned before the clock starts) and each stage's µs/frame from the
-//! threaded engine's pilot (frames 200-400, one thread).
+//! cloned before the clock starts), the same after the first 256 frames of
+//! each pass (start-up off the clock) where there are more than 512, and,
+//! with `PROFILE_STAGES=1`, each stage's µs/frame from the threaded
+//! engine's pilot (frames 200-400, one thread).
 
 
 use tofwave::bench::{reference_frames, reference_scene};
@@ -87,14 +89,21 @@ fn main() {
         warm.recycle(&mut out);
         warm.push(f, &mut out).expect("valid frames");
     }
-    let mut best = f64::INFINITY;
+    let (mut best, mut best_steady) = (f64::INFINITY, f64::INFINITY);
     let mut returns = 0;
     for _ in 0..passes {
-        let (s, r) = timed_pass(&scene, &frames);
+        let (s, steady, r) = timed_pass(&scene, &frames);
         best = best.min(s);
+        best_steady = best_steady.min(steady);
         returns = r;
     }
     println!("{which} {method}: {:.1} us/frame over {} frames ({returns} returns)", best / frames.len() as f64 * 1e6, frames.len());
+    if frames.len() > 2 * STEADY_AFTER {
+        println!(
+            "{which} {method}: {:.1} us/frame after the first {STEADY_AFTER} (start-up off the clock)",
+            best_steady / (frames.len() - STEADY_AFTER) as f64 * 1e6
+        );
+    }
     if std::env::var_os("PROFILE_REPORT").is_some() {
         let mut p = Pipeline::new(&scene, "bench");
         let mut out = Vec::new();
@@ -109,22 +118,32 @@ fn main() {
     }
 }
 
-/// One pass over `frames` on a fresh pipeline: (seconds, returns). The
-/// profiler's collection can be limited to this function
-/// (`--toggle-collect=profile::timed_pass`).
+/// Frames of a pass whose time the steady-state figure leaves out (a new
+/// pipeline's start-up: plans, the timing error tables, colour and nulls),
+/// as `tofwave bench`'s peer comparison does.
+const STEADY_AFTER: usize = 256;
+
+/// One pass over `frames` on a fresh pipeline: (seconds, seconds after the
+/// first [`STEADY_AFTER`] frames, returns). The profiler's collection can
+/// be limited to this function (`--toggle-collect=profile::timed_pass`).
 #[inline(never)]
-fn timed_pass(scene: &Scene, frames: &[Frame]) -> (f64, usize) {
+fn timed_pass(scene: &Scene, frames: &[Frame]) -> (f64, f64, usize) {
     let mut p = Pipeline::new(scene, "bench");
     let owned = frames.to_vec();
     let mut out = Vec::new();
     let mut returns = 0;
     let t0 = thread_cpu_s();
-    for f in owned {
+    let mut t_steady = t0;
+    for (i, f) in owned.into_iter().enumerate() {
+        if i == STEADY_AFTER {
+            t_steady = thread_cpu_s();
+        }
         p.recycle(&mut out);
         p.push(f, &mut out).expect("valid frames");
         returns += out.iter().map(|r| r.returns.len()).sum::<usize>();
     }
-    (thread_cpu_s() - t0, returns)
+    let t1 = thread_cpu_s();
+    (t1 - t0, t1 - t_steady, returns)
 }
 
 /// CPU time of the calling thread, s: on a loaded machine wall time counts

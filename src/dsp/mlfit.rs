@@ -278,8 +278,8 @@ impl GridCache {
 
 impl Centered<'_> {
     /// Calls `f(y_k, value, slope)` for every sample of the window in order,
-    /// the shape at `k − delay` evaluated on the grid a chunk at a time (a
-    /// Gaussian half by recurrence, not an exponential per sample); a window
+    /// the shape at `k − delay` evaluated on the grid a chunk at a time
+    /// (vectorised, no libm call per sample); a window
     /// of at most [`GRID_CACHE`] samples keeps the values in `cache` and
     /// reuses them at the same delay.
     #[inline(always)]

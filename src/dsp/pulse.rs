@@ -96,7 +96,7 @@ impl PulseShape for Pulse {
         #[cfg(target_arch = "x86_64")]
         {
             use std::arch::is_x86_feature_detected as has;
-            if has!("avx512f") && has!("avx512dq") && has!("fma") {
+            if has!("avx512f") && has!("avx512dq") && has!("avx512vl") && has!("avx2") && has!("fma") {
                 // SAFETY: the CPU has the features the function is compiled for.
                 unsafe { gaussian_halves_on_grid_avx512(self, t0, out) };
                 return;
@@ -225,10 +225,15 @@ impl PulseShape for TablePulse {
     fn fill_grid(&self, t0: f64, out: &mut [(f64, f64)]) {
         #[cfg(target_arch = "x86_64")]
         {
+            use std::arch::is_x86_feature_detected as has;
             if let Some(inv) = self.inv_step
-                && std::arch::is_x86_feature_detected!("avx512f")
+                && has!("avx512f")
+                && has!("avx512dq")
+                && has!("avx512vl")
+                && has!("avx2")
+                && has!("fma")
             {
-                // SAFETY: the CPU has AVX-512F (checked above).
+                // SAFETY: the CPU has every feature the function is compiled for (checked above).
                 unsafe { self.fill_grid_avx512(t0, inv, out) };
                 return;
             }
@@ -366,7 +371,8 @@ impl Shape {
 
     /// Calls `f(i, value, slope)` at t0 + i for i in 0..count, the points
     /// computed [`fill_grid`](PulseShape::fill_grid)'s way (vectorised)
-    /// in blocks on the stack: no allocation.
+    /// in blocks of 64 on the stack: no allocation. (A block's points are
+    /// at (t0 + 64m) + j: within an ulp of t0 + i.)
     #[inline]
     pub fn for_each_on_grid(&self, t0: f64, count: usize, mut f: impl FnMut(usize, f64, f64)) {
         const BLOCK: usize = 64;
@@ -382,10 +388,13 @@ impl Shape {
         }
     }
 
-    /// dst[k] += gain · value(k − peak_index) for every k in `range`.
+    /// dst[k] += gain · value(k − peak_index) for every k in `range` that
+    /// is inside `dst` (none where the range is empty or lies past its end).
     pub fn add_scaled(&self, peak_index: f64, range: std::ops::Range<usize>, gain: f64, dst: &mut [f64]) {
-        let dst = &mut dst[range.clone()];
-        self.for_each_on_grid(range.start as f64 - peak_index, dst.len(), |i, v, _| dst[i] += gain * v);
+        let end = range.end.min(dst.len());
+        let start = range.start.min(end);
+        let dst = &mut dst[start..end];
+        self.for_each_on_grid(start as f64 - peak_index, dst.len(), |i, v, _| dst[i] += gain * v);
     }
 
     /// Samples the shape on the integer grid covering its support; returns the
@@ -467,6 +476,23 @@ mod tests {
         match shape {
             Shape::Parametric(p) => (p.sigma_rise, p.sigma_fall),
             Shape::Table(_) => unreachable!(),
+        }
+    }
+
+    #[test]
+    fn add_scaled_adds_inside_the_buffer_only() {
+        let shape = Shape::Parametric(Pulse { sigma_rise: 2.0, sigma_fall: 5.0 });
+        let mut x = vec![0.0; 50];
+        // Past the end, empty, reversed-empty: nothing, and no panic.
+        shape.add_scaled(60.0, 55..70, 1.0, &mut x);
+        shape.add_scaled(10.0, 20..20, 1.0, &mut x);
+        shape.add_scaled(10.0, 60..60, 1.0, &mut x);
+        assert!(x.iter().all(|&v| v == 0.0));
+        // Straddling the end: the part inside, at the right places.
+        shape.add_scaled(48.0, 40..58, 2.0, &mut x);
+        for (k, &v) in x.iter().enumerate() {
+            let want = if k >= 40 { 2.0 * shape.value_and_slope(k as f64 - 48.0).0 } else { 0.0 };
+            assert!((v - want).abs() <= 1e-15, "{k}: {v} vs {want}");
         }
     }
 

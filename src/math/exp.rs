@@ -15,9 +15,10 @@
 //! `dsp::pulse`); elsewhere they are libm's software `fma`, correct and slow.
 //!
 //! Accuracy: within 2 ulp of the correctly rounded value (checked below
-//! against libm over the whole range; 1 ulp measured). Range: results below
-//! the smallest normal number (x < −708.3) are flushed to +0; x > 709 gives
-//! +∞ (exact e^x overflows at 709.78); NaN gives NaN.
+//! against libm over the whole range; 1 ulp measured). Range: x < −708.39
+//! gives +0 (e^x is subnormal below −708.396: flushed to zero, and the few
+//! normal results in between too); x > 709 gives +∞ (exact e^x overflows at
+//! 709.78); NaN gives NaN.
 
 /// 1 / ln 2.
 const INV_LN2: f64 = 1.442_695_040_888_963_4;
@@ -28,8 +29,9 @@ const LN2_LO: f64 = f64::from_bits(0x3dea_39ef_3579_3c76);
 /// 1.5 · 2^52: adding it rounds to an integer (ties to even) and leaves the
 /// integer in the low mantissa bits.
 const SHIFT: f64 = 6_755_399_441_055_744.0;
-/// Below this the result would be subnormal: flushed to zero.
-const LOWEST: f64 = -708.3;
+/// Below this the answer is +0 (e^x itself is subnormal below −708.396;
+/// at −708.39 the reduction still has k = −1022 and r > 0, a normal result).
+const LOWEST: f64 = -708.39;
 /// Above this 2^k would need k > 1023.
 const HIGHEST: f64 = 709.0;
 
@@ -92,7 +94,7 @@ mod tests {
     fn edges_and_exact_points() {
         assert_eq!(exp(0.0), 1.0);
         assert_eq!(exp(-0.0), 1.0);
-        assert_eq!(exp(-708.31), 0.0);
+        assert_eq!(exp(-708.4), 0.0);
         assert_eq!(exp(-1e300), 0.0);
         assert_eq!(exp(f64::NEG_INFINITY), 0.0);
         assert_eq!(exp(709.5), f64::INFINITY);
@@ -100,6 +102,8 @@ mod tests {
         assert!(exp(f64::NAN).is_nan());
         // The last normal results, and either side of the clamps.
         assert!(ulps(exp(-708.3), (-708.3f64).exp()) <= 2);
+        assert!(ulps(exp(-708.39), (-708.39f64).exp()) <= 2);
+        assert!(exp(-708.39) >= f64::MIN_POSITIVE);
         assert!(ulps(exp(709.0), 709f64.exp()) <= 2);
         for x in [1.0, -1.0, 0.5 * std::f64::consts::LN_2, -0.5 * std::f64::consts::LN_2, 1e-300, -1e-17, 36.0, -745.0 + 40.0] {
             assert!(ulps(exp(x), x.exp()) <= 2, "{x}");

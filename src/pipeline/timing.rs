@@ -367,7 +367,7 @@ fn slope_colour_gain(pulse: &Shape, n: usize, peak_index: f64, rho: &[f64], slop
     let first = (peak_index + lo).floor().max(0.0) as usize;
     let last = ((peak_index + hi).ceil().max(0.0) as usize).min(n.saturating_sub(1));
     slope.clear();
-    pulse.for_each_on_grid(first as f64 - peak_index, last + 1 - first, |_, _, s| slope.push(s));
+    pulse.for_each_on_grid(first as f64 - peak_index, (last + 1).saturating_sub(first), |_, _, s| slope.push(s));
     let e = slope.iter().map(|v| v * v).sum::<f64>().sqrt();
     if !(e > 0.0) {
         return 1.0;
@@ -677,6 +677,20 @@ impl Stage for Timing {
 #[cfg(test)]
 mod tests {
     use super::PhaseDensity;
+
+    #[test]
+    fn a_pulse_timed_past_the_record_end_is_no_panic() {
+        use crate::dsp::pulse::{Pulse, Shape};
+        // A fast rise: the support starts a sample and a half before the
+        // peak, so a peak two samples past the end leaves nothing in the
+        // record (the first sample past the last).
+        let shape = Shape::Parametric(Pulse { sigma_rise: 0.25, sigma_fall: 1.0 });
+        let (mut slope, mut acf) = (Vec::new(), Vec::new());
+        assert_eq!(super::slope_colour_gain(&shape, 100, 102.0, &[1.0, 0.1], &mut slope, &mut acf), 1.0);
+        let mut nb = super::Neighbours { x: vec![0.0; 100], ..Default::default() };
+        nb.add(&shape, (102.0, 1.0), -1.0);
+        assert!(nb.x.iter().all(|&v| v == 0.0));
+    }
 
     /// A golden-ratio sequence of true phases (uniform, low discrepancy),
     /// measured through `bias`.

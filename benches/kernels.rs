@@ -15,6 +15,7 @@ use tofwave::detect::kernels::{local_maxima, upcrossings};
 use tofwave::detect::noise_model::NoiseFitter;
 use tofwave::dsp::accumulate::{CodeAccumulator, add_codes_i16, add_f64};
 use tofwave::dsp::correlate::{CorrelationMethod, Correlator};
+use tofwave::dsp::correlate_codes;
 use tofwave::dsp::fracdelay::FractionalDelay;
 use tofwave::dsp::mlfit::fit_delay;
 use tofwave::dsp::pulse::PulseShape;
@@ -48,6 +49,16 @@ fn correlate(c: &mut Criterion) {
                 },
             );
         }
+        // The same correlation on i16 codes with i16 taps, exact in i32.
+        let q: Vec<i16> = taps.iter().chain(std::iter::repeat_n(&0.0, taps_len % 2)).map(|t| (t * 4000.0) as i16).collect();
+        let codes: Vec<i16> = x.iter().map(|v| (v * 400.0) as i16).collect();
+        let mut out = vec![0i32; FRAME - q.len() + 1];
+        c.bench_function(&format!("correlate/{taps_len}taps_{FRAME}/i16 codes"), |b| {
+            b.iter(|| {
+                correlate_codes::correlate_valid(black_box(&q), black_box(&codes), &mut out);
+                black_box(out[0])
+            })
+        });
     }
 }
 

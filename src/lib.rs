@@ -18,7 +18,7 @@ pub mod math;
 pub mod telemetry;
 /// Wire contract: generated protobuf messages and their lossless, validating conversion to the domain types.
 pub mod wire;
-/// Pure numeric kernels: matched filter, interpolation, crossings, fits, filters. No I/O.
+/// Pure numeric kernels: matched filter (f64, and exact in integers on ADC codes), interpolation, crossings, fits, filters. No I/O.
 pub mod dsp;
 /// Scene: TOML description of a sensor set-up (including the simulator's `[simulation]`), validated at load, and the embedded default.
 pub mod scene;

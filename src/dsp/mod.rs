@@ -4,6 +4,8 @@
 pub mod pulse;
 /// Cross-correlation with a fixed template: direct FIR or FFT overlap-save, chosen by cost.
 pub mod correlate;
+/// Exact i32 correlation of i16 ADC codes with i16 taps (runtime-dispatched SIMD).
+pub mod correlate_codes;
 /// Sub-sample peak interpolation (parabolic, Gaussian).
 pub mod interp;
 /// Threshold crossings with sub-sample interpolation (constant fraction, leading edge).

@@ -21,7 +21,7 @@
 //! 709.78); NaN gives NaN.
 
 /// 1 / ln 2.
-const INV_LN2: f64 = 1.442_695_040_888_963_4;
+const INV_LN2: f64 = std::f64::consts::LOG2_E;
 /// ln 2, high part: its low 21 mantissa bits are zero, so k·LN2_HI is exact for |k| < 2^21.
 const LN2_HI: f64 = f64::from_bits(0x3fe6_2e42_fee0_0000);
 /// ln 2 − LN2_HI.
@@ -38,7 +38,7 @@ const HIGHEST: f64 = 709.0;
 /// e^x (see the module doc for accuracy and range).
 #[inline(always)]
 pub fn exp(x: f64) -> f64 {
-    let xc = if x < LOWEST { LOWEST } else if x > HIGHEST { HIGHEST } else { x };
+    let xc = x.clamp(LOWEST, HIGHEST);
     let t = xc.mul_add(INV_LN2, SHIFT);
     let k = t - SHIFT;
     let ki = (t.to_bits() as i64).wrapping_sub(SHIFT.to_bits() as i64);

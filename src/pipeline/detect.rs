@@ -27,7 +27,7 @@
 //!   freedom (exact in form for CA, an approximation for OS).
 
 use super::{FrameError, GateCount, Stage, Work};
-use crate::frame::FrameFlag;
+use crate::frame::{FrameFlag, Samples};
 use crate::detect::cfar::{CfarMethod, CfarPlan};
 use crate::detect::colour::{output_gain_from_acf, taps_acf, NoiseColour, OutputColour};
 use crate::detect::kernels::{local_maxima, local_maxima_above, upcrossings, upcrossings_above, DetectorPlan};
@@ -787,7 +787,17 @@ impl Stage for Detect {
                 (plan, &ws.z, sigma_eff)
             }
             _ => {
-                raw.plan.run(&w.buffers.stop_v, w.noise.summary.mean_v);
+                // A stop channel of i16 codes (a frame as digitised, not an
+                // average) is filtered exactly in integers; stop_v is its decode.
+                let stop = &w.frame.channels[w.source.stop];
+                let mean = w.noise.summary.mean_v;
+                let exact = match &stop.samples {
+                    Samples::I16(codes) => raw.plan.run_codes(&w.buffers.stop_v, codes, stop.volts_per_code, stop.offset_v, mean),
+                    _ => false,
+                };
+                if !exact {
+                    raw.plan.run(&w.buffers.stop_v, mean);
+                }
                 (&mut raw.plan, &w.buffers.stop_v, 1.0)
             }
         };

@@ -18,7 +18,7 @@
 //! (the colour is a property of the receiver, slow to change) so that a single
 //! short gate does not make the threshold jitter.
 
-use crate::math::autocov::{lag_product_sums, lag_sums_short};
+use crate::math::autocov::{code_lag_product_sums, lag_product_sums, lag_sums_short};
 
 /// Pooled autocovariance of noise-gate samples, lags 0..=max_lag.
 #[derive(Debug, Clone)]
@@ -40,6 +40,8 @@ pub struct NoiseColour {
     /// Scratch: one segment's lag sums, and its samples less the mean.
     partial: Vec<f64>,
     centred: Vec<f64>,
+    /// Scratch: a segment's codes less the integer nearest the mean.
+    codes: Vec<i16>,
 }
 
 /// Pooled samples beyond which old sums are halved, so that the estimate
@@ -62,6 +64,7 @@ impl NoiseColour {
             version: 0,
             partial: vec![0.0; max_lag + 1],
             centred: Vec::new(),
+            codes: Vec::new(),
         }
     }
 
@@ -87,6 +90,36 @@ impl NoiseColour {
     /// than this frame's gates: centring on it removes less of each product,
     /// σ²τ/mean_samples).
     pub fn add_frame_about(&mut self, segments: &[&[f64]], mean: f64, mean_samples: f64) {
+        let mut centred = std::mem::take(&mut self.centred);
+        self.pool(segments.iter().map(|seg| seg.len()), mean_samples, |i, out| {
+            lag_product_sums(segments[i], mean, out, &mut centred);
+        });
+        self.centred = centred;
+    }
+
+    /// As [`add_frame_about`](NoiseColour::add_frame_about) for segments of
+    /// integer codes that decode as `code·g + o` volts: the lag products
+    /// are summed exactly in integers ([`code_lag_product_sums`]), within
+    /// an ulp or two of the exact sums where the f64 kernel rounds every
+    /// product. A segment whose codes lie more than 2^12 from the mean (in
+    /// codes) is summed in f64 from `volts` (the same samples in volts).
+    pub fn add_frame_codes_about(&mut self, codes: &[&[i16]], volts: &[&[f64]], g: f64, o: f64, mean: f64, mean_samples: f64) {
+        let (mut centred, mut d) = (std::mem::take(&mut self.centred), std::mem::take(&mut self.codes));
+        let centre = (mean - o) / g;
+        let g2 = g * g;
+        self.pool(codes.iter().map(|seg| seg.len()), mean_samples, |i, out| {
+            if g.is_finite() && g != 0.0 && code_lag_product_sums(codes[i], centre, out, &mut d) {
+                out.iter_mut().for_each(|v| *v *= g2);
+            } else {
+                lag_product_sums(volts[i], mean, out, &mut centred);
+            }
+        });
+        (self.centred, self.codes) = (centred, d);
+    }
+
+    /// Adds one frame: `partial_of(i, out)` writes the lag sums of segment
+    /// `i` (its length the i-th of `lens`) into `out`, which are pooled.
+    fn pool(&mut self, lens: impl Iterator<Item = usize>, mean_samples: f64, mut partial_of: impl FnMut(usize, &mut [f64])) {
         self.frames += 1;
         if self.counts[0] > POOL_CONVERGED && !self.frames.is_multiple_of(8) {
             return;
@@ -101,17 +134,18 @@ impl NoiseColour {
         self.version += 1;
         let lags = self.sums.len();
         let total = mean_samples.max(1.0);
-        for seg in segments {
-            let n = seg.len();
+        let mut partial = std::mem::take(&mut self.partial);
+        for (i, n) in lens.enumerate() {
             // Per-frame partial sums first: the pooled sum then adds values
             // of similar size, frame after frame.
-            lag_product_sums(seg, mean, &mut self.partial, &mut self.centred);
+            partial_of(i, &mut partial);
             for k in 0..lags.min(n) {
-                self.sums[k] += self.partial[k];
+                self.sums[k] += partial[k];
                 self.counts[k] += (n - k) as f64;
                 self.centring[k] += (n - k) as f64 / total;
             }
         }
+        self.partial = partial;
     }
 
     /// Normalised autocorrelation ρ(0..=K) (ρ(0) = 1; K is `max_lag` or a
@@ -293,6 +327,45 @@ mod tests {
             assert_eq!(c.variance_gain.to_bits(), r(0).to_bits(), "len {len} lags {lags}");
             assert_eq!(c.rho1.to_bits(), (r(1) / r(0)).clamp(-1.0, 1.0).to_bits(), "len {len} lags {lags}");
         }
+    }
+
+    #[test]
+    fn codes_pool_as_their_volts_do() {
+        // AR(1) noise digitised to 12-bit codes, two runs per frame, pooled
+        // past convergence: the integer lag sums give the f64 pool's ρ.
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(21);
+        let (g, o) = (1.0 / 4096.0, -0.013);
+        let (mut by_volts, mut by_codes) = (NoiseColour::new(64), NoiseColour::new(64));
+        let mut y = 0.0f64;
+        for frame in 0..900 {
+            let codes: Vec<i16> = (0..1400)
+                .map(|_| {
+                    let e: f64 = StandardNormal.sample(&mut rng);
+                    y = 0.6 * y + 9.0 * e;
+                    (y + 31.0).round().clamp(-2048.0, 2047.0) as i16
+                })
+                .collect();
+            let volts: Vec<f64> = codes.iter().map(|&c| f64::from(c) * g + o).collect();
+            let mean = volts.iter().sum::<f64>() / volts.len() as f64 + 1e-4 * (frame % 7) as f64;
+            let (va, vb) = (&volts[..180], &volts[400..]);
+            let (ca, cb) = (&codes[..180], &codes[400..]);
+            by_volts.add_frame_about(&[va, vb], mean, 5000.0);
+            by_codes.add_frame_codes_about(&[ca, cb], &[va, vb], g, o, mean, 5000.0);
+        }
+        let (rv, rc) = (by_volts.rho().unwrap(), by_codes.rho().unwrap());
+        assert_eq!(rv.len(), rc.len());
+        for (k, (a, b)) in rv.iter().zip(&rc).enumerate() {
+            assert!((a - b).abs() < 1e-12, "lag {k}: {a} against {b}");
+        }
+        assert!((rv[1] - 0.6).abs() < 0.01, "{}", rv[1]);
+        // Codes too far from the mean for the integer sums: the f64 sums of the volts.
+        let mut far = NoiseColour::new(4);
+        let mut plain = NoiseColour::new(4);
+        let codes = [30000i16, -30000, 29000, -29500, 30000, -30000];
+        let volts: Vec<f64> = codes.iter().map(|&c| f64::from(c) * g + o).collect();
+        far.add_frame_codes_about(&[&codes], &[&volts], g, o, 0.0, 6.0);
+        plain.add_frame_about(&[&volts], 0.0, 6.0);
+        assert_eq!(far.rho(), plain.rho());
     }
 
     #[test]

@@ -52,6 +52,129 @@ pub fn lag_product_sums(x: &[f64], centre: f64, out: &mut [f64], centred: &mut V
     lag_sums_body::<16>(centred, out);
 }
 
+/// [`lag_product_sums`] for integer codes `c` about a centre `centre` (in
+/// codes, not necessarily an integer), in codes²: about the integer `r`
+/// nearest the centre the products `d_i·d_{i+k}` (d = c − r) are summed
+/// exactly in integers, and the centre's fractional part `f` enters
+/// exactly as algebra says, Σ (d_i − f)(d_{i+k} − f) = D_k − f·(A_k + B_k) +
+/// (n − k)·f², with A_k, B_k the two ranges' exact sums of d. |f| ≤ 1/2, so
+/// nothing cancels that the f64 sum would have kept: the result is within
+/// an ulp or two of the exact sum, where the f64 kernel rounds every
+/// product. False (nothing written) where a code lies more than 2^12 from
+/// `r` or the centre is not finite: the caller sums in f64.
+/// `d` is scratch, kept by the caller.
+pub fn code_lag_product_sums(c: &[i16], centre: f64, out: &mut [f64], d: &mut Vec<i16>) -> bool {
+    const MAX_D: i32 = 1 << 12;
+    if !(centre.abs() < 1e6) {
+        return false;
+    }
+    let r = centre.round();
+    let ri = r as i32;
+    let (lo, hi) = c.iter().fold((i16::MAX, i16::MIN), |(lo, hi), &v| (lo.min(v), hi.max(v)));
+    if !c.is_empty() && (i32::from(hi) - ri > MAX_D || ri - i32::from(lo) > MAX_D) {
+        return false;
+    }
+    d.clear();
+    // |c − r| ≤ 2^12: fits an i16.
+    d.extend(c.iter().map(|&v| (i32::from(v) - ri) as i16));
+    out.fill(0.0);
+    let n = d.len();
+    let f = centre - r;
+    let total: i64 = d.iter().map(|&v| i64::from(v)).sum();
+    // A_k = Σ_{i<n−k} d_i and B_k = Σ_{i≥k} d_i, updated lag by lag.
+    let (mut a, mut b) = (total, total);
+    for (k, o) in out.iter_mut().enumerate().take(n) {
+        if k > 0 {
+            a -= i64::from(d[n - k]);
+            b -= i64::from(d[k - 1]);
+        }
+        let dk = dot_i16(&d[..n - k], &d[k..]);
+        *o = dk as f64 - f * (a + b) as f64 + (n - k) as f64 * (f * f);
+    }
+    true
+}
+
+/// Σ a_i·b_i exactly for |a_i|, |b_i| ≤ 2^12 (the caller's bound): pairs of
+/// products summed in i32 lanes (`vpmaddwd` where the CPU has AVX-512BW or
+/// AVX2), widened to i64 after at most 32 vectors (32 pair sums of at most
+/// 2^25 per lane stay below 2^31).
+fn dot_i16(a: &[i16], b: &[i16]) -> i64 {
+    let n = a.len().min(b.len());
+    let (a, b) = (&a[..n], &b[..n]);
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx512f") && std::arch::is_x86_feature_detected!("avx512bw") {
+            // SAFETY: AVX-512F and AVX-512BW checked just above.
+            return unsafe { dot_i16_avx512(a, b) };
+        }
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: AVX2 checked just above.
+            return unsafe { dot_i16_avx2(a, b) };
+        }
+    }
+    dot_i16_from(a, b, 0, 0)
+}
+
+/// `acc` plus Σ a_i·b_i from `from` on, in i64.
+fn dot_i16_from(a: &[i16], b: &[i16], from: usize, acc: i64) -> i64 {
+    acc + a[from..].iter().zip(&b[from..]).map(|(&x, &y)| i64::from(x) * i64::from(y)).sum::<i64>()
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bw")]
+fn dot_i16_avx512(a: &[i16], b: &[i16]) -> i64 {
+    use std::arch::x86_64::{
+        __m512i, _mm512_add_epi32, _mm512_loadu_si512, _mm512_madd_epi16, _mm512_reduce_add_epi64, _mm512_setzero_si512,
+        _mm512_add_epi64, _mm512_castsi512_si256, _mm512_cvtepi32_epi64, _mm512_extracti64x4_epi64,
+    };
+    let n = a.len();
+    let mut wide = _mm512_setzero_si512();
+    let mut k = 0;
+    while k + 32 <= n {
+        // Up to 32 vectors of 32 products per lane pair: |sum| ≤ 32·2·2^24 = 2^30.
+        let mut acc = _mm512_setzero_si512();
+        let end = (k + 32 * 32).min(n - n % 32);
+        while k < end {
+            // SAFETY: k + 32 <= n for both slices.
+            let (x, y) = unsafe { (_mm512_loadu_si512(a.as_ptr().add(k).cast::<__m512i>()), _mm512_loadu_si512(b.as_ptr().add(k).cast::<__m512i>())) };
+            acc = _mm512_add_epi32(acc, _mm512_madd_epi16(x, y));
+            k += 32;
+        }
+        wide = _mm512_add_epi64(wide, _mm512_cvtepi32_epi64(_mm512_castsi512_si256(acc)));
+        wide = _mm512_add_epi64(wide, _mm512_cvtepi32_epi64(_mm512_extracti64x4_epi64::<1>(acc)));
+    }
+    dot_i16_from(a, b, k, _mm512_reduce_add_epi64(wide))
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn dot_i16_avx2(a: &[i16], b: &[i16]) -> i64 {
+    use std::arch::x86_64::{
+        __m256i, _mm256_add_epi32, _mm256_add_epi64, _mm256_castsi256_si128, _mm256_cvtepi32_epi64, _mm256_extracti128_si256,
+        _mm256_loadu_si256, _mm256_madd_epi16, _mm256_setzero_si256, _mm256_storeu_si256,
+    };
+    let n = a.len();
+    let mut wide = _mm256_setzero_si256();
+    let mut k = 0;
+    while k + 16 <= n {
+        // Up to 32 vectors of 16 products per lane pair: |sum| ≤ 2^30.
+        let mut acc = _mm256_setzero_si256();
+        let end = (k + 32 * 16).min(n - n % 16);
+        while k < end {
+            // SAFETY: k + 16 <= n for both slices.
+            let (x, y) = unsafe { (_mm256_loadu_si256(a.as_ptr().add(k).cast::<__m256i>()), _mm256_loadu_si256(b.as_ptr().add(k).cast::<__m256i>())) };
+            acc = _mm256_add_epi32(acc, _mm256_madd_epi16(x, y));
+            k += 16;
+        }
+        wide = _mm256_add_epi64(wide, _mm256_cvtepi32_epi64(_mm256_castsi256_si128(acc)));
+        wide = _mm256_add_epi64(wide, _mm256_cvtepi32_epi64(_mm256_extracti128_si256::<1>(acc)));
+    }
+    let mut lanes = [0i64; 4];
+    // SAFETY: lanes is 32 bytes.
+    unsafe { _mm256_storeu_si256(lanes.as_mut_ptr().cast::<__m256i>(), wide) };
+    dot_i16_from(a, b, k, lanes.iter().sum())
+}
+
 /// Σ_{i < n−k} d_i·d_{i+k} for every lag `k < out.len()` (`out.len() <=
 /// d.len()`) of data centred already, each bit for bit the serial sum in
 /// index order ([`lag_product_sum`] with centre 0), for a short `d` (a
@@ -356,6 +479,63 @@ impl AutocovarianceAccumulator {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn code_lag_sums_are_the_exact_sums() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let mut d = Vec::new();
+        for &(n, lags) in &[(1300usize, 65usize), (37, 65), (2000, 17), (1, 3), (0, 4), (1031, 64)] {
+            for &(centre, spread) in &[(0.25, 2047), (-700.75, 40), (1234.5, 4000), (3.0, 4095)] {
+                let c: Vec<i16> = (0..n).map(|_| (centre as i32 + rng.random_range(-spread..=spread)) as i16).collect();
+                let mut got = vec![f64::NAN; lags];
+                assert!(code_lag_product_sums(&c, centre, &mut got, &mut d), "{n} codes about {centre}");
+                // Exact: 16·Σ(c_i − centre)(c_{i+k} − centre) is an integer (centre in quarters).
+                let q = (centre * 4.0) as i128;
+                for (k, g) in got.iter().enumerate() {
+                    let exact16: i128 = if k < n {
+                        (0..n - k).map(|i| (4 * i128::from(c[i]) - q) * (4 * i128::from(c[i + k]) - q)).sum()
+                    } else {
+                        0
+                    };
+                    let exact = exact16 as f64 / 16.0;
+                    let scale = (0..n.saturating_sub(k)).map(|i| (f64::from(c[i]) - centre).powi(2)).sum::<f64>().max(1.0);
+                    assert!((g - exact).abs() <= 4.0 * f64::EPSILON * scale, "{n} codes, lag {k}: {g} against {exact}");
+                }
+            }
+        }
+        // Codes farther than 2^12 from the centre, or no finite centre: the caller sums in f64.
+        assert!(!code_lag_product_sums(&[0, 5000], 0.0, &mut [0.0; 2], &mut d));
+        assert!(!code_lag_product_sums(&[0, 5], f64::NAN, &mut [0.0; 2], &mut d));
+    }
+
+    #[test]
+    fn the_integer_dot_is_exact_on_every_path() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(4);
+        for n in [0usize, 1, 15, 16, 31, 33, 1023, 1024, 1025, 3000] {
+            let a: Vec<i16> = (0..n).map(|_| rng.random_range(-4096..=4096)).collect();
+            let b: Vec<i16> = (0..n).map(|_| if rng.random_bool(0.5) { 4096 } else { -4096 }).collect();
+            let want = dot_i16_from(&a, &b, 0, 0);
+            assert_eq!(dot_i16(&a, &b), want, "{n}");
+            #[cfg(target_arch = "x86_64")]
+            {
+                if std::arch::is_x86_feature_detected!("avx2") {
+                    // SAFETY: AVX2 checked just above.
+                    assert_eq!(unsafe { dot_i16_avx2(&a, &b) }, want, "AVX2, {n}");
+                }
+                if std::arch::is_x86_feature_detected!("avx512f") && std::arch::is_x86_feature_detected!("avx512bw") {
+                    // SAFETY: the features checked just above.
+                    assert_eq!(unsafe { dot_i16_avx512(&a, &b) }, want, "AVX-512, {n}");
+                }
+            }
+        }
+        // At the bound: every product 2^24, 3000 of them (the i32 lanes would overflow unwidened).
+        let a = vec![4096i16; 3000];
+        assert_eq!(dot_i16(&a, &a), 3000 * (1i64 << 24));
+        let m = vec![-4096i16; 3000];
+        assert_eq!(dot_i16(&a, &m), -3000 * (1i64 << 24));
+    }
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 

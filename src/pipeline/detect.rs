@@ -745,7 +745,19 @@ impl Stage for Detect {
                 *p = &stop_v[r.clone()];
             }
             // A forgetting noise model's mean rests on more samples than this frame's gates.
-            colour.add_frame_about(&parts[..runs], w.noise.summary.mean_v, w.noise.summary.samples as f64);
+            let (mean, mean_samples) = (w.noise.summary.mean_v, w.noise.summary.samples as f64);
+            let stop = &w.frame.channels[w.source.stop];
+            match &stop.samples {
+                // Codes as digitised (stop_v is their decode): exact integer lag sums.
+                Samples::I16(codes) if codes.len() == stop_v.len() => {
+                    let mut code_parts: [&[i16]; MAX_RUNS] = [&[]; MAX_RUNS];
+                    for (p, r) in code_parts.iter_mut().zip(&w.buffers.quiet) {
+                        *p = &codes[r.clone()];
+                    }
+                    colour.add_frame_codes_about(&code_parts[..runs], &parts[..runs], stop.volts_per_code, stop.offset_v, mean, mean_samples);
+                }
+                _ => colour.add_frame_about(&parts[..runs], mean, mean_samples),
+            }
         }
         let (out_gain, rho1, tau, rho_sq, rho_cube) = match (&self.whiten, whitened) {
             (Some(ws), true) => (1.0, ws.plan.as_ref().expect("whitened").plan.rho1(), 1.0, 1.0, 1.0),

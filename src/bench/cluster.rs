@@ -120,9 +120,9 @@ pub fn measure_cluster_cost(
         let stamp = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_millis());
         for t in 0..trials.max(1) {
             let sensor = format!("bench-{stamp}-{t}");
-            let (fps, _) = trial(scene, &wire, &format!("{sensor}-single"), None, 1).await?;
+            let (fps, _) = trial(scene, &wire, &format!("{sensor}-single"), None, 1, 0).await?;
             cost.single_frames_per_s.push(fps);
-            let (fps, first) = trial(scene, &wire, &sensor, Some(cluster.clone()), 1).await?;
+            let (fps, first) = trial(scene, &wire, &sensor, Some(cluster.clone()), 1, 0).await?;
             cost.cluster_frames_per_s.push(fps);
             cost.cluster_first_report_s.push(first);
             admin.forget_sensor(&sensor).await.map_err(|e| err(&e))?;
@@ -139,6 +139,7 @@ pub fn measure_cluster_cost(
 }
 
 /// One server (alone, or a cluster node), one sensor: steady-state reports/s
+/// (the clock starting at report `skip` + 1; `skip` < the frames less one)
 /// and seconds to the first report.
 pub(super) async fn trial(
     scene: &Scene,
@@ -146,6 +147,7 @@ pub(super) async fn trial(
     sensor: &str,
     cluster: Option<ClusterConfig>,
     workers_per_sensor: usize,
+    skip: usize,
 ) -> Result<(f64, f64), BenchError> {
     let err = |e: &dyn std::fmt::Display| BenchError::Service(e.to_string());
     let count = wire.len();
@@ -182,14 +184,18 @@ pub(super) async fn trial(
     });
     let mut ingest = clients.ingest.clone();
     let pusher = tokio::spawn(async move { client::push(&mut ingest, ReceiverStream::new(rx), |_| {}).await });
-    let (mut first, mut last, mut got) = (None, None, 0usize);
+    let skip = skip.min(count.saturating_sub(2));
+    let (mut first_report, mut first, mut last, mut got) = (None, None, None, 0usize);
     while got < count {
         match tokio::time::timeout(Duration::from_secs(60), events.message()).await {
             Ok(Ok(Some(proto::ReportEvent { event: Some(Event::Report(_)) }))) => {
                 let now = Instant::now();
-                first.get_or_insert(now);
-                last = Some(now);
+                first_report.get_or_insert(now);
                 got += 1;
+                if got > skip {
+                    first.get_or_insert(now);
+                    last = Some(now);
+                }
             }
             Ok(Ok(Some(_))) => {}
             other => return Err(BenchError::Service(format!("{got} of {count} reports arrived, then {other:?}"))),
@@ -204,5 +210,6 @@ pub(super) async fn trial(
     }
     let (first, last) = (first.expect("count >= 2"), last.expect("count >= 2"));
     let span = last.duration_since(first).as_secs_f64().max(1e-9);
-    Ok(((count - 1) as f64 / span, first.duration_since(t0).as_secs_f64()))
+    let first_report = first_report.expect("count >= 2");
+    Ok(((count - skip - 1) as f64 / span, first_report.duration_since(t0).as_secs_f64()))
 }

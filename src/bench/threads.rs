@@ -3,10 +3,11 @@
 //! against one thread, on the same frames in trials alternating the arms.
 //!
 //! Rates are steady-state: outcomes (offline) or reports reaching a
-//! subscriber (service) from the first to the last, divided by the time
-//! between them. They include the 400 frames the threaded pipeline runs on
-//! one thread to choose its cut, so more frames per trial move the N-thread
-//! rates towards the cut's bound.
+//! subscriber (service) from the 401st to the last, divided by the time
+//! between them, on every arm: the first 400 frames are those the threaded
+//! pipeline runs on one thread to choose its cut, and those in which any
+//! pipeline pays its start-up. (With fewer than 800 frames per trial the
+//! clock starts at the first.)
 
 use std::time::Instant;
 
@@ -126,7 +127,7 @@ pub fn measure_threads_cost(
         }
         for (n, into) in [(1, &mut cost.service_1), (threads, &mut cost.service_n)] {
             let sensor = format!("threads-{t}-{n}");
-            let (fps, _) = rt.block_on(trial(scene, &wire, &sensor, None, n))?;
+            let (fps, _) = rt.block_on(trial(scene, &wire, &sensor, None, n, pilot_skip(frames.len())))?;
             into.push(fps);
         }
         progress(&format!(
@@ -141,12 +142,28 @@ pub fn measure_threads_cost(
     Ok(cost)
 }
 
-/// Steady-state outcomes per second of `frames` on `threads` threads, and the cut.
+/// Outcomes left off the clock out of `frames`: [`threaded::PILOT_FRAMES`]
+/// where there are at least twice as many frames, else none.
+fn pilot_skip(frames: usize) -> usize {
+    if frames >= 2 * threaded::PILOT_FRAMES { threaded::PILOT_FRAMES } else { 0 }
+}
+
+/// Steady-state outcomes per second of `frames` on `threads` threads, and
+/// the cut: the clock runs from the outcome of frame
+/// [`threaded::PILOT_FRAMES`] on, whatever the thread count (before it a
+/// pipeline on several threads runs on one while it chooses its cut, and
+/// every pipeline pays its start-up), unless there are too few frames for
+/// that, then from the first outcome.
 fn offline(scene: &Scene, frames: &[Frame], threads: usize) -> (f64, threaded::Cut) {
-    let (mut first, mut last, mut count) = (None, None, 0usize);
+    let skip = pilot_skip(frames.len());
+    let (mut first, mut last, mut count, mut seen) = (None, None, 0usize, 0usize);
     let cut = threaded::run(scene, "bench", threads, frames.iter().cloned(), |o| {
-        if o.reports.is_empty() && count == frames.len() {
+        if o.reports.is_empty() && seen == frames.len() {
             return; // the final flush's outcome
+        }
+        seen += 1;
+        if seen <= skip {
+            return;
         }
         let now = Instant::now();
         first.get_or_insert(now);

@@ -45,6 +45,9 @@ const QUEUE: usize = 4;
 const PILOT_WARMUP: usize = 200;
 /// Frames after those, still on one thread, whose step times choose the cut.
 const PILOT_TIMED: usize = 200;
+/// Frames a pipeline on several threads runs on the calling thread before
+/// its stages go to their threads.
+pub const PILOT_FRAMES: usize = PILOT_WARMUP + PILOT_TIMED;
 
 /// One push's units on their way through the segments.
 struct InFlight {
@@ -75,6 +78,9 @@ pub struct Cut {
     /// Each stage's mean time per frame over the pilot's timed frames, s
     /// (validate first; empty when no pilot ran).
     pub stage_s: Vec<(&'static str, f64)>,
+    /// The thread each segment runs on (0, 1, … one each; on two threads
+    /// the ring `[0, 1, 0]`: the first and last segments share thread 0).
+    pub threads: Vec<usize>,
 }
 
 impl std::fmt::Display for Cut {
@@ -87,6 +93,9 @@ impl std::fmt::Display for Cut {
             if let Some(share) = self.shares.get(i) {
                 write!(f, " ({:.0} %)", share * 100.0)?;
             }
+        }
+        if self.threads.len() == 3 && self.threads[0] == self.threads[2] {
+            write!(f, "; the first and last on one thread")?;
         }
         Ok(())
     }
@@ -157,7 +166,10 @@ enum Mode {
 
 /// The threads of a cut pipeline and the channels to them.
 struct Pool {
-    frames: Option<SyncSender<Vec<Frame>>>,
+    frames: Option<FramesTx>,
+    /// Most frames in flight before `push` waits for outcomes (the ring's
+    /// input queue is unbounded; the chain's head queue bounds its own).
+    limit: usize,
     /// Frames pushed and not yet sent (sent by the chunk).
     pending: Vec<Frame>,
     out: Receiver<Vec<Msg>>,
@@ -213,6 +225,7 @@ impl Staged {
             segments: vec![self.names.clone()],
             shares: vec![1.0],
             stage_s: Vec::new(),
+            threads: vec![0],
         })
     }
 
@@ -263,6 +276,10 @@ impl Staged {
                     pool.send();
                 }
                 pool.collect(false, &mut self.observer, &mut self.last_noise, out);
+                while pool.in_flight > pool.limit {
+                    let Ok(msgs) = pool.out.recv() else { break };
+                    pool.take(msgs, &mut self.observer, &mut self.last_noise, out);
+                }
             }
             Mode::Done => panic!("Staged::push after finish"),
         }
@@ -316,12 +333,20 @@ impl Staged {
         // No stage took measurable time: cut evenly by count.
         let even = costs.iter().sum::<f64>() <= 0.0;
         let costs: Vec<f64> = if even { vec![1.0; costs.len()] } else { costs };
-        let bounds = partition(&costs, self.threads);
+        let chain = partition(&costs, self.threads);
+        // Two threads: the ring (first and last segments on one thread) where
+        // it sets a pace at least RING_GAIN of the chain's.
+        let ring = if self.threads == 2 { ring_partition(&costs) } else { None };
+        let (bounds, threads) = match ring {
+            Some(r) if ring_pace(&costs, &r) < RING_GAIN * chain_pace(&costs, &chain) => (r, vec![0, 1, 0]),
+            _ => (chain.clone(), (0..chain.len() - 1).collect()),
+        };
         let total: f64 = costs.iter().sum();
         let cut = Cut {
             segments: bounds.windows(2).map(|b| names[b[0]..b[1]].to_vec()).collect(),
             shares: bounds.windows(2).map(|b| costs[b[0]..b[1]].iter().sum::<f64>() / total).collect(),
             stage_s: if even { Vec::new() } else { names.iter().zip(&costs).map(|(n, c)| (*n, c / PILOT_TIMED as f64)).collect() },
+            threads: threads.clone(),
         };
         tracing::info!(sensor = %self.sensor, threads = self.threads, cut = %cut, "stages cut over threads");
         self.cut = Some(cut);
@@ -335,6 +360,33 @@ impl Staged {
         groups.reverse();
         let spare = std::mem::take(&mut pipeline.spare);
         let (spare_tx, spare_rx) = channel::<Work>();
+        let rebuild = |first: usize| Rebuild { scene: self.scene.clone(), sensor: self.sensor.clone(), first };
+        if threads.len() == 3 {
+            let [(f0, g0), (f1, g1), (f2, g2)]: [(usize, Vec<Box<dyn Stage>>); 3] = groups.try_into().ok().expect("three segments");
+            let (head_tx, head_rx) = channel::<HeadMsg>();
+            let (mid_tx, mid_rx) = sync_channel::<Vec<Msg>>(QUEUE);
+            let (out_tx, out_rx) = channel::<Vec<Msg>>();
+            let (back, spare_b, r1) = (head_tx.clone(), spare_tx.clone(), rebuild(f1));
+            let mid = std::thread::Builder::new().name("tofwave-seg1".into()).spawn(move || segment(g1, mid_rx, Out::Back(back), spare_b, r1));
+            let (r0, r2) = (rebuild(f0), rebuild(f2));
+            let validate = pipeline.validate;
+            let ends = Ends { first: g0, last: g2, rebuild_first: r0, rebuild_last: r2 };
+            let head = std::thread::Builder::new()
+                .name("tofwave-seg0+2".into())
+                .spawn(move || ring_head(validate, spare, spare_rx, head_rx, mid_tx, out_tx, ends));
+            self.mode = Mode::Split(Pool {
+                frames: Some(FramesTx::Ring(head_tx)),
+                limit: 2 * QUEUE * CHUNK,
+                pending: Vec::with_capacity(CHUNK),
+                out: out_rx,
+                spare_tx,
+                back: Vec::new(),
+                in_flight: 0,
+                flushed: Vec::new(),
+                handles: vec![head.expect("spawning a pipeline thread"), mid.expect("spawning a pipeline thread")],
+            });
+            return;
+        }
         let (frames_tx, frames_rx) = sync_channel::<Vec<Frame>>(QUEUE);
         let mut handles = Vec::new();
         let mut input: Option<Receiver<Vec<Msg>>> = None;
@@ -351,7 +403,7 @@ impl Staged {
                 let (tx, rx) = sync_channel::<Vec<Msg>>(QUEUE);
                 (Out::Next(tx), rx)
             };
-            let rebuild = Rebuild { scene: self.scene.clone(), sensor: self.sensor.clone(), first };
+            let rebuild = rebuild(first);
             let name = format!("tofwave-seg{i}");
             let handle = match head.take() {
                 Some((validate, spare, spare_rx, frames_rx)) => std::thread::Builder::new()
@@ -367,7 +419,8 @@ impl Staged {
             input = Some(rx);
         }
         self.mode = Mode::Split(Pool {
-            frames: Some(frames_tx),
+            frames: Some(FramesTx::Chain(frames_tx)),
+            limit: usize::MAX,
             pending: Vec::with_capacity(CHUNK),
             out: input.expect("at least one segment"),
             spare_tx,
@@ -449,7 +502,7 @@ impl Pool {
         let chunk = std::mem::replace(&mut self.pending, Vec::with_capacity(CHUNK));
         self.in_flight += chunk.len();
         if let Some(tx) = &self.frames
-            && tx.send(chunk).is_err()
+            && !tx.send(chunk)
         {
             // The head is gone (it cannot panic out: stages are caught).
             self.frames = None;
@@ -501,6 +554,8 @@ impl Pool {
 enum Out {
     Next(SyncSender<Vec<Msg>>),
     Last(Sender<Vec<Msg>>),
+    /// Back to the ring's head thread (its last segment).
+    Back(Sender<HeadMsg>),
 }
 
 impl Out {
@@ -508,8 +563,54 @@ impl Out {
         match self {
             Out::Next(tx) => tx.send(msgs).is_ok(),
             Out::Last(tx) => tx.send(msgs).is_ok(),
+            Out::Back(tx) => tx.send(HeadMsg::Back(msgs)).is_ok(),
         }
     }
+}
+
+/// What the ring's head thread is sent: frames from the calling thread,
+/// the middle segment's output, and the end of input.
+enum HeadMsg {
+    Frames(Vec<Frame>),
+    Back(Vec<Msg>),
+    End,
+}
+
+/// How the calling thread hands frames to the head thread.
+enum FramesTx {
+    /// The chain's head queue (bounded: a full queue holds the caller back).
+    Chain(SyncSender<Vec<Frame>>),
+    /// The ring's head queue (unbounded, as the middle segment writes to it
+    /// too; [`Pool::limit`] holds the caller back). Dropping it ends the input.
+    Ring(Sender<HeadMsg>),
+}
+
+impl FramesTx {
+    /// False when the head thread is gone.
+    fn send(&self, chunk: Vec<Frame>) -> bool {
+        match self {
+            FramesTx::Chain(tx) => tx.send(chunk).is_ok(),
+            FramesTx::Ring(tx) => tx.send(HeadMsg::Frames(chunk)).is_ok(),
+        }
+    }
+}
+
+impl Drop for FramesTx {
+    fn drop(&mut self) {
+        // The chain's head sees its queue close; the ring's cannot (the middle
+        // segment holds a sender too), so it is told.
+        if let FramesTx::Ring(tx) = self {
+            let _ = tx.send(HeadMsg::End);
+        }
+    }
+}
+
+/// The ring's first and last segments, run by its head thread.
+struct Ends {
+    first: Vec<Box<dyn Stage>>,
+    last: Vec<Box<dyn Stage>>,
+    rebuild_first: Rebuild,
+    rebuild_last: Rebuild,
 }
 
 /// Builds a fresh copy of a segment's stage after a panic.
@@ -593,6 +694,56 @@ fn flush_stages(stages: &mut [Box<dyn Stage>], out: &mut Vec<Msg>, retired: &mut
     out.push(Msg::Flush);
 }
 
+/// Validates each frame of `chunk` (reusing finished units' buffers from
+/// `spare`) and runs `stages` on it: one message per frame.
+fn head_chunk(
+    validate: &mut super::validate::Validate,
+    spare: &mut Vec<Work>,
+    chunk: Vec<Frame>,
+    stages: &mut [Box<dyn Stage>],
+    leaving: &mut Vec<Work>,
+    rebuild: &Rebuild,
+) -> Vec<Msg> {
+    let mut msgs = Vec::with_capacity(chunk.len());
+    for frame in chunk {
+        let mut units = Vec::with_capacity(1);
+        let mut panic = None;
+        let mut result = match std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| validate.process(frame, spare, &mut units))) {
+            Ok(r) => r,
+            Err(p) => {
+                panic = Some(panic_message(p.as_ref()));
+                *validate = super::validate::Validate::new(&rebuild.scene);
+                Ok(())
+            }
+        };
+        if result.is_ok() && panic.is_none() {
+            run_stages(stages, &mut units, leaving, &mut result, spare, &mut panic, Some((rebuild, 0)));
+        }
+        msgs.push(Msg::Push(InFlight { units, result, flush: false, panic }));
+    }
+    msgs
+}
+
+/// Runs `stages` on what the segment before passed on; true once the end
+/// of input (a flush) has passed.
+fn pass_on(stages: &mut [Box<dyn Stage>], msgs: Vec<Msg>, leaving: &mut Vec<Work>, retired: &mut Vec<Work>, rebuild: &Rebuild) -> (Vec<Msg>, bool) {
+    let mut next = Vec::with_capacity(msgs.len());
+    let mut ended = false;
+    for msg in msgs {
+        match msg {
+            Msg::Push(mut inflight) => {
+                run_stages(stages, &mut inflight.units, leaving, &mut inflight.result, retired, &mut inflight.panic, Some((rebuild, 0)));
+                next.push(Msg::Push(inflight));
+            }
+            Msg::Flush => {
+                flush_stages(stages, &mut next, retired, rebuild);
+                ended = true;
+            }
+        }
+    }
+    (next, ended)
+}
+
 /// Segment 0: validates each frame (reusing finished units' buffers) and
 /// runs its stages.
 fn head_segment(
@@ -607,23 +758,7 @@ fn head_segment(
     let mut leaving = Vec::new();
     while let Ok(chunk) = frames.recv() {
         spare.extend(spare_rx.try_iter());
-        let mut msgs = Vec::with_capacity(chunk.len());
-        for frame in chunk {
-            let mut units = Vec::with_capacity(1);
-            let mut panic = None;
-            let mut result = match std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| validate.process(frame, &mut spare, &mut units))) {
-                Ok(r) => r,
-                Err(p) => {
-                    panic = Some(panic_message(p.as_ref()));
-                    validate = super::validate::Validate::new(&rebuild.scene);
-                    Ok(())
-                }
-            };
-            if result.is_ok() && panic.is_none() {
-                run_stages(&mut stages, &mut units, &mut leaving, &mut result, &mut spare, &mut panic, Some((&rebuild, 0)));
-            }
-            msgs.push(Msg::Push(InFlight { units, result, flush: false, panic }));
-        }
+        let msgs = head_chunk(&mut validate, &mut spare, chunk, &mut stages, &mut leaving, &rebuild);
         if !out.send(msgs) {
             return;
         }
@@ -638,27 +773,57 @@ fn segment(mut stages: Vec<Box<dyn Stage>>, from: Receiver<Vec<Msg>>, out: Out, 
     let mut leaving = Vec::new();
     let mut retired = Vec::new();
     while let Ok(msgs) = from.recv() {
-        let mut next = Vec::with_capacity(msgs.len());
-        for msg in msgs {
-            match msg {
-                Msg::Push(mut inflight) => {
-                    run_stages(
-                        &mut stages,
-                        &mut inflight.units,
-                        &mut leaving,
-                        &mut inflight.result,
-                        &mut retired,
-                        &mut inflight.panic,
-                        Some((&rebuild, 0)),
-                    );
-                    next.push(Msg::Push(inflight));
-                }
-                Msg::Flush => flush_stages(&mut stages, &mut next, &mut retired, &rebuild),
-            }
-        }
+        let (next, _) = pass_on(&mut stages, msgs, &mut leaving, &mut retired, &rebuild);
         retired.drain(..).for_each(|w| drop(spare_tx.send(w)));
         if !out.send(next) {
             return;
+        }
+    }
+}
+
+/// The ring's head thread: the first segment on frames (validated here, as
+/// [`head_segment`] does) and the last segment on what the middle one
+/// passes back, in the order they arrive; each keeps its own order, so
+/// every stage sees its units in frame order. The end of input flushes the
+/// first segment into the middle one, whose flush comes back through the
+/// last; then the thread ends. Units the last segment finishes with are
+/// reused here directly.
+fn ring_head(
+    mut validate: super::validate::Validate,
+    mut spare: Vec<Work>,
+    spare_rx: Receiver<Work>,
+    input: Receiver<HeadMsg>,
+    to_middle: SyncSender<Vec<Msg>>,
+    out: Sender<Vec<Msg>>,
+    mut ends: Ends,
+) {
+    let mut leaving = Vec::new();
+    let mut to_middle = Some(to_middle);
+    while let Ok(msg) = input.recv() {
+        match msg {
+            HeadMsg::Frames(chunk) => {
+                let Some(tx) = &to_middle else { continue };
+                spare.extend(spare_rx.try_iter());
+                let msgs = head_chunk(&mut validate, &mut spare, chunk, &mut ends.first, &mut leaving, &ends.rebuild_first);
+                // The middle segment never waits on this thread (its queue
+                // back here is unbounded), so a full queue to it drains.
+                if tx.send(msgs).is_err() {
+                    return;
+                }
+            }
+            HeadMsg::End => {
+                if let Some(tx) = to_middle.take() {
+                    let mut msgs = Vec::new();
+                    flush_stages(&mut ends.first, &mut msgs, &mut spare, &ends.rebuild_first);
+                    let _ = tx.send(msgs);
+                }
+            }
+            HeadMsg::Back(msgs) => {
+                let (next, ended) = pass_on(&mut ends.last, msgs, &mut leaving, &mut spare, &ends.rebuild_last);
+                if out.send(next).is_err() || ended {
+                    return;
+                }
+            }
         }
     }
 }
@@ -679,6 +844,42 @@ fn finish(mut w: Work, spare: &mut Vec<Work>) -> Report {
     let report = std::mem::take(&mut w.report);
     retire(spare, w);
     report
+}
+
+/// The ring on two threads is chosen only where its pace (its busier
+/// thread's share) is below this fraction of the chain's: it hands each
+/// frame over twice more.
+const RING_GAIN: f64 = 0.9;
+
+/// The chain's pace: its largest segment's cost.
+fn chain_pace(costs: &[f64], bounds: &[usize]) -> f64 {
+    bounds.windows(2).map(|b| costs[b[0]..b[1]].iter().sum::<f64>()).fold(0.0, f64::max)
+}
+
+/// The ring's pace: the larger of its head thread's cost (first and last
+/// segments) and its middle segment's.
+fn ring_pace(costs: &[f64], bounds: &[usize]) -> f64 {
+    let sum = |a: usize, b: usize| costs[a..b].iter().sum::<f64>();
+    let (i, j, m) = (bounds[1], bounds[2], bounds[3]);
+    (sum(0, i) + sum(j, m)).max(sum(i, j))
+}
+
+/// The three non-empty consecutive segments `[0, i, j, m]` whose ring pace
+/// is smallest (first and last on one thread, the middle on the other);
+/// None for fewer than three stages.
+fn ring_partition(costs: &[f64]) -> Option<Vec<usize>> {
+    let m = costs.len();
+    let mut best: Option<(f64, Vec<usize>)> = None;
+    for i in 1..m {
+        for j in i + 1..m {
+            let b = vec![0, i, j, m];
+            let pace = ring_pace(costs, &b);
+            if best.as_ref().is_none_or(|(p, _)| pace < *p) {
+                best = Some((pace, b));
+            }
+        }
+    }
+    best.map(|(_, b)| b)
 }
 
 /// Cuts `costs` into `parts` consecutive non-empty runs with the smallest
@@ -719,7 +920,7 @@ fn partition(costs: &[f64], parts: usize) -> Vec<usize> {
 
 #[cfg(test)]
 mod tests {
-    use super::partition;
+    use super::{chain_pace, partition, ring_pace, ring_partition, RING_GAIN};
 
     #[test]
     fn partition_minimises_the_largest_run() {
@@ -729,5 +930,22 @@ mod tests {
         assert_eq!(partition(&[1.0, 2.0, 3.0], 3), vec![0, 1, 2, 3]);
         assert_eq!(partition(&[1.0, 2.0], 5), vec![0, 1, 2]);
         assert_eq!(partition(&[0.0, 0.0, 0.0], 2).len(), 3);
+    }
+
+    #[test]
+    fn the_ring_pairs_the_first_and_last_segments_against_the_middle() {
+        // A heavy middle stage: the chain's best pace is 0.65, the ring's 0.5.
+        let costs = [0.02, 0.13, 0.2, 0.5, 0.15];
+        let chain = partition(&costs, 2);
+        assert!((chain_pace(&costs, &chain) - 0.65).abs() < 1e-12);
+        let ring = ring_partition(&costs).unwrap();
+        assert_eq!(ring, vec![0, 3, 4, 5]);
+        assert!((ring_pace(&costs, &ring) - 0.5).abs() < 1e-12);
+        assert!(ring_pace(&costs, &ring) < RING_GAIN * chain_pace(&costs, &chain));
+        // Evenly spread costs: the ring gains nothing over the chain.
+        let flat = [0.25; 4];
+        let r = ring_partition(&flat).unwrap();
+        assert!(ring_pace(&flat, &r) >= RING_GAIN * chain_pace(&flat, &partition(&flat, 2)));
+        assert_eq!(ring_partition(&[1.0, 1.0]), None);
     }
 }

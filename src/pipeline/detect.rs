@@ -642,6 +642,8 @@ pub struct Detect {
     t_cache: TCache,
     /// Detector output positions over the kept gate runs (scratch).
     gate_pos: Vec<std::ops::Range<usize>>,
+    /// An 8-bit stop channel's codes widened to i16 (the integer filter's input).
+    wide_codes: Vec<i16>,
 }
 
 impl Detect {
@@ -689,6 +691,7 @@ impl Detect {
             held_out: None,
             t_cache: TCache::default(),
             gate_pos: Vec::new(),
+            wide_codes: Vec::new(),
         }
     }
 
@@ -747,9 +750,9 @@ impl Stage for Detect {
             // A forgetting noise model's mean rests on more samples than this frame's gates.
             let (mean, mean_samples) = (w.noise.summary.mean_v, w.noise.summary.samples as f64);
             let stop = &w.frame.channels[w.source.stop];
-            match &stop.samples {
+            match stop_codes(&stop.samples, &mut self.wide_codes) {
                 // Codes as digitised (stop_v is their decode): exact integer lag sums.
-                Samples::I16(codes) if codes.len() == stop_v.len() => {
+                Some(codes) if codes.len() == stop_v.len() => {
                     let mut code_parts: [&[i16]; MAX_RUNS] = [&[]; MAX_RUNS];
                     for (p, r) in code_parts.iter_mut().zip(&w.buffers.quiet) {
                         *p = &codes[r.clone()];
@@ -803,9 +806,9 @@ impl Stage for Detect {
                 // average) is filtered exactly in integers; stop_v is its decode.
                 let stop = &w.frame.channels[w.source.stop];
                 let mean = w.noise.summary.mean_v;
-                let exact = match &stop.samples {
-                    Samples::I16(codes) => raw.plan.run_codes(&w.buffers.stop_v, codes, stop.volts_per_code, stop.offset_v, mean),
-                    _ => false,
+                let exact = match stop_codes(&stop.samples, &mut self.wide_codes) {
+                    Some(codes) => raw.plan.run_codes(&w.buffers.stop_v, codes, stop.volts_per_code, stop.offset_v, mean),
+                    None => false,
                 };
                 if !exact {
                     raw.plan.run(&w.buffers.stop_v, mean);
@@ -1059,6 +1062,20 @@ fn update_whitener(ws: &mut WhitenState, w: &Work, shape: &Shape, n: usize) -> b
         ws.whitener = Some(wh);
     }
     ws.whitener.is_some() && ws.plan.as_ref().is_some_and(|p| p.len >= n)
+}
+
+/// A stop channel's integer codes as i16 (8-bit codes widened into
+/// `wide`), or None for float samples or codes wider than 16 bits.
+fn stop_codes<'a>(samples: &'a Samples, wide: &'a mut Vec<i16>) -> Option<&'a [i16]> {
+    match samples {
+        Samples::I16(c) => Some(c),
+        Samples::I8(c) => {
+            wide.clear();
+            wide.extend(c.iter().map(|&v| i16::from(v)));
+            Some(wide)
+        }
+        _ => None,
+    }
 }
 
 #[cfg(test)]

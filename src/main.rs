@@ -223,10 +223,12 @@ struct ProcessArgs {
     output: PathBuf,
     /// Threads for the one sensor's pipeline (threads). The stages are cut into this many
     /// consecutive segments, one thread each, cut where the stage times measured on the
-    /// first frames balance best; every stage still sees the frames in order, so the
-    /// reports are bit-identical to one thread's. The slowest segment sets the pace, so
-    /// more threads than stages (the scene's, plus validate) add nothing. Default: the
-    /// machine's cores for 1000 frames or more, else 1.
+    /// first frames balance best (on 2 threads also a ring: three segments, the first and
+    /// last on one thread, where one heavy stage in the middle would leave the chain
+    /// unbalanced); every stage still sees the frames in order, so the reports are
+    /// bit-identical to one thread's. The busiest thread sets the pace, so more threads
+    /// than stages (the scene's, plus validate) add nothing. Default: the machine's cores
+    /// for 1000 frames or more, else 1.
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=64))]
     threads: Option<u32>,
 }

@@ -60,8 +60,14 @@ impl ThreadsCost {
             format!("| {name} | {} | {:.0} |\n", cells.join(" / "), median(v))
         };
         let n = self.threads;
+        let skip = pilot_skip(self.frames);
+        let clock = if skip > 0 {
+            format!("; each rate from the {}st outcome to the last (the first {skip}, the threaded pipeline's pilot on one thread and every arm's start-up, off the clock)", skip + 1)
+        } else {
+            "; each rate from the first outcome to the last".to_string()
+        };
         let mut md = format!(
-            "One sensor, {} frames of {} samples per channel per trial, {} trials per arm (alternating)\n\n\
+            "One sensor, {} frames of {} samples per channel per trial, {} trials per arm (alternating){clock}\n\n\
              | arm | frames/s per trial | median |\n|---|---|---|\n",
             self.frames,
             self.samples_per_frame,

@@ -99,9 +99,9 @@ impl NoiseColour {
 
     /// As [`add_frame_about`](NoiseColour::add_frame_about) for segments of
     /// integer codes that decode as `code·g + o` volts: the lag products
-    /// are summed exactly in integers ([`code_lag_product_sums`]), within
-    /// an ulp or two of the exact sums where the f64 kernel rounds every
-    /// product. A segment whose codes lie more than 2^12 from the mean (in
+    /// are summed exactly in integers ([`code_lag_product_sums`]), within a
+    /// few ulp of the lag-0 sum of the exact sums, where the f64 kernel
+    /// rounds every product. A segment whose codes lie more than 2^12 from the mean (in
     /// codes) is summed in f64 from `volts` (the same samples in volts).
     pub fn add_frame_codes_about(&mut self, codes: &[&[i16]], volts: &[&[f64]], g: f64, o: f64, mean: f64, mean_samples: f64) {
         let (mut centred, mut d) = (std::mem::take(&mut self.centred), std::mem::take(&mut self.codes));

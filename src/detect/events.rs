@@ -1299,7 +1299,7 @@ fn toeplitz_form(q: &[f64], rho: &[f64], sums: &mut Vec<f64>, centred: &mut Vec<
     sums.clear();
     sums.resize(lags, 0.0);
     lag_product_sums(q, 0.0, sums, centred);
-    sums[1..].iter().zip(&rho[1..]).fold(sums[0], |var, (s, r)| var + 2.0 * r * s)
+    sums[1..].iter().zip(rho.get(1..).unwrap_or(&[])).fold(sums[0], |var, (s, r)| var + 2.0 * r * s)
 }
 
 /// Σ aᵢbᵢ over the shorter of the two.
@@ -1947,6 +1947,24 @@ mod tests {
     }
 
     use crate::detect::gates::test_noise as noise;
+
+    #[test]
+    fn the_toeplitz_form_is_the_lag_by_lag_sum() {
+        let q: Vec<f64> = noise(150, 9);
+        let rho: Vec<f64> = (0..65).map(|k| 0.8f64.powi(k)).collect();
+        let (mut sums, mut centred) = (Vec::new(), Vec::new());
+        for (len, lags) in [(150usize, 65usize), (150, 2), (40, 65), (3, 65), (1, 65), (150, 1), (150, 0)] {
+            let q = &q[..len];
+            let rho = &rho[..lags];
+            let mut want: f64 = q.iter().map(|v| v * v).sum();
+            for (lag, r) in rho.iter().enumerate().skip(1).take(len.saturating_sub(1)) {
+                want += 2.0 * r * q.iter().zip(&q[lag..]).map(|(a, b)| a * b).sum::<f64>();
+            }
+            let got = toeplitz_form(q, rho, &mut sums, &mut centred);
+            assert!((got - want).abs() <= 1e-12 * want.abs().max(1.0), "{len} samples, {lags} lags: {got} against {want}");
+        }
+        assert_eq!(toeplitz_form(&[], &rho, &mut sums, &mut centred), 0.0);
+    }
 
     #[test]
     fn order_statistics_are_the_sorted_values_bit_for_bit() {

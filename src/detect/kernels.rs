@@ -23,7 +23,7 @@ pub struct DetectorPlan {
     rho1: f64,
     /// Σ of the unit-energy taps: how a mean error enters the output.
     dc_gain: f64,
-    /// The taps as 16-bit integers: every tap is `q[j]·q_scale` (the f64
+    /// The taps as 16-bit integers: every tap is `q[j]·scale` (the f64
     /// taps are those products), so that a channel of integer codes can be
     /// filtered exactly in integers ([`run_codes`](Self::run_codes)).
     code_taps: CodeTaps,
@@ -191,20 +191,26 @@ impl DetectorPlan {
 
     /// As [`run`](Self::run) on `x`, where `x[i]` is `codes[i]·g + o` (the
     /// channel's decode): the correlation runs exactly on the integer codes
-    /// (`Σ q[j]·code` in i32) and the output is `scale·(g·Σ + (o − mean)·Σq)`,
-    /// within a few ulp of the output's scale of what `run` gives (the f64
-    /// filter rounds at every tap). False (nothing done; call `run`) where
-    /// the sums might not fit an i32 (Σ|q|·max|code| > i32::MAX: codes of
-    /// more than about 12 bits), the correlator is not the direct one, or
-    /// `g`, `o` or `mean` is not finite. Afterwards the plan holds its input
-    /// as `run` leaves it, so [`rerun_part`](Self::rerun_part) works as after `run`.
+    /// (`Σ q[j]·code` in i32) and the output is `scale·(g·Σ + (o − mean)·Σq)`.
+    /// It differs from what `run` gives by rounding only: a few ulp of the
+    /// terms' scale, |g·Σ| and |(o − mean)·Σq| (the f64 filter rounds at
+    /// every tap). False (nothing done; call `run`) where the sums might not
+    /// fit an i32 (Σ|q|·max|code| > i32::MAX: with a 64-tap template, codes
+    /// beyond about 12 bits; wider templates allow fewer), the correlator is
+    /// not the direct one, |g| or |o| exceeds 1e300 (the noise stage's
+    /// limit for codes that decode to finite volts) or `mean` is not finite.
+    /// Afterwards the plan holds its input as `run` leaves it, so
+    /// [`rerun_part`](Self::rerun_part) recomputes the outputs it is asked
+    /// for as `run` would (the others keep this run's values).
     pub fn run_codes(&mut self, x: &[f64], codes: &[i16], g: f64, o: f64, mean: f64) -> bool {
         let ct = &mut self.code_taps;
         if ct.q.is_empty()
             || self.correlator.method() != CorrelationMethod::Direct
             || codes.len() != x.len()
             || x.is_empty()
-            || !(g.is_finite() && o.is_finite() && mean.is_finite())
+            // The noise stage's test for codes that decode to finite volts
+            // (beyond it, samples it replaced are not the codes' decode).
+            || !(g.abs() <= 1e300 && o.abs() <= 1e300 && mean.is_finite())
         {
             return false;
         }
@@ -264,10 +270,12 @@ impl DetectorPlan {
         &self.output
     }
 
-    /// After [`run`](Self::run) on an input of `x.len()` samples that has
-    /// since changed only at `changed` (sample indices): brings the output up
-    /// to date by recomputing just the outputs whose template reads those
-    /// samples, bit for bit what `run(x, mean)` would give. False (nothing
+    /// After [`run`](Self::run) (or [`run_codes`](Self::run_codes)) on an
+    /// input of `x.len()` samples that has since changed only at `changed`
+    /// (sample indices): brings the output up to date by recomputing just
+    /// the outputs whose template reads those samples, each bit for bit what
+    /// `run(x, mean)` would give there (after `run_codes` the others keep
+    /// its values, equal to `run`'s to rounding). False (nothing
     /// done; call `run`) where the correlator cannot recompute part of its
     /// output (the FFT method) or the last run was on another length.
     pub fn rerun_part(&mut self, x: &[f64], mean: f64, changed: Range<usize>) -> bool {
@@ -504,6 +512,9 @@ mod tests {
         assert!(!plan.run_codes(&x, &codes, 1e-3, 0.0, 0.0), "full-scale 16-bit codes");
         codes[200] = 0;
         assert!(!plan.run_codes(&x, &codes, f64::NAN, 0.0, 0.0), "a scale that is not finite");
+        // A scale the noise stage would not decode to finite volts.
+        assert!(!plan.run_codes(&x, &codes, 1e305, 0.0, 0.0), "a scale beyond 1e300");
+        assert!(!plan.run_codes(&x, &codes, 1e-3, -2e300, 0.0), "an offset beyond 1e300");
         assert!(!plan.run_codes(&x[..399], &codes, 1e-3, 0.0, 0.0), "codes that are not the samples");
     }
 

@@ -137,7 +137,8 @@ impl Resolver {
     /// `plan` must hold its run on `x` about `mean_v` (the detector's own
     /// output, which the first pass reads); after each subtracted pulse only
     /// the outputs that read its samples are recomputed, where the plan's
-    /// correlator can (bit for bit a full run; else the filter runs again).
+    /// correlator can (those bit for bit a full f64 run; else the filter
+    /// runs again).
     #[allow(clippy::too_many_arguments)]
     pub fn resolve(
         &mut self,

@@ -59,8 +59,8 @@ pub fn lag_product_sums(x: &[f64], centre: f64, out: &mut [f64], centred: &mut V
 /// exactly as algebra says, Σ (d_i − f)(d_{i+k} − f) = D_k − f·(A_k + B_k) +
 /// (n − k)·f², with A_k, B_k the two ranges' exact sums of d. |f| ≤ 1/2, so
 /// nothing cancels that the f64 sum would have kept: the result is within
-/// an ulp or two of the exact sum, where the f64 kernel rounds every
-/// product. False (nothing written) where a code lies more than 2^12 from
+/// a few ulp of Σd² (the lag-0 sum) of the exact sum, where the f64 kernel
+/// rounds every product. False (nothing written) where a code lies more than 2^12 from
 /// `r` or the centre is not finite: the caller sums in f64.
 /// `d` is scratch, kept by the caller.
 pub fn code_lag_product_sums(c: &[i16], centre: f64, out: &mut [f64], d: &mut Vec<i16>) -> bool {

@@ -150,6 +150,8 @@ pub struct Staged {
     /// Stage names, validate first.
     names: Vec<&'static str>,
     cut: Option<Cut>,
+    /// Two threads: the ring (true), the chain (false), or by the pilot (None).
+    ring: Option<bool>,
 }
 
 impl std::fmt::Debug for Staged {
@@ -201,7 +203,16 @@ impl Staged {
             last_noise: None,
             names,
             cut: None,
+            ring: None,
         }
+    }
+
+    /// On two threads, the ring (`Some(true)`, wherever there are three
+    /// stages or more), the chain (`Some(false)`), or whichever the pilot's
+    /// stage times favour (`None`, the default). For tests and experiments;
+    /// call it before the pilot ends.
+    pub fn prefer_ring(&mut self, ring: Option<bool>) {
+        self.ring = ring;
     }
 
     /// Calls `f` with every finished unit of work (on the calling thread).
@@ -340,8 +351,9 @@ impl Staged {
         // Two threads: the ring (first and last segments on one thread) where
         // it sets a pace at least RING_GAIN of the chain's.
         let ring = if self.threads == 2 { ring_partition(&costs) } else { None };
-        let (bounds, threads) = match ring {
-            Some(r) if ring_pace(&costs, &r) < RING_GAIN * chain_pace(&costs, &chain) => (r, vec![0, 1, 0]),
+        let (bounds, threads) = match (ring, self.ring) {
+            (Some(r), Some(true)) => (r, vec![0, 1, 0]),
+            (Some(r), None) if ring_pace(&costs, &r) < RING_GAIN * chain_pace(&costs, &chain) => (r, vec![0, 1, 0]),
             _ => (chain.clone(), (0..chain.len() - 1).collect()),
         };
         let total: f64 = costs.iter().sum();

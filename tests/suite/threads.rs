@@ -61,6 +61,68 @@ fn threaded_reports_are_bit_identical_to_one_thread() {
     }
 }
 
+/// Every outcome of a `Staged` pipeline on two threads, the ring forced on
+/// or off; `sync_at`: frames after which `sync` must hand back every
+/// outcome so far.
+fn staged(scene: &Scene, frames: &[Frame], ring: bool, sync_at: usize) -> (Vec<String>, threaded::Cut) {
+    let mut s = threaded::Staged::new(scene, "t", 2);
+    s.prefer_ring(Some(ring));
+    let (mut lines, mut out) = (Vec::new(), Vec::new());
+    let take = |out: &mut Vec<threaded::Outcome>, lines: &mut Vec<String>| {
+        for o in out.drain(..) {
+            lines.extend(o.reports.iter().map(report_json));
+            if let Err(e) = o.result {
+                lines.push(format!("refused: {e}"));
+            }
+            lines.push("--".into());
+        }
+    };
+    for (i, f) in frames.iter().enumerate() {
+        s.push(f.clone(), &mut out);
+        if i + 1 == sync_at {
+            s.sync(&mut out);
+            assert_eq!(s.in_flight(), 0, "sync hands back every outcome");
+            take(&mut out, &mut lines);
+            assert_eq!(lines.iter().filter(|l| *l == "--").count(), sync_at, "one outcome per frame pushed");
+        }
+        take(&mut out, &mut lines);
+    }
+    let flushed = s.finish(&mut out);
+    take(&mut out, &mut lines);
+    lines.extend(flushed.reports.iter().map(report_json));
+    lines.push("--".into());
+    (lines, s.cut())
+}
+
+#[test]
+fn the_ring_and_the_chain_give_one_threads_reports() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut frames = simulated(&dir);
+    frames[600].sample_interval_s = -1.0;
+    for average in [1u32, 3] {
+        let mut scene = Scene::default_scene();
+        scene.averaging.frames = average;
+        let (one, _) = run(&scene, &frames, 1);
+        for ring in [true, false] {
+            let (two, cut) = staged(&scene, &frames, ring, 555);
+            assert_eq!(cut.threads == [0, 1, 0], ring, "{cut}");
+            assert_eq!(two.len(), one.len(), "average {average}, {cut}");
+            for (i, (a, b)) in one.iter().zip(&two).enumerate() {
+                assert_eq!(a, b, "average {average} ({cut}): outcome line {i} differs");
+            }
+        }
+    }
+    // Dropped without finish, frames in flight: the threads end (no hang).
+    let mut s = threaded::Staged::new(&Scene::default_scene(), "t", 2);
+    s.prefer_ring(Some(true));
+    let mut out = Vec::new();
+    for f in &frames {
+        s.push(f.clone(), &mut out);
+    }
+    assert_eq!(s.cut().threads, [0, 1, 0]);
+    drop(s);
+}
+
 #[test]
 fn process_threads_flag_gives_the_same_output() {
     let dir = tempfile::tempdir().unwrap();

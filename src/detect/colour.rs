@@ -139,8 +139,8 @@ impl NoiseColour {
             // Per-frame partial sums first: the pooled sum then adds values
             // of similar size, frame after frame.
             partial_of(i, &mut partial);
-            for k in 0..lags.min(n) {
-                self.sums[k] += partial[k];
+            for (k, p) in partial.iter().enumerate().take(lags.min(n)) {
+                self.sums[k] += p;
                 self.counts[k] += (n - k) as f64;
                 self.centring[k] += (n - k) as f64 / total;
             }

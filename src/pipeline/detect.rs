@@ -802,8 +802,8 @@ impl Stage for Detect {
                 (plan, &ws.z, sigma_eff)
             }
             _ => {
-                // A stop channel of i16 codes (a frame as digitised, not an
-                // average) is filtered exactly in integers; stop_v is its decode.
+                // A stop channel of i16 or i8 codes (a frame as digitised, not
+                // an average) is filtered exactly in integers; stop_v is its decode.
                 let stop = &w.frame.channels[w.source.stop];
                 let mean = w.noise.summary.mean_v;
                 let exact = match stop_codes(&stop.samples, &mut self.wide_codes) {

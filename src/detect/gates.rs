@@ -7,6 +7,7 @@
 
 use crate::dsp::pulse::Shape;
 use crate::frame::Frame;
+use crate::math::select::CodeDiffMad;
 use crate::scene::{PulseConfig, Scene};
 use std::ops::Range;
 
@@ -220,6 +221,14 @@ const QUIET_BLOCK_BIAS: f64 = 1.25;
 /// Most cleaning passes (each pass refits the centre and sigma on what it kept).
 const CLEAN_PASSES: usize = 8;
 
+/// Whether the decode `scale·code + offset` (V) of 16-bit codes keeps their
+/// order and spacing to well within a code: the rounding of a decoded
+/// volt (|offset| + |scale|·2¹⁵ at most) is below 2⁻⁴⁰ of a code's step.
+/// Differences of such a decode sort as the codes' differences do.
+pub fn codes_keep_order(scale: f64, offset: f64) -> bool {
+    scale != 0.0 && (offset.abs() + scale.abs() * 32768.0) * 2f64.powi(-40) < scale.abs()
+}
+
 /// Whether sample `v` lies at an ADC rail: at or beyond `rails` (low,
 /// high), the clip levels a quarter step inside (see
 /// `pipeline::Source::rails`); never where the rails are unknown.
@@ -259,6 +268,9 @@ pub struct GateCleaner {
     diffs: Vec<f64>,
     /// 1 + 2Σρ̂² of the last cleaned gate (robust; see `own_colour`).
     colour_gain: f64,
+    /// The lagged differences' robust sigma by counting, where the gate's
+    /// samples are integer codes (see `own_colour`).
+    code_mad: CodeDiffMad,
 }
 
 impl GateCleaner {
@@ -268,6 +280,7 @@ impl GateCleaner {
         self.dropped.reserve(samples.saturating_sub(self.dropped.len()));
         self.diffs.reserve(samples.saturating_sub(self.diffs.len()));
         self.kept.reserve(runs.saturating_sub(self.kept.len()));
+        self.code_mad.reserve();
     }
 
     /// Runs of `gates` kept after cleaning `x` (see the type's doc); `centre`
@@ -275,10 +288,16 @@ impl GateCleaner {
     /// sigma that an event covering most of the gate has not inflated (the
     /// caller's last clean fit, else the gates' robust sigma). `rails`: the
     /// levels at or beyond which a sample is clipped (low, high), if known.
+    /// `codes`: the integer codes `x` decodes (x = scale·code + offset, one
+    /// code per sample of `x`) and the scale, V per code, where `x` is their
+    /// decode and the scale is coarse enough that the decode keeps the
+    /// codes' order (see [`codes_keep_order`]); the gate's colour is then
+    /// counted on them (the same figure to rounding, in a fraction of the time).
     #[allow(clippy::too_many_arguments)]
     pub fn clean(
         &mut self,
         x: &[f64],
+        codes: Option<(&[i16], f64)>,
         gates: &[Range<usize>],
         centre: f64,
         sigma: f64,
@@ -299,7 +318,7 @@ impl GateCleaner {
         let railed = |v: f64| at_rail(rails, v);
         let quiet_block = self.quiet_block_sigma(x, gates, block.max(4), &railed);
         let sigma = if quiet_block > 0.0 { sigma.min(QUIET_BLOCK_BIAS * quiet_block) } else { sigma };
-        let g = self.own_colour(x, gates, sigma);
+        let g = self.own_colour(x, codes, gates, sigma);
         self.colour_gain = g;
         let (mut c, mut s) = (centre, sigma);
         let mut last_kept = usize::MAX;
@@ -393,17 +412,33 @@ impl GateCleaner {
     /// Var(x_i − x_{i+k}) = 2σ²(1 − ρ(k)), with both variances from the MAD
     /// (an event's slow lobes hardly change a difference of nearby samples,
     /// a pulse's few samples do not move a median).
-    fn own_colour(&mut self, x: &[f64], gates: &[Range<usize>], sigma: f64) -> f64 {
+    ///
+    /// Where `x` decodes integer `codes` that span at most
+    /// [`CodeDiffMad::MAX_SPAN`] over the gates, each MAD is counted on the
+    /// codes' differences and scaled to volts: the decode keeps the codes'
+    /// order, so the differences selected are the same and the figure is the
+    /// volts' to their rounding (within 1e-12, tested); else it is selected
+    /// among the volts' differences.
+    fn own_colour(&mut self, x: &[f64], codes: Option<(&[i16], f64)>, gates: &[Range<usize>], sigma: f64) -> f64 {
+        let counted = codes.and_then(|(c, scale)| CodeDiffMad::span(c, gates).map(|span| (c, scale.abs(), span)));
         let mut g = 1.0;
         for lag in 1..=BLOCK_LAGS {
-            self.diffs.clear();
-            for r in gates {
-                self.diffs.extend((r.start..r.end.saturating_sub(lag)).map(|i| x[i + lag] - x[i]));
-            }
-            if self.diffs.len() < 8 {
+            let (count, sd) = match counted {
+                Some((c, scale, span)) => {
+                    let (count, mad) = self.code_mad.lag(c, gates, lag, span);
+                    (count, scale * mad)
+                }
+                None => {
+                    self.diffs.clear();
+                    for r in gates {
+                        self.diffs.extend((r.start..r.end.saturating_sub(lag)).map(|i| x[i + lag] - x[i]));
+                    }
+                    (self.diffs.len(), crate::math::select::mad_sigma(&mut self.diffs))
+                }
+            };
+            if count < 8 {
                 break;
             }
-            let sd = crate::math::select::mad_sigma(&mut self.diffs);
             let rho = (1.0 - sd * sd / (2.0 * sigma * sigma)).clamp(-1.0, 1.0);
             g += 2.0 * rho * rho;
         }
@@ -501,7 +536,7 @@ mod tests {
         assert!(x.iter().filter(|&&v| v <= -10.0).count() > 100);
         let gates = [0..1200];
         let mut c = GateCleaner::default();
-        let kept: Vec<_> = c.clean(&x, &gates, 0.0, 1.0, (20, 70), 50, Some((-10.0, 40.0))).to_vec();
+        let kept: Vec<_> = c.clean(&x, None, &gates, 0.0, 1.0, (20, 70), 50, Some((-10.0, 40.0))).to_vec();
         let n: usize = kept.iter().map(|r| r.len()).sum();
         let (mut m, mut ss) = (0.0, 0.0);
         for i in kept.iter().flat_map(|r| r.clone()) {
@@ -526,5 +561,47 @@ mod tests {
         let g = Gates::place(&i);
         assert_eq!(g.range, 505..600);
         assert!(g.beyond.is_empty());
+    }
+
+    #[test]
+    fn the_colour_counted_on_codes_is_the_volts_colour() {
+        // Coloured noise (a two-tap moving sum) with an event's lobes and a
+        // pulse, digitised at 8 and 12 bits on scales with and without an
+        // offset: the cleaner given the codes keeps the same runs and its
+        // colour gain is the volts' to 1e-12.
+        // Noise of 10 codes (8 bits) and 30 codes (12 bits); the pulse may clip.
+        for (case, (bits, scale, offset)) in [(8u32, 2e-3, 0.0), (8, 3.7e-3, -0.21), (12, 1.5e-4, 0.05), (12, 2.4e-4, 1.3)].into_iter().enumerate() {
+            let amp = if bits == 8 { 10.0 } else { 30.0 } * scale / 1.36f64.sqrt();
+            let w = noise(1801, 20 + case as u64);
+            let top = f64::from(1u32 << (bits - 1));
+            let codes: Vec<i16> = (0..1800)
+                .map(|i| {
+                    let t = i as f64;
+                    let event = if (700..1100).contains(&i) { 2.0 * (0.02 * t).sin() * (-(t - 900.0).powi(2) / 2e4).exp() } else { 0.0 };
+                    let pulse = 14.0 * (-(t - 300.0).powi(2) / 18.0).exp();
+                    let v = amp * (w[i] + 0.6 * w[i + 1] + event + pulse);
+                    (v / scale).round().clamp(-top, top - 1.0) as i16
+                })
+                .collect();
+            let x: Vec<f64> = codes.iter().map(|&c| scale * f64::from(c) + offset).collect();
+            let gates = [0..1000, 1150..1800];
+            assert!(codes_keep_order(scale, offset));
+            let sigma = amp * 1.36f64.sqrt();
+            let mut by_volts = GateCleaner::default();
+            let mut by_codes = GateCleaner::default();
+            by_codes.reserve(x.len(), 16);
+            let kept_v = by_volts.clean(&x, None, &gates, offset, sigma, (20, 70), 50, None).to_vec();
+            let kept_c = by_codes.clean(&x, Some((&codes, scale)), &gates, offset, sigma, (20, 70), 50, None).to_vec();
+            assert_eq!(kept_c, kept_v, "case {case}");
+            let (gv, gc) = (by_volts.colour_gain(), by_codes.colour_gain());
+            // Some lags' ρ̂ count, and not every one sits at ±1 (g = 33).
+            assert!(gv > 1.2 && gv < 17.0, "case {case}: g {gv}");
+            assert!((gc - gv).abs() <= 1e-12 * gv, "case {case}: {gc} vs {gv}");
+        }
+        // Too fine a scale for the decode to keep the codes apart, or none.
+        assert!(!codes_keep_order(1e-14, 1e3));
+        assert!(!codes_keep_order(0.0, 0.0));
+        assert!(!codes_keep_order(f64::NAN, 0.0));
+        assert!(!codes_keep_order(1e-3, f64::INFINITY));
     }
 }

@@ -146,6 +146,125 @@ pub fn trimmed_mean(values: &mut [f64], trim_fraction: f64) -> Option<f64> {
     Some(kept.iter().sum::<f64>() / kept.len() as f64)
 }
 
+/// Robust sigma ([`mad_sigma`]) of the lagged differences of integer codes,
+/// `codes[i + lag] − codes[i]` for every `i` with both ends inside one run
+/// of `runs`, by counting instead of selecting: the differences of codes
+/// that span at most [`CodeDiffMad::MAX_SPAN`] take at most 2·span + 1
+/// values, so their median and their median absolute deviation are read off
+/// one histogram (the deviations' is the histogram folded about the
+/// median). The result is `mad_sigma` of those differences as f64, bit for
+/// bit (every value on the way is an exact half-integer); a pass over the
+/// differences instead of two selections. The histogram is the caller's to
+/// keep: [`CodeDiffMad::reserve`] grows it once, and nothing else allocates.
+#[derive(Debug, Default, Clone)]
+pub struct CodeDiffMad {
+    /// Four interleaved counts per difference (bin `4·(d + span) + lane`):
+    /// neighbouring differences are often equal, and four lanes keep their
+    /// increments off one another's store.
+    hist: Vec<u32>,
+}
+
+impl CodeDiffMad {
+    /// Widest span (largest less smallest code over the runs) counted; wider
+    /// codes are the caller's to select (see [`CodeDiffMad::span`]).
+    pub const MAX_SPAN: i32 = 1024;
+
+    /// Grows the histogram to its largest now, so that no frame allocates.
+    pub fn reserve(&mut self) {
+        let most = 4 * (2 * Self::MAX_SPAN as usize + 1);
+        self.hist.reserve(most.saturating_sub(self.hist.len()));
+    }
+
+    /// Largest less smallest of `codes` over `runs` (0 with none), or None
+    /// past [`CodeDiffMad::MAX_SPAN`]. Panics where a run is out of `codes`.
+    pub fn span(codes: &[i16], runs: &[std::ops::Range<usize>]) -> Option<i32> {
+        let (mut lo, mut hi) = (i16::MAX, i16::MIN);
+        for r in runs {
+            for &c in &codes[r.clone()] {
+                lo = lo.min(c);
+                hi = hi.max(c);
+            }
+        }
+        let span = (i32::from(hi) - i32::from(lo)).max(0);
+        (span <= Self::MAX_SPAN).then_some(span)
+    }
+
+    /// (count of differences at `lag`, their [`mad_sigma`] in code units);
+    /// `span` from [`CodeDiffMad::span`] on the same codes and runs (a
+    /// difference outside ±span panics). (0, 0.0) when no run is longer than `lag`.
+    pub fn lag(&mut self, codes: &[i16], runs: &[std::ops::Range<usize>], lag: usize, span: i32) -> (usize, f64) {
+        let width = 2 * span as usize + 1;
+        self.hist.clear();
+        self.hist.resize(4 * width, 0);
+        let hist = &mut self.hist[..];
+        let bin = |a: i16, b: i16| (i32::from(b) - i32::from(a) + span) as usize;
+        let mut n = 0;
+        for r in runs {
+            if r.end <= r.start + lag {
+                continue;
+            }
+            let (a, b) = (&codes[r.start..r.end - lag], &codes[r.start + lag..r.end]);
+            n += a.len();
+            let (ca, cb) = (a.chunks_exact(4), b.chunks_exact(4));
+            for (&x, &y) in ca.remainder().iter().zip(cb.remainder()) {
+                hist[4 * bin(x, y)] += 1;
+            }
+            for (x, y) in ca.zip(cb) {
+                for l in 0..4 {
+                    hist[4 * bin(x[l], y[l]) + l] += 1;
+                }
+            }
+        }
+        if n == 0 {
+            return (0, 0.0);
+        }
+        for k in 0..width {
+            let q = &hist[4 * k..4 * k + 4];
+            hist[k] = q[0] + q[1] + q[2] + q[3];
+        }
+        let counts = &hist[..width];
+        // The sorted differences' places n/2 − 1 (even n) and n/2, as
+        // `median` takes them; differences as d + span.
+        let (upper, lower) = (n / 2, if n % 2 == 0 { n / 2 - 1 } else { n / 2 });
+        let at = |place: usize| {
+            let mut below = 0usize;
+            for (k, &c) in counts.iter().enumerate() {
+                below += c as usize;
+                if below > place {
+                    return k as i64;
+                }
+            }
+            unreachable!("place {place} of {n} counted")
+        };
+        // Twice the median, in code units (an integer): 2d − m2 is twice a deviation.
+        let m2 = at(lower) + at(upper) - 2 * i64::from(span);
+        // The deviations |2d − m2| in rising order: each k gathers the
+        // differences (m2 ± k)/2 (one of them for k = 0).
+        let count = |d2: i64| -> usize {
+            if d2 % 2 != 0 {
+                return 0;
+            }
+            let k = d2 / 2 + i64::from(span);
+            if (0..width as i64).contains(&k) { counts[k as usize] as usize } else { 0 }
+        };
+        let (mut below, mut dev_lower, mut dev_upper) = (0usize, None, None);
+        for k in 0..=(4 * i64::from(span) + m2.abs()) {
+            below += if k == 0 { count(m2) } else { count(m2 + k) + count(m2 - k) };
+            if dev_lower.is_none() && below > lower {
+                dev_lower = Some(k);
+            }
+            if below > upper {
+                dev_upper = Some(k);
+                break;
+            }
+        }
+        let half = |k: Option<i64>| 0.5 * k.expect("every deviation counted") as f64;
+        let (lo, hi) = (half(dev_lower), half(dev_upper));
+        let med = if n % 2 == 1 { hi } else { 0.5 * (lo + hi) };
+        (n, 1.482_602_218_505_602 * med)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -234,5 +353,49 @@ mod tests {
         assert_eq!(high_median(&mut [4.0, 1.0, 3.0, 2.0]), Some(3.0));
         assert_eq!(high_median(&mut []), None);
         assert_eq!(mad_sigma(&mut []), 0.0);
+    }
+
+    #[test]
+    fn code_diff_mad_is_mad_sigma_of_the_differences() {
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let mut mad = CodeDiffMad::default();
+        mad.reserve();
+        let naive = |codes: &[i16], runs: &[std::ops::Range<usize>], lag: usize| {
+            let mut d: Vec<f64> = runs
+                .iter()
+                .flat_map(|r| (r.start..r.end.saturating_sub(lag)).map(move |i| f64::from(codes[i + lag]) - f64::from(codes[i])))
+                .collect();
+            (d.len(), mad_sigma(&mut d))
+        };
+        // Narrow noise (many ties, a median on or between levels), wide
+        // noise, a lopsided spread and a constant run; odd and even counts,
+        // runs shorter than the lag, the widest span counted.
+        for case in 0..40 {
+            let n = rng.random_range(1..700usize);
+            let spread: i32 = [0, 1, 3, 40, 511][case % 5];
+            let centre: i16 = rng.random_range(-2000..2000);
+            let codes: Vec<i16> = (0..n)
+                .map(|_| {
+                    let v = if case % 7 == 3 { rng.random_range(0..=spread).pow(2) / spread.max(1) } else { rng.random_range(-spread..=spread) };
+                    centre + v as i16
+                })
+                .collect();
+            let cut = rng.random_range(0..=n);
+            let runs = [0..cut / 3, cut..n, cut / 3..cut / 3 + 2.min(n - cut / 3)];
+            let span = CodeDiffMad::span(&codes, &runs).expect("narrow");
+            for lag in [1usize, 2, 5, 16, 700] {
+                let (count, got) = mad.lag(&codes, &runs, lag, span);
+                let (want_count, want) = naive(&codes, &runs, lag);
+                assert_eq!((count, got.to_bits()), (want_count, want.to_bits()), "case {case} n {n} lag {lag}: {got} vs {want}");
+            }
+        }
+        let wide = [-600i16, 0, 500];
+        assert_eq!(CodeDiffMad::span(&wide, &[0..3]), None);
+        assert_eq!(CodeDiffMad::span(&wide, &[0..1, 2..3]), None);
+        assert_eq!(CodeDiffMad::span(&wide, &[1..3]), Some(500));
+        assert_eq!(CodeDiffMad::span(&wide, &[]), Some(0));
+        // Differences 1024 and −3 at the top of the codes: median 510.5, both deviations 513.5.
+        let (count, got) = mad.lag(&[i16::MAX - 1024, i16::MAX, i16::MAX - 3], &[0..3], 1, 1024);
+        assert_eq!((count, got), (2, 1.482_602_218_505_602 * 513.5));
     }
 }

@@ -26,8 +26,8 @@
 //!   gate noise) and Pd uses the Student-t form with 2·training degrees of
 //!   freedom (exact in form for CA, an approximation for OS).
 
-use super::{FrameError, GateCount, Stage, Work};
-use crate::frame::{FrameFlag, Samples};
+use super::{stop_codes, FrameError, GateCount, Stage, Work};
+use crate::frame::FrameFlag;
 use crate::detect::cfar::{CfarMethod, CfarPlan};
 use crate::detect::colour::{output_gain_from_acf, taps_acf, NoiseColour, OutputColour};
 use crate::detect::kernels::{local_maxima, local_maxima_above, upcrossings, upcrossings_above, DetectorPlan};
@@ -1062,20 +1062,6 @@ fn update_whitener(ws: &mut WhitenState, w: &Work, shape: &Shape, n: usize) -> b
         ws.whitener = Some(wh);
     }
     ws.whitener.is_some() && ws.plan.as_ref().is_some_and(|p| p.len >= n)
-}
-
-/// A stop channel's integer codes as i16 (8-bit codes widened into
-/// `wide`), or None for float samples or codes wider than 16 bits.
-fn stop_codes<'a>(samples: &'a Samples, wide: &'a mut Vec<i16>) -> Option<&'a [i16]> {
-    match samples {
-        Samples::I16(c) => Some(c),
-        Samples::I8(c) => {
-            wide.clear();
-            wide.extend(c.iter().map(|&v| i16::from(v)));
-            Some(wide)
-        }
-        _ => None,
-    }
 }
 
 #[cfg(test)]

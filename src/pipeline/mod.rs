@@ -294,6 +294,20 @@ impl Work {
     }
 }
 
+/// A stop channel's integer codes as i16 (8-bit codes widened into
+/// `wide`), or None for float samples or codes wider than 16 bits.
+pub(crate) fn stop_codes<'a>(samples: &'a Samples, wide: &'a mut Vec<i16>) -> Option<&'a [i16]> {
+    match samples {
+        Samples::I16(c) => Some(c),
+        Samples::I8(c) => {
+            wide.clear();
+            wide.extend(c.iter().map(|&v| i16::from(v)));
+            Some(wide)
+        }
+        _ => None,
+    }
+}
+
 /// Puts a unit whose work is done (its report went out, or a stage consumed
 /// it) with the spare units: storage lent to its frame comes back to its
 /// buffers and the frame, the caller's, is dropped now rather than held.

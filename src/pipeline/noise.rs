@@ -9,10 +9,10 @@
 //! contamination flag stay per frame (they judge this frame's gate). With
 //! N = 0 (the default) every frame is fitted on its own gates alone.
 
-use super::{FrameError, Stage, Work};
+use super::{stop_codes, FrameError, Stage, Work};
 use crate::frame::{FrameFlag, Samples};
 use crate::detect::events::{EventTestConfig, GateScreen};
-use crate::detect::gates::{GateCleaner, GatePlacer};
+use crate::detect::gates::{codes_keep_order, GateCleaner, GatePlacer};
 use crate::detect::noise_model::{NoiseFitter, NoiseTracker};
 use crate::frame::NoiseSummary;
 use crate::scene::Scene;
@@ -51,6 +51,8 @@ pub struct Noise {
     /// Screens the gates for interference events (scenes with `[events]`
     /// only), for the current sampling period.
     screen: Option<(f64, GateScreen)>,
+    /// An 8-bit stop channel's codes widened to 16 bits (for the cleaner).
+    wide_codes: Vec<i16>,
 }
 
 impl Noise {
@@ -67,6 +69,7 @@ impl Noise {
             pulse_extent: None,
             last_sigma: None,
             screen: None,
+            wide_codes: Vec::new(),
         }
     }
 }
@@ -166,7 +169,14 @@ impl Stage for Noise {
                 _ => noise.robust_sigma_v,
             };
             let rails = w.source.rails();
-            let kept = self.cleaner.clean(&stop_v, quiet, median, start, dilate, block, rails);
+            // Codes as digitised (not an average or a float capture): the
+            // cleaner counts the gate's colour on them.
+            let ch = &w.frame.channels[w.source.stop];
+            let codes = match codes_keep_order(ch.volts_per_code, ch.offset_v) {
+                true => stop_codes(&ch.samples, &mut self.wide_codes).map(|c| (c, ch.volts_per_code)),
+                false => None,
+            };
+            let kept = self.cleaner.clean(&stop_v, codes, quiet, median, start, dilate, block, rails);
             // Too little left to rest a noise model on (coloured noise whose
             // quiet blocks read low can clip nearly everything): the raw gates.
             let kept_samples: usize = kept.iter().map(|r| r.len()).sum();

@@ -1316,7 +1316,7 @@ fn centred_dot(a: &[f64], centre: f64, b: &[f64]) -> f64 {
 
 /// Σ (aᵢ − centre)·bᵢ over the shorter slice of each of four pairs, in
 /// [`dot`]'s lane order (each pair's lanes take the operations of one such
-/// sum alone, in the same order: the same bits), as four
+/// sum alone, in the same order: the same bits, a NaN's sign aside), as four
 /// independent chains over the length they share: one product per lane
 /// waits on four others' instead of on its own last add. In AVX-512
 /// registers where the CPU has them (the same bits).
@@ -2268,6 +2268,16 @@ mod tests {
             }
         }
         assert!(tpl.align(&noise(2500, 9), 0.0, &[]).is_none());
+        // Exact ties: a frame of period 10 correlates equally every tenth
+        // start, and the first considered stands. Anchors whose shifts
+        // overlap in part, in either order and repeated: the starts an
+        // earlier anchor took are skipped, never a later one's.
+        let pattern = noise(10, 77);
+        let x: Vec<f64> = (0..2500).map(|i| pattern[i % 10]).collect();
+        for anchors in [&[1000usize, 950][..], &[950, 1000], &[1000, 990, 950, 1000]] {
+            let (got, want) = (tpl.align(&x, 0.0, anchors), naive(&tpl, &x, 0.0, anchors));
+            assert_eq!(got.map(|f| (f.start, f.amplitude.to_bits())), want.map(|f| (f.start, f.amplitude.to_bits())), "periodic, anchors {anchors:?}");
+        }
     }
 
     #[test]

@@ -222,9 +222,11 @@ const QUIET_BLOCK_BIAS: f64 = 1.25;
 const CLEAN_PASSES: usize = 8;
 
 /// Whether the decode `scale·code + offset` (V) of 16-bit codes keeps their
-/// order and spacing to well within a code: the rounding of a decoded
-/// volt (|offset| + |scale|·2¹⁵ at most) is below 2⁻⁴⁰ of a code's step.
-/// Differences of such a decode sort as the codes' differences do.
+/// order and spacing to well within a code: a decoded volt is at most
+/// |offset| + |scale|·2¹⁵, which this keeps below 2⁴⁰ code steps, so its
+/// rounding (half an ulp) is below 2⁻¹³ of a step. Differences of such a
+/// decode (2⁻¹² of a step off at most, 1 step apart) sort as the codes'
+/// differences do, and so do deviations from their median (½ step apart).
 pub fn codes_keep_order(scale: f64, offset: f64) -> bool {
     scale != 0.0 && (offset.abs() + scale.abs() * 32768.0) * 2f64.powi(-40) < scale.abs()
 }
@@ -292,7 +294,8 @@ impl GateCleaner {
     /// code per sample of `x`) and the scale, V per code, where `x` is their
     /// decode and the scale is coarse enough that the decode keeps the
     /// codes' order (see [`codes_keep_order`]); the gate's colour is then
-    /// counted on them (the same figure to rounding, in a fraction of the time).
+    /// counted on them (the same figure to the decode's rounding, in a
+    /// fraction of the time).
     #[allow(clippy::too_many_arguments)]
     pub fn clean(
         &mut self,
@@ -416,9 +419,12 @@ impl GateCleaner {
     /// Where `x` decodes integer `codes` that span at most
     /// [`CodeDiffMad::MAX_SPAN`] over the gates, each MAD is counted on the
     /// codes' differences and scaled to volts: the decode keeps the codes'
-    /// order, so the differences selected are the same and the figure is the
-    /// volts' to their rounding (within 1e-12, tested); else it is selected
-    /// among the volts' differences.
+    /// order, so the differences selected are the same. The counted figure
+    /// is the exact one; the volts' selection differs from it by the
+    /// decode's rounding, which grows with |offset|/|scale| (1e-13 relative
+    /// on the test's 12-bit codes at an offset of 1.3 V, 5400 codes' worth;
+    /// 5e-7 at 1e11 codes' worth). Else the MAD is selected among the volts'
+    /// differences.
     fn own_colour(&mut self, x: &[f64], codes: Option<(&[i16], f64)>, gates: &[Range<usize>], sigma: f64) -> f64 {
         let counted = codes.and_then(|(c, scale)| CodeDiffMad::span(c, gates).map(|span| (c, scale.abs(), span)));
         let mut g = 1.0;
@@ -568,7 +574,8 @@ mod tests {
         // Coloured noise (a two-tap moving sum) with an event's lobes and a
         // pulse, digitised at 8 and 12 bits on scales with and without an
         // offset: the cleaner given the codes keeps the same runs and its
-        // colour gain is the volts' to 1e-12.
+        // colour gain is the volts' to 1e-12 (the decode's rounding; offsets
+        // of at most some 10⁴ codes' worth here).
         // Noise of 10 codes (8 bits) and 30 codes (12 bits); the pulse may clip.
         for (case, (bits, scale, offset)) in [(8u32, 2e-3, 0.0), (8, 3.7e-3, -0.21), (12, 1.5e-4, 0.05), (12, 2.4e-4, 1.3)].into_iter().enumerate() {
             let amp = if bits == 8 { 10.0 } else { 30.0 } * scale / 1.36f64.sqrt();

@@ -139,6 +139,7 @@ impl Stage for Noise {
             .fit(&[&stop_v[g.pre.clone()], &stop_v[g.beyond.clone()]], s.detector.normality_alpha);
         // Scratch for a contaminated gate, grown on the first frame.
         self.cleaner.reserve(stop_v.len(), MAX_RUNS);
+        self.wide_codes.reserve(stop_v.len().saturating_sub(self.wide_codes.len()));
         self.sorted.reserve(stop_v.len().saturating_sub(self.sorted.len()));
         let quiet = &mut w.buffers.quiet;
         quiet.clear();

@@ -180,6 +180,16 @@ fn default_scene_on_a_shipped_capture_allocates_nothing_per_frame() {
     assert_counts(&cases);
 }
 
+/// The default scene's own frames: 8-bit codes, interference events in the
+/// gates (the cleaner counts the gate's colour on the codes) and learned
+/// event templates aligned on later frames.
+#[test]
+fn default_scene_on_its_simulated_frames_allocates_nothing_per_frame() {
+    let scene = Scene::default_scene();
+    let frames = simulated(&scene, 200);
+    assert_counts(&[("default scene", steady_state_allocations(&scene, &frames), 0)]);
+}
+
 /// Maximum-likelihood timing resolves the lab scene's five returns jointly
 /// (`detect::resolve::Resolver`, whose refit reuses its buffers).
 #[test]

@@ -738,6 +738,9 @@ impl Stage for Detect {
         // filter's output sigma and correlation depend on it. The whitened
         // filter's output is white with unit sigma by construction.
         let colour = self.colour.as_mut().expect("built with the plan");
+        // The stop channel's codes as digitised (stop_v is their decode), for
+        // the colour's lag sums and the integer filter; 8-bit codes widened once.
+        let digitised = stop_codes(&w.frame.channels[w.source.stop].samples, &mut self.wide_codes);
         if w.noise.summary.samples >= 2 {
             let stop_v = &w.buffers.stop_v;
             // The gates' kept runs (all of both gates unless a contaminated
@@ -750,8 +753,8 @@ impl Stage for Detect {
             // A forgetting noise model's mean rests on more samples than this frame's gates.
             let (mean, mean_samples) = (w.noise.summary.mean_v, w.noise.summary.samples as f64);
             let stop = &w.frame.channels[w.source.stop];
-            match stop_codes(&stop.samples, &mut self.wide_codes) {
-                // Codes as digitised (stop_v is their decode): exact integer lag sums.
+            match digitised {
+                // Codes as digitised: exact integer lag sums.
                 Some(codes) if codes.len() == stop_v.len() => {
                     let mut code_parts: [&[i16]; MAX_RUNS] = [&[]; MAX_RUNS];
                     for (p, r) in code_parts.iter_mut().zip(&w.buffers.quiet) {
@@ -806,7 +809,7 @@ impl Stage for Detect {
                 // an average) is filtered exactly in integers; stop_v is its decode.
                 let stop = &w.frame.channels[w.source.stop];
                 let mean = w.noise.summary.mean_v;
-                let exact = match stop_codes(&stop.samples, &mut self.wide_codes) {
+                let exact = match digitised {
                     Some(codes) => raw.plan.run_codes(&w.buffers.stop_v, codes, stop.volts_per_code, stop.offset_v, mean),
                     None => false,
                 };

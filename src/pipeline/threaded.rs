@@ -5,7 +5,8 @@
 //! frame k. On two threads the cut may instead be a ring of three segments,
 //! the first and last on one thread (which takes new frames and the middle
 //! segment's output from one queue) and the middle on the other: a heavy
-//! stage in the middle no longer leaves one thread with everything after it. Every stage still sees exactly the calls it would see in
+//! stage in the middle no longer leaves one thread with everything after
+//! it. Every stage still sees exactly the calls it would see in
 //! [`Pipeline`] — the same units, in the same order, then the same flush —
 //! so every piece of running state (the start method's mismatch gap, the
 //! baseline's drift, the averaging group in progress, the forgetting noise

@@ -1,7 +1,7 @@
 //! Criterion benches of the DSP kernels at the prototype's frame size
 //! (2500 samples at 1 GS/s), in pipeline order: decode, baseline (noise
 //! gate), average, matched filter (FIR and FFT), threshold scan,
-//! interpolation, ML refinement. Run: `cargo bench --bench kernels` (add
+//! interpolation, ML refinement, the events test's coloured variance. Run: `cargo bench --bench kernels` (add
 //! `-- --quick` for a fast pass).
 
 use std::hint::black_box;
@@ -21,6 +21,7 @@ use tofwave::dsp::mlfit::fit_delay;
 use tofwave::dsp::pulse::PulseShape;
 use tofwave::dsp::{crossing, interp};
 use tofwave::frame::{Channel, ChannelRole, Samples};
+use tofwave::math::autocov::{lag_product_sums, toeplitz_quadratic_form};
 use tofwave::scene::Scene;
 
 const FRAME: usize = 2500;
@@ -197,8 +198,26 @@ fn interpolation(c: &mut Criterion) {
     });
 }
 
+/// The events test's coloured variance qᵀRq of a projected pulse column:
+/// a 211-sample window and 90 lags of noise colour (the default scene's),
+/// as the quadratic form and as lag sums then a dot product with ρ.
+fn toeplitz(c: &mut Criterion) {
+    let q = noise(211, 7);
+    let rho: Vec<f64> = (0..90).map(|k| 0.9f64.powi(k)).collect();
+    let mut pad = Vec::new();
+    c.bench_function("toeplitz/form_211x90", |b| b.iter(|| black_box(toeplitz_quadratic_form(black_box(&q), &rho, &mut pad))));
+    let (mut sums, mut centred) = (vec![0.0; 90], Vec::new());
+    c.bench_function("toeplitz/lag_sums_211x90", |b| {
+        b.iter(|| {
+            lag_product_sums(black_box(&q), 0.0, &mut sums, &mut centred);
+            black_box(sums[1..].iter().zip(&rho[1..]).fold(sums[0], |v, (s, r)| v + 2.0 * r * s))
+        })
+    });
+}
+
 criterion_group!(
     benches,
+    toeplitz,
     decode,
     baseline,
     average,

@@ -114,7 +114,7 @@
 use crate::dsp::pulse::Shape;
 use crate::detect::finite_gate::rho_squared_sum;
 use crate::detect::gates::at_rail;
-use crate::math::autocov::lag_product_sums;
+use crate::math::autocov::toeplitz_quadratic_form;
 use crate::math::stats::chi2_upper;
 
 /// Pulses (each with its slope) whose columns one judgement reserves room
@@ -686,7 +686,7 @@ impl EventTest {
             }
         }
         // qᵀRq (qq, the serial Σ q², is the lag-0 sum's value to rounding).
-        let var = if noise.rho.len() > 1 { toeplitz_form(&col, noise.rho, &mut self.basis.lag_sums, &mut self.basis.centred) } else { qq };
+        let var = if noise.rho.len() > 1 { toeplitz_quadratic_form(&col, noise.rho, &mut self.basis.pad) } else { qq };
         self.col = col;
         if var > 0.0 && noise.sigma_v > 0.0 { num / (noise.sigma_v * var.sqrt()) } else { 0.0 }
     }
@@ -938,9 +938,8 @@ struct Basis {
     band_moments: Vec<f64>,
     /// Σ_{i ≥ s} i·(x − μ)ᵢ, s = 0..=len.
     x_moments: Vec<f64>,
-    /// Scratch of [`toeplitz_form`]: a column's lag sums, and the column.
-    lag_sums: Vec<f64>,
-    centred: Vec<f64>,
+    /// Scratch of [`toeplitz_quadratic_form`].
+    pad: Vec<f64>,
 }
 
 /// Most columns one judgement holds (band columns plus a pulse and its slope
@@ -1266,7 +1265,7 @@ impl Basis {
                 Col::Ramp(s) => q[s..].iter_mut().enumerate().for_each(|(k, v)| *v -= beta * k as f64),
             }
         }
-        (num, toeplitz_form(q, rho, &mut self.lag_sums, &mut self.centred))
+        (num, toeplitz_quadratic_form(q, rho, &mut self.pad))
     }
 }
 
@@ -1283,23 +1282,6 @@ fn noise_only_limit(s: usize, rho_sq: f64, z: f64) -> f64 {
 /// qᵀ(x − μ)/(σ √(qᵀRq)), 0 where the pulse lies in the span.
 fn z_of((num, var): (f64, f64), sigma: f64) -> f64 {
     if var > 0.0 { num / (sigma * var.sqrt()) } else { 0.0 }
-}
-
-/// qᵀRq for the Toeplitz noise correlation R whose first row is `rho`
-/// (ρ(0) taken as 1; lags past `rho` or `q` are zero): Σ_k ρ(k)·S_k over
-/// both signs of k, S_k = Σᵢ qᵢq_{i+k} in index order, all lags at once in
-/// [`lag_product_sums`]' blocks of 32 (independent chains: the lag-by-lag
-/// dot products each waited on their own adds). `sums` and `centred` are
-/// scratch.
-fn toeplitz_form(q: &[f64], rho: &[f64], sums: &mut Vec<f64>, centred: &mut Vec<f64>) -> f64 {
-    let lags = rho.len().max(1).min(q.len());
-    if lags == 0 {
-        return 0.0;
-    }
-    sums.clear();
-    sums.resize(lags, 0.0);
-    lag_product_sums(q, 0.0, sums, centred);
-    sums[1..].iter().zip(rho.get(1..).unwrap_or(&[])).fold(sums[0], |var, (s, r)| var + 2.0 * r * s)
 }
 
 /// Σ aᵢbᵢ over the shorter of the two.
@@ -2054,24 +2036,6 @@ mod tests {
     }
 
     use crate::detect::gates::test_noise as noise;
-
-    #[test]
-    fn the_toeplitz_form_is_the_lag_by_lag_sum() {
-        let q: Vec<f64> = noise(150, 9);
-        let rho: Vec<f64> = (0..65).map(|k| 0.8f64.powi(k)).collect();
-        let (mut sums, mut centred) = (Vec::new(), Vec::new());
-        for (len, lags) in [(150usize, 65usize), (150, 2), (40, 65), (3, 65), (1, 65), (150, 1), (150, 0)] {
-            let q = &q[..len];
-            let rho = &rho[..lags];
-            let mut want: f64 = q.iter().map(|v| v * v).sum();
-            for (lag, r) in rho.iter().enumerate().skip(1).take(len.saturating_sub(1)) {
-                want += 2.0 * r * q.iter().zip(&q[lag..]).map(|(a, b)| a * b).sum::<f64>();
-            }
-            let got = toeplitz_form(q, rho, &mut sums, &mut centred);
-            assert!((got - want).abs() <= 1e-12 * want.abs().max(1.0), "{len} samples, {lags} lags: {got} against {want}");
-        }
-        assert_eq!(toeplitz_form(&[], &rho, &mut sums, &mut centred), 0.0);
-    }
 
     #[test]
     fn order_statistics_are_the_sorted_values_bit_for_bit() {

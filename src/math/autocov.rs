@@ -380,6 +380,132 @@ pub fn shifted_sum(x: &[f64], centre: f64) -> f64 {
     x.iter().map(|v| v - centre).sum::<f64>()
 }
 
+/// Lanes of [`toeplitz_quadratic_form`]: consecutive samples taken side by
+/// side, each with its own chain (four AVX-512 vectors, eight AVX2 ones).
+const FORM_LANES: usize = 32;
+
+/// qᵀRq for the symmetric Toeplitz matrix R whose first row is `rho`
+/// (ρ(0) taken as 1, whatever `rho[0]` holds; lags past `rho` or `q` are
+/// zero): Σᵢ qᵢ·(qᵢ + 2tᵢ), tᵢ = Σ_{k ≥ 1} ρ(k)·q_{i+k}. Each tᵢ is one
+/// chain of fused multiply-adds over k in order, the samples
+/// [`FORM_LANES`] at a time side by side (every lag costs one vector
+/// multiply-add per eight samples; the lag sums of [`lag_product_sums`]
+/// cost a multiply and an add per lag and sample, and their last lags,
+/// short of a block, run one chain each); the terms qᵢ·(qᵢ + 2tᵢ) go to
+/// the lane of i mod [`FORM_LANES`], and the lanes are added in order.
+/// Every path (AVX-512, AVX2 with FMA, portable) takes those operations in
+/// that order, so they give the same bits. `pad` is scratch (q and the
+/// zeros after it), kept by the caller.
+pub fn toeplitz_quadratic_form(q: &[f64], rho: &[f64], pad: &mut Vec<f64>) -> f64 {
+    let n = q.len();
+    if n == 0 {
+        return 0.0;
+    }
+    let lags = rho.len().clamp(1, n);
+    let blocks = n.div_ceil(FORM_LANES);
+    pad.clear();
+    pad.extend_from_slice(q);
+    pad.resize(blocks * FORM_LANES + lags, 0.0);
+    // Only ρ(1..) is read: white noise is ρ = [1].
+    let rho: &[f64] = if rho.is_empty() { &[1.0] } else { &rho[..lags] };
+    let mut lanes = [0.0f64; FORM_LANES];
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx512f") && std::arch::is_x86_feature_detected!("fma") {
+            // SAFETY: AVX-512F and FMA checked just above.
+            unsafe { form_lanes_avx512(pad, n, rho, &mut lanes) };
+            return lanes.iter().sum();
+        }
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+            // SAFETY: AVX2 and FMA checked just above.
+            unsafe { form_lanes_avx2(pad, n, rho, &mut lanes) };
+            return lanes.iter().sum();
+        }
+    }
+    form_lanes(pad, n, rho, &mut lanes);
+    lanes.iter().sum()
+}
+
+/// The lanes of [`toeplitz_quadratic_form`], one sample at a time: `pad` is
+/// the `n` samples of q padded with zeros to whole blocks of
+/// [`FORM_LANES`] and `rho.len()` more. (Each tᵢ here runs over every lag;
+/// the vector paths leave out the lags that reach only the zeros past q,
+/// whose terms add exactly nothing.)
+fn form_lanes(pad: &[f64], n: usize, rho: &[f64], lanes: &mut [f64; FORM_LANES]) {
+    for b in 0..n.div_ceil(FORM_LANES) {
+        for (l, lane) in lanes.iter_mut().enumerate() {
+            let i = b * FORM_LANES + l;
+            let t = rho[1..].iter().zip(&pad[i + 1..]).fold(0.0f64, |t, (r, v)| r.mul_add(*v, t));
+            let qi = pad[i];
+            *lane = qi.mul_add(2.0f64.mul_add(t, qi), *lane);
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx2,fma")]
+fn form_lanes_avx512(pad: &[f64], n: usize, rho: &[f64], lanes: &mut [f64; FORM_LANES]) {
+    use std::arch::x86_64::{_mm512_fmadd_pd, _mm512_loadu_pd, _mm512_set1_pd, _mm512_setzero_pd, _mm512_storeu_pd};
+    let blocks = n.div_ceil(FORM_LANES);
+    assert!(pad.len() >= blocks * FORM_LANES + rho.len() && !rho.is_empty());
+    let p = pad.as_ptr();
+    let two = _mm512_set1_pd(2.0);
+    let mut tot = [_mm512_setzero_pd(); 4];
+    for b in 0..blocks {
+        let i0 = b * FORM_LANES;
+        let mut t = [_mm512_setzero_pd(); 4];
+        // Lags that reach past q only add zeros (lane i0's last is n − 1 − i0).
+        for (k, &r) in rho[..rho.len().min(n - i0)].iter().enumerate().skip(1) {
+            let r = _mm512_set1_pd(r);
+            for (z, t) in t.iter_mut().enumerate() {
+                // SAFETY: i0 + 8z + k + 8 <= blocks · 32 + rho.len() <= pad.len() (asserted).
+                *t = _mm512_fmadd_pd(r, unsafe { _mm512_loadu_pd(p.add(i0 + 8 * z + k)) }, *t);
+            }
+        }
+        for (z, (tot, t)) in tot.iter_mut().zip(t).enumerate() {
+            // SAFETY: as above, k = 0.
+            let qv = unsafe { _mm512_loadu_pd(p.add(i0 + 8 * z)) };
+            *tot = _mm512_fmadd_pd(qv, _mm512_fmadd_pd(two, t, qv), *tot);
+        }
+    }
+    for (z, v) in tot.iter().enumerate() {
+        // SAFETY: lanes has room for 4 · 8 values.
+        unsafe { _mm512_storeu_pd(lanes.as_mut_ptr().add(8 * z), *v) };
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn form_lanes_avx2(pad: &[f64], n: usize, rho: &[f64], lanes: &mut [f64; FORM_LANES]) {
+    use std::arch::x86_64::{_mm256_fmadd_pd, _mm256_loadu_pd, _mm256_set1_pd, _mm256_setzero_pd, _mm256_storeu_pd};
+    let blocks = n.div_ceil(FORM_LANES);
+    assert!(pad.len() >= blocks * FORM_LANES + rho.len() && !rho.is_empty());
+    let p = pad.as_ptr();
+    let two = _mm256_set1_pd(2.0);
+    let mut tot = [_mm256_setzero_pd(); 8];
+    for b in 0..blocks {
+        let i0 = b * FORM_LANES;
+        let mut t = [_mm256_setzero_pd(); 8];
+        // Lags that reach past q only add zeros (lane i0's last is n − 1 − i0).
+        for (k, &r) in rho[..rho.len().min(n - i0)].iter().enumerate().skip(1) {
+            let r = _mm256_set1_pd(r);
+            for (z, t) in t.iter_mut().enumerate() {
+                // SAFETY: i0 + 4z + k + 4 <= blocks · 32 + rho.len() <= pad.len() (asserted).
+                *t = _mm256_fmadd_pd(r, unsafe { _mm256_loadu_pd(p.add(i0 + 4 * z + k)) }, *t);
+            }
+        }
+        for (z, (tot, t)) in tot.iter_mut().zip(t).enumerate() {
+            // SAFETY: as above, k = 0.
+            let qv = unsafe { _mm256_loadu_pd(p.add(i0 + 4 * z)) };
+            *tot = _mm256_fmadd_pd(qv, _mm256_fmadd_pd(two, t, qv), *tot);
+        }
+    }
+    for (z, v) in tot.iter().enumerate() {
+        // SAFETY: lanes has room for 8 · 4 values.
+        unsafe { _mm256_storeu_pd(lanes.as_mut_ptr().add(4 * z), *v) };
+    }
+}
+
 /// Autocovariance of noise-gate segments, accumulated over frames with
 /// optional exponential forgetting.
 ///
@@ -602,6 +728,54 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn the_toeplitz_form_is_the_same_on_every_path_and_the_lag_by_lag_sum() {
+        let mut rng = ChaCha8Rng::seed_from_u64(21);
+        let mut pad = Vec::new();
+        for n in [1usize, 2, 7, 31, 32, 33, 64, 150, 211, 1000] {
+            let q: Vec<f64> = (0..n).map(|_| rng.random_range(-3.0..2.0)).collect();
+            for lags in [0usize, 1, 2, 9, 65, 90, 300] {
+                // A decaying colour with a sign change, and ρ(0) not 1 (it is taken as 1).
+                let rho: Vec<f64> = (0..lags).map(|k| if k == 0 { 7.0 } else { 0.93f64.powi(k as i32) * (0.3 * k as f64).cos() }).collect();
+                let got = toeplitz_quadratic_form(&q, &rho, &mut pad);
+                // Lag by lag, in index order, and its rounding bound.
+                let (mut want, mut bound) = (q.iter().map(|v| v * v).sum::<f64>(), q.iter().map(|v| v * v).sum::<f64>());
+                for (k, r) in rho.iter().enumerate().skip(1).take(n.saturating_sub(1)) {
+                    let s = q.iter().zip(&q[k..]).map(|(a, b)| a * b).sum::<f64>();
+                    want += 2.0 * r * s;
+                    bound += 2.0 * r.abs() * q.iter().zip(&q[k..]).map(|(a, b)| (a * b).abs()).sum::<f64>();
+                }
+                // Both sums round each of at most n·lags + n terms once and
+                // accumulate at most n + lags of them in a chain.
+                let tol = 4.0 * (n + lags) as f64 * f64::EPSILON * bound;
+                assert!((got - want).abs() <= tol, "{n} samples, {lags} lags: {got} against {want} (tolerance {tol:e})");
+                // Every path gives the same bits.
+                let used: &[f64] = if rho.is_empty() { &[1.0] } else { &rho[..lags.min(n)] };
+                let blocks = n.div_ceil(FORM_LANES);
+                let mut padded = q.clone();
+                padded.resize(blocks * FORM_LANES + used.len(), 0.0);
+                let mut portable = [0.0; FORM_LANES];
+                form_lanes(&padded, n, used, &mut portable);
+                assert_eq!(got.to_bits(), portable.iter().sum::<f64>().to_bits(), "portable, {n} samples, {lags} lags");
+                #[cfg(target_arch = "x86_64")]
+                if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+                    let mut l = [0.0; FORM_LANES];
+                    // SAFETY: AVX2 and FMA checked just above.
+                    unsafe { form_lanes_avx2(&padded, n, used, &mut l) };
+                    assert_eq!(l.map(f64::to_bits), portable.map(f64::to_bits), "avx2, {n} samples, {lags} lags");
+                }
+                #[cfg(target_arch = "x86_64")]
+                if std::arch::is_x86_feature_detected!("avx512f") && std::arch::is_x86_feature_detected!("fma") {
+                    let mut l = [0.0; FORM_LANES];
+                    // SAFETY: AVX-512F and FMA checked just above.
+                    unsafe { form_lanes_avx512(&padded, n, used, &mut l) };
+                    assert_eq!(l.map(f64::to_bits), portable.map(f64::to_bits), "avx512, {n} samples, {lags} lags");
+                }
+            }
+        }
+        assert_eq!(toeplitz_quadratic_form(&[], &[1.0, 0.5], &mut pad), 0.0);
     }
 
     #[test]

@@ -367,7 +367,7 @@ impl EventTest {
             return self.hidden_verdict(x, noise, pulse, peaks, c, first, len, threshold);
         }
         let band = self.bands.get(len, cfg.max_frequency);
-        let bands = band.len() / len;
+        let bands = band.cols.len() / len;
         // Step 1: what the event subspace explains of x beyond the pulses
         // (and slopes) of every reaching detection: the energy in the span
         // of both less the energy in the pulses' span alone.
@@ -431,7 +431,7 @@ impl EventTest {
         // the data ask for it, nothing comes before it, and the pulse does
         // not stand out of the model with it (its corner, and where the data
         // ask for it its curvature) by the threshold.
-        basis.prepare_steps(band, len, &self.xw);
+        basis.prepare_steps(&self.xw);
         let (from, to) = (((at + lo).ceil().max(0.0) as usize).saturating_sub(first), (at.floor().max(0.0) as usize + 1).saturating_sub(first).min(len));
         // The onset is a jump (a step) or, where the event starts from zero
         // with a finite slope (a corner: a decaying oscillation whose
@@ -528,7 +528,7 @@ impl EventTest {
         let cfg = self.cfg();
         let sigma = noise.sigma_v;
         let band = self.bands.get(len, cfg.max_frequency);
-        let bands = band.len() / len;
+        let bands = band.cols.len() / len;
         let basis = &mut self.basis;
         let (lo, hi) = pulse.support();
         let last = first + len - 1;
@@ -594,7 +594,7 @@ impl EventTest {
             }
             noise_until = s;
         }
-        basis.prepare_steps(band, len, &self.xw);
+        basis.prepare_steps(&self.xw);
         let onsets = [(Col::Step as fn(usize) -> Col, 1), (Col::Ramp, 4)];
         let strongest = onsets
             .iter()
@@ -661,7 +661,7 @@ impl EventTest {
         for (i, &col) in basis.cols.iter().enumerate() {
             if let Col::Band(j) = col {
                 let beta = basis.g[i];
-                out.iter_mut().zip(&band[j * len..(j + 1) * len]).for_each(|(v, b)| *v += beta * b);
+                out.iter_mut().zip(&band.cols[j * len..(j + 1) * len]).for_each(|(v, b)| *v += beta * b);
             }
         }
         Some(first)
@@ -733,9 +733,7 @@ impl EventTest {
         self.basis.y.reserve(CAP_COLS);
         self.basis.g.reserve(CAP_COLS);
         self.basis.bx.reserve(band);
-        self.basis.band_tails.reserve(band * (len + 1));
         self.basis.x_tails.reserve(len + 1);
-        self.basis.band_moments.reserve(band * (len + 1));
         self.basis.x_moments.reserve(len + 1);
         self.basis.l.resize(CAP_COLS * CAP_COLS, 0.0);
         self.col.reserve(len);
@@ -786,7 +784,7 @@ impl EventTest {
             // The screen's windows are these runs' consecutive windows plus
             // one aligned on each run's end; the constant column's
             // projection moves by the difference of the means times its sum.
-            let shift = (shared.mean_v - noise.mean_v) * band[..len].iter().sum::<f64>();
+            let shift = (shared.mean_v - noise.mean_v) * band.cols[..len].iter().sum::<f64>();
             for &(raw, first, aligned) in &shared.windows {
                 if !aligned {
                     let moved = first + shift;
@@ -799,7 +797,7 @@ impl EventTest {
                 while start + len <= r.end {
                     self.xw.clear();
                     self.xw.extend(x[start..start + len].iter().map(|v| v - noise.mean_v));
-                    push(energy_and_first(band, len, &self.xw).0 / s2);
+                    push(energy_and_first(&band.cols, len, &self.xw).0 / s2);
                     start += len;
                 }
             }
@@ -849,16 +847,40 @@ impl EventTest {
 /// [`BandCache::CAPACITY`] of them.
 #[derive(Debug, Clone, Default)]
 struct BandCache {
-    /// (window length, band's highest frequency bits, columns).
-    entries: Vec<(usize, u64, Vec<f64>)>,
+    /// (window length, band's highest frequency bits, the band).
+    entries: Vec<(usize, u64, Band)>,
     /// Entry replaced next once full.
     next: usize,
     /// Scratch column for building.
     col: Vec<f64>,
-    /// Most values any entry has held: a replaced entry's storage is kept
-    /// at least this large, so that windows cut by the frame's edges (a
-    /// length for each place) rebuild in place rather than allocate.
+    /// Most values any entry's columns have held: a replaced entry's
+    /// storage is kept at least this large (and its sums' this large plus a
+    /// value per column and length), so that windows cut by the frame's
+    /// edges (a length for each place) rebuild in place rather than allocate.
     largest: usize,
+}
+
+/// The band basis for one window length, and the sums a step or ramp
+/// column's inner products with it take ([`Col::Step`], [`Col::Ramp`]):
+/// they depend on the length and the band only, so they are kept with the
+/// columns rather than summed again for every judgement that weighs an onset.
+#[derive(Debug, Clone, Default)]
+struct Band {
+    /// Orthonormal columns ([`band_columns`]), `len` values each.
+    cols: Vec<f64>,
+    /// Σ_{i ≥ s} bᵢ of each column, `len + 1` entries per column (s = 0..=len).
+    tails: Vec<f64>,
+    /// Σ_{i ≥ s} i·bᵢ of each column, as `tails`.
+    moments: Vec<f64>,
+}
+
+/// Appends Σ_{i ≥ s} w(i)·vᵢ for s = 0..=v.len(), summed from the end.
+fn suffix_sums(out: &mut Vec<f64>, v: &[f64], w: impl Fn(usize) -> f64) {
+    let at = out.len();
+    out.resize(at + v.len() + 1, 0.0);
+    for i in (0..v.len()).rev() {
+        out[at + i] = out[at + i + 1] + w(i) * v[i];
+    }
 }
 
 impl BandCache {
@@ -866,13 +888,13 @@ impl BandCache {
     const CAPACITY: usize = 16;
 
     /// The columns for windows of `len` and the band up to `f_max` (cycles per sample).
-    fn get(&mut self, len: usize, f_max: f64) -> &[f64] {
+    fn get(&mut self, len: usize, f_max: f64) -> &Band {
         let key = f_max.to_bits();
         let at = match self.entries.iter().position(|e| e.0 == len && e.1 == key) {
             Some(i) => i,
             None => {
                 let i = if self.entries.len() < Self::CAPACITY {
-                    self.entries.push((len, key, Vec::new()));
+                    self.entries.push((len, key, Band::default()));
                     self.entries.len() - 1
                 } else {
                     let i = self.next;
@@ -882,10 +904,22 @@ impl BandCache {
                 let entry = &mut self.entries[i];
                 entry.0 = len;
                 entry.1 = key;
-                entry.2.clear();
-                entry.2.reserve(self.largest);
-                band_columns(len, f_max, &mut entry.2, &mut self.col);
-                self.largest = self.largest.max(entry.2.len());
+                let band = &mut entry.2;
+                band.cols.clear();
+                band.cols.reserve(self.largest);
+                band_columns(len, f_max, &mut band.cols, &mut self.col);
+                self.largest = self.largest.max(band.cols.len());
+                // Each column's sums have one value more than the column, so
+                // for columns of 2 values or more half as much again is room enough.
+                let room = self.largest + self.largest / 2;
+                band.tails.clear();
+                band.tails.reserve(room);
+                band.moments.clear();
+                band.moments.reserve(room);
+                for b in band.cols.chunks_exact(len) {
+                    suffix_sums(&mut band.tails, b, |_| 1.0);
+                    suffix_sums(&mut band.moments, b, |i| i as f64);
+                }
                 i
             }
         };
@@ -929,13 +963,8 @@ struct Basis {
     bx: Vec<f64>,
     /// Scratch: the new column's inner products with the kept ones, then L⁻¹ of them.
     g: Vec<f64>,
-    /// Σ_{i ≥ s} of each band column, `len + 1` entries per column (s = 0..=len):
-    /// a step column's inner products with the band columns.
-    band_tails: Vec<f64>,
     /// Σ_{i ≥ s} (x − μ)ᵢ, s = 0..=len.
     x_tails: Vec<f64>,
-    /// Σ_{i ≥ s} i·bᵢ of each band column, as `band_tails` (ramp columns).
-    band_moments: Vec<f64>,
     /// Σ_{i ≥ s} i·(x − μ)ᵢ, s = 0..=len.
     x_moments: Vec<f64>,
     /// Scratch of [`toeplitz_quadratic_form`].
@@ -953,7 +982,7 @@ const MAX_CENSORED: usize = 150;
 
 impl Basis {
     /// Starts an empty span over the window `xw` (x − μ) with the band basis `band` (`len` each).
-    fn reset(&mut self, band: &[f64], len: usize, xw: &[f64]) {
+    fn reset(&mut self, band: &Band, len: usize, xw: &[f64]) {
         self.cols.clear();
         self.vals.clear();
         self.y.clear();
@@ -961,7 +990,7 @@ impl Basis {
             self.l.resize(CAP_COLS * CAP_COLS, 0.0);
         }
         self.bx.clear();
-        self.bx.extend(band.chunks_exact(len).map(|b| dot(b, xw)));
+        self.bx.extend(band.cols.chunks_exact(len).map(|b| dot(b, xw)));
     }
 
     /// Energy of x − μ in the span so far.
@@ -970,11 +999,11 @@ impl Basis {
     }
 
     /// Inner product of two columns.
-    fn inner(&self, band: &[f64], len: usize, a: Col, b: Col) -> f64 {
+    fn inner(&self, band: &Band, len: usize, a: Col, b: Col) -> f64 {
         match (a, b) {
             (Col::Band(i), Col::Band(j)) => f64::from(u8::from(i == j)),
             (Col::Band(j), Col::Sparse { start, off, len: n }) | (Col::Sparse { start, off, len: n }, Col::Band(j)) => {
-                dot(&band[j * len + start..j * len + start + n], &self.vals[off..off + n])
+                dot(&band.cols[j * len + start..j * len + start + n], &self.vals[off..off + n])
             }
             (Col::Sparse { start: s1, off: o1, len: n1 }, Col::Sparse { start: s2, off: o2, len: n2 }) => {
                 let (lo, hi) = (s1.max(s2), (s1 + n1).min(s2 + n2));
@@ -983,14 +1012,14 @@ impl Basis {
                 }
                 dot(&self.vals[o1 + lo - s1..o1 + hi - s1], &self.vals[o2 + lo - s2..o2 + hi - s2])
             }
-            (Col::Band(j), Col::Step(s)) | (Col::Step(s), Col::Band(j)) => self.band_tails[j * (len + 1) + s],
+            (Col::Band(j), Col::Step(s)) | (Col::Step(s), Col::Band(j)) => band.tails[j * (len + 1) + s],
             (Col::Sparse { start, off, len: n }, Col::Step(s)) | (Col::Step(s), Col::Sparse { start, off, len: n }) => {
                 let from = s.saturating_sub(start).min(n);
                 self.vals[off + from..off + n].iter().sum()
             }
             (Col::Step(s1), Col::Step(s2)) => (len - s1.max(s2)) as f64,
             (Col::Band(j), Col::Ramp(s)) | (Col::Ramp(s), Col::Band(j)) => {
-                self.band_moments[j * (len + 1) + s] - s as f64 * self.band_tails[j * (len + 1) + s]
+                band.moments[j * (len + 1) + s] - s as f64 * band.tails[j * (len + 1) + s]
             }
             (Col::Sparse { start, off, len: n }, Col::Ramp(s)) | (Col::Ramp(s), Col::Sparse { start, off, len: n }) => {
                 let from = s.saturating_sub(start).min(n);
@@ -1004,9 +1033,9 @@ impl Basis {
     /// Resets the span to step 2's model: the event subspace (every column
     /// of `band`) and the pulses (with their slopes) of the detections at `others`.
     #[allow(clippy::too_many_arguments)]
-    fn event_model(&mut self, band: &[f64], len: usize, xw: &[f64], pulses: &mut PulseCache, pulse: &Shape, others: impl Iterator<Item = f64>, first: usize) {
+    fn event_model(&mut self, band: &Band, len: usize, xw: &[f64], pulses: &mut PulseCache, pulse: &Shape, others: impl Iterator<Item = f64>, first: usize) {
         self.reset(band, len, xw);
-        for j in 0..band.len() / len {
+        for j in 0..band.cols.len() / len {
             self.push(band, len, xw, Col::Band(j));
         }
         for p in others {
@@ -1014,34 +1043,18 @@ impl Basis {
         }
     }
 
-    /// Makes step columns usable over the window `xw` (x − μ) with the band
-    /// basis `band` (`len` each): their inner products with the band columns and x − μ.
-    fn prepare_steps(&mut self, band: &[f64], len: usize, xw: &[f64]) {
-        // Appends Σ_{i ≥ s} w(i)·vᵢ for s = 0..=v.len().
-        fn suffix(out: &mut Vec<f64>, v: &[f64], w: impl Fn(usize) -> f64) {
-            let at = out.len();
-            out.resize(at + v.len() + 1, 0.0);
-            for i in (0..v.len()).rev() {
-                out[at + i] = out[at + i + 1] + w(i) * v[i];
-            }
-        }
-        let tails = |out: &mut Vec<f64>, v: &[f64]| suffix(out, v, |_| 1.0);
-        let moments = |out: &mut Vec<f64>, v: &[f64]| suffix(out, v, |i| i as f64);
-        self.band_tails.clear();
-        self.band_moments.clear();
-        for b in band.chunks_exact(len) {
-            tails(&mut self.band_tails, b);
-            moments(&mut self.band_moments, b);
-        }
+    /// Makes step columns usable over the window `xw` (x − μ): their inner
+    /// products with x − μ (those with the band columns the band holds).
+    fn prepare_steps(&mut self, xw: &[f64]) {
         self.x_tails.clear();
-        tails(&mut self.x_tails, xw);
+        suffix_sums(&mut self.x_tails, xw, |_| 1.0);
         self.x_moments.clear();
-        moments(&mut self.x_moments, xw);
+        suffix_sums(&mut self.x_moments, xw, |i| i as f64);
     }
 
     /// Column `a` (not kept) off the span: its answer qᵀ(x − μ)/√(qᵀq), q
     /// the column projected off the span (0 where it lies in the span).
-    fn answer(&mut self, band: &[f64], len: usize, xw: &[f64], a: Col) -> f64 {
+    fn answer(&mut self, band: &Band, len: usize, xw: &[f64], a: Col) -> f64 {
         let (d2, norm2) = self.project(band, len, a);
         if d2 > DEPENDENT * DEPENDENT * norm2 { (self.with_x(xw, a) - dot(&self.g, &self.y)) / d2.sqrt() } else { 0.0 }
     }
@@ -1053,7 +1066,7 @@ impl Basis {
     /// Every `stride`-th start is tried, then the starts within `stride` of
     /// the best of those (a ramp's answer changes slowly with its start).
     #[allow(clippy::too_many_arguments)]
-    fn strongest_onset(&mut self, band: &[f64], len: usize, xw: &[f64], starts: std::ops::Range<usize>, kind: fn(usize) -> Col, stride: usize, either_sign: bool) -> Option<(usize, f64)> {
+    fn strongest_onset(&mut self, band: &Band, len: usize, xw: &[f64], starts: std::ops::Range<usize>, kind: fn(usize) -> Col, stride: usize, either_sign: bool) -> Option<(usize, f64)> {
         let valid = |s: usize| s > 0 && s < len && starts.contains(&s);
         let mut best: Option<(usize, f64)> = None;
         let answer = |basis: &mut Basis, s: usize| {
@@ -1091,7 +1104,7 @@ impl Basis {
 
     /// Leaves in `g` the coordinates l = L⁻¹ Aᵀa of column `a` and returns
     /// (d², aᵀa): d² is the squared norm of `a` off the span.
-    fn project(&mut self, band: &[f64], len: usize, a: Col) -> (f64, f64) {
+    fn project(&mut self, band: &Band, len: usize, a: Col) -> (f64, f64) {
         let k = self.cols.len();
         self.g.clear();
         for i in 0..k {
@@ -1110,7 +1123,7 @@ impl Basis {
     }
 
     /// Adds column `a` unless it depends on the kept ones (or the cap is reached).
-    fn push(&mut self, band: &[f64], len: usize, xw: &[f64], a: Col) {
+    fn push(&mut self, band: &Band, len: usize, xw: &[f64], a: Col) {
         let k = self.cols.len();
         if k >= CAP_COLS {
             return;
@@ -1137,7 +1150,7 @@ impl Basis {
 
     /// Appends the unit column of window sample `i`: the sample is left out
     /// of the fit (its residual is zero whatever the rest).
-    fn push_sample(&mut self, band: &[f64], len: usize, xw: &[f64], i: usize) {
+    fn push_sample(&mut self, band: &Band, len: usize, xw: &[f64], i: usize) {
         let off = self.vals.len();
         self.vals.push(1.0);
         self.push(band, len, xw, Col::Sparse { start: i, off, len: 1 });
@@ -1163,9 +1176,10 @@ impl Basis {
         if len == 0 {
             return (total, 1);
         }
-        self.reset(&[], len, xw);
+        let none = Band::default();
+        self.reset(&none, len, xw);
         for p in others {
-            self.push_pulse(&[], len, xw, pulses.get(pulse, p), first);
+            self.push_pulse(&none, len, xw, pulses.get(pulse, p), first);
         }
         ((total - self.energy()).max(0.0), len.saturating_sub(self.cols.len()).max(1))
     }
@@ -1173,13 +1187,13 @@ impl Basis {
     /// Appends the band columns gated at window sample `start` (zero
     /// before it, as they are from it on) as sparse columns: an oscillation
     /// that starts there.
-    fn push_gated(&mut self, band: &[f64], len: usize, xw: &[f64], start: usize) {
+    fn push_gated(&mut self, band: &Band, len: usize, xw: &[f64], start: usize) {
         if start >= len {
             return;
         }
-        for j in 0..band.len() / len {
+        for j in 0..band.cols.len() / len {
             let off = self.vals.len();
-            self.vals.extend_from_slice(&band[j * len + start..(j + 1) * len]);
+            self.vals.extend_from_slice(&band.cols[j * len + start..(j + 1) * len]);
             self.push(band, len, xw, Col::Sparse { start, off, len: len - start });
         }
     }
@@ -1187,7 +1201,7 @@ impl Basis {
     /// Appends the pulse (and its slope) as sparse columns over its support
     /// within the window `first..first + len`; `pulse` is the first sample
     /// of the support and the (value, slope) from there ([`PulseCache::get`]).
-    fn push_pulse(&mut self, band: &[f64], len: usize, xw: &[f64], pulse: (i64, &[(f64, f64)]), first: usize) {
+    fn push_pulse(&mut self, band: &Band, len: usize, xw: &[f64], pulse: (i64, &[(f64, f64)]), first: usize) {
         let Some((start, values)) = clip(pulse, first, len) else { return };
         let n = values.len();
         for d in 0..2 {
@@ -1203,7 +1217,7 @@ impl Basis {
     /// (qᵀ(x − μ), qᵀRq, place). Places `taken` by another detection's
     /// pulse are skipped. None where no place has a pulse off the span.
     #[allow(clippy::too_many_arguments)]
-    fn search_beside(&mut self, band: &[f64], len: usize, xw: &[f64], pulses: &mut PulseCache, pulse: &Shape, c: f64, first: usize, rho: &[f64], q: &mut Vec<f64>, taken: impl Fn(f64) -> bool) -> Option<(f64, f64, f64)> {
+    fn search_beside(&mut self, band: &Band, len: usize, xw: &[f64], pulses: &mut PulseCache, pulse: &Shape, c: f64, first: usize, rho: &[f64], q: &mut Vec<f64>, taken: impl Fn(f64) -> bool) -> Option<(f64, f64, f64)> {
         let reach = (1.5 * pulse.fwhm()).ceil() as i64;
         let mark = self.vals.len();
         let mut best: Option<(f64, f64, f64)> = None;
@@ -1228,7 +1242,7 @@ impl Basis {
     // place, and the noise colour are all needed; a struct for one private
     // call would only rename them.
     #[allow(clippy::too_many_arguments)]
-    fn off_span(&mut self, band: &[f64], len: usize, xw: &[f64], pulse: (i64, &[(f64, f64)]), first: usize, rho: &[f64], q: &mut Vec<f64>) -> (f64, f64) {
+    fn off_span(&mut self, band: &Band, len: usize, xw: &[f64], pulse: (i64, &[(f64, f64)]), first: usize, rho: &[f64], q: &mut Vec<f64>) -> (f64, f64) {
         q.clear();
         q.resize(len, 0.0);
         let Some((start, values)) = clip(pulse, first, len) else { return (0.0, 0.0) };
@@ -1257,7 +1271,7 @@ impl Basis {
         for (i, &col) in self.cols.iter().enumerate() {
             let beta = self.g[i];
             match col {
-                Col::Band(j) => q.iter_mut().zip(&band[j * len..(j + 1) * len]).for_each(|(v, b)| *v -= beta * b),
+                Col::Band(j) => q.iter_mut().zip(&band.cols[j * len..(j + 1) * len]).for_each(|(v, b)| *v -= beta * b),
                 Col::Sparse { start, off, len: m } => {
                     q[start..start + m].iter_mut().zip(&self.vals[off..off + m]).for_each(|(v, b)| *v -= beta * b)
                 }

@@ -317,6 +317,8 @@ struct Neighbours {
     order: Vec<usize>,
     /// Each detection's model: (peak index, amplitude), in detection order.
     models: Vec<(f64, f64)>,
+    /// Scratch of `refresh`: x − self.x around a peak, for every tap.
+    share: Vec<f64>,
 }
 
 /// Samples each side of a peak whose detector output is refreshed: the
@@ -341,18 +343,26 @@ impl Neighbours {
     fn refresh(&mut self, x: &[f64], y: &[f64], (taps, peak_tap): (&[f64], usize), p: usize) -> usize {
         let n = self.x.len();
         let (a, b) = (p.saturating_sub(REFRESH), (p + REFRESH + 1).min(n));
-        for k in a..b {
-            // Output k is Σ taps[t]·(x[k − peak_tap + t] − mean): the models
-            // taken off change it by their share, x − self.x.
-            let mut d = 0.0;
-            for (t, &h) in taps.iter().enumerate() {
-                let Some(j) = (k + t).checked_sub(peak_tap) else { continue };
-                if j >= n {
-                    break;
-                }
-                d += h * (x[j] - self.x[j]);
+        // Output k is Σ_t taps[t]·(x[k − peak_tap + t] − mean): the models
+        // taken off change it by their share, x − self.x, summed over t in
+        // order. The outputs' sums run side by side (lanes), on the share
+        // with zeros where k − peak_tap + t falls off the record (a zero
+        // term leaves a sum as it is): one pass over the taps, not one per output.
+        const LANES: usize = 2 * REFRESH + 1;
+        let lo = a as isize - peak_tap as isize;
+        let hi = lo + (LANES + taps.len()) as isize;
+        self.share.clear();
+        self.share.extend((lo..hi).map(|j| if j >= 0 && (j as usize) < n { x[j as usize] - self.x[j as usize] } else { 0.0 }));
+        let mut d = [0.0f64; LANES];
+        for (t, &h) in taps.iter().enumerate() {
+            let share: &[f64; LANES] = self.share[t..t + LANES].try_into().expect("share covers every lane");
+            for l in 0..LANES {
+                d[l] += h * share[l];
             }
-            self.y[k] = y[k] - d;
+        }
+        // (Lanes past b, at the record's end, are not outputs.)
+        for (l, k) in (a..b).enumerate() {
+            self.y[k] = y[k] - d[l];
         }
         let (a, b) = (p.saturating_sub(REFRESH - 1), (p + REFRESH).min(n));
         (a..b).fold(p, |best, k| if self.y[k] > self.y[best] { k } else { best })
@@ -433,6 +443,9 @@ impl Stage for Timing {
             } else {
                 (vec![1.0], 0)
             };
+            // Room for `Neighbours::refresh`'s share of every tap, taken once.
+            let share = &mut self.neighbours.share;
+            share.reserve((2 * REFRESH + 1 + self.taps.0.len()).saturating_sub(share.len()));
             self.errors = None;
             self.pulse = Some((dt, shape, norm));
         }
@@ -690,6 +703,37 @@ mod tests {
         let mut nb = super::Neighbours { x: vec![0.0; 100], ..Default::default() };
         nb.add(&shape, (102.0, 1.0), -1.0);
         assert!(nb.x.iter().all(|&v| v == 0.0));
+    }
+
+    #[test]
+    fn refreshed_output_is_each_outputs_serial_sum_bit_for_bit() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        let n = 300;
+        let x: Vec<f64> = (0..n).map(|_| rng.random_range(-1.0..1.0)).collect();
+        let y: Vec<f64> = (0..n).map(|_| rng.random_range(-3.0..3.0)).collect();
+        for (taps_len, peak_tap) in [(64usize, 20usize), (9, 0), (9, 8), (1, 0), (120, 119)] {
+            let taps: Vec<f64> = (0..taps_len).map(|_| rng.random_range(-0.5..0.5)).collect();
+            let mut nb = super::Neighbours { x: x.iter().map(|v| v - rng.random_range(-0.1..0.1)).collect(), y: vec![f64::NAN; n], ..Default::default() };
+            for p in [0usize, 1, 2, 3, 4, 150, n - 4, n - 3, n - 1] {
+                let peak = nb.refresh(&x, &y, (&taps, peak_tap), p);
+                // The outputs one by one, each a serial sum over the taps in
+                // the record (what the lanes must give).
+                for k in p.saturating_sub(super::REFRESH)..(p + super::REFRESH + 1).min(n) {
+                    let mut d = 0.0;
+                    for (t, &h) in taps.iter().enumerate() {
+                        let Some(j) = (k + t).checked_sub(peak_tap) else { continue };
+                        if j >= n {
+                            break;
+                        }
+                        d += h * (x[j] - nb.x[j]);
+                    }
+                    assert_eq!(nb.y[k].to_bits(), (y[k] - d).to_bits(), "taps {taps_len} peak tap {peak_tap} p {p} k {k}");
+                }
+                let (a, b) = (p.saturating_sub(super::REFRESH - 1), (p + super::REFRESH).min(n));
+                assert_eq!(peak, (a..b).fold(p, |best, k| if nb.y[k] > nb.y[best] { k } else { best }));
+            }
+        }
     }
 
     /// A golden-ratio sequence of true phases (uniform, low discrepancy),

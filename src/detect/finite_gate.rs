@@ -184,7 +184,9 @@ impl GateVariance {
             return t_quantile_from_z(u, self.nu);
         }
         let target = ln_q(u);
-        let ln_tail = |t: f64| self.ln_tail(t);
+        // The nodes and their weights' logarithms, once for every evaluation.
+        let nodes = self.ln_nodes();
+        let ln_tail = |t: f64| ln_tail_at(&nodes, t);
         // The tail at t = u is above Q(u) (σ̂ is sometimes small); double until below.
         let (mut lo, mut hi) = (u, 2.0 * u);
         while ln_tail(hi) > target && hi < 1e3 {
@@ -201,14 +203,29 @@ impl GateVariance {
 
 impl GateVariance {
     /// ln P(output > t σ̂), averaged over the gate's σ̂ (the quadrature t_for solves on).
+    #[cfg(test)]
     fn ln_tail(&self, t: f64) -> f64 {
-        let mut terms = [f64::NEG_INFINITY; NODES];
-        for (v, (s, w)) in terms.iter_mut().zip(self.nodes()) {
-            *v = w.ln() + ln_q(t * s);
-        }
-        let top = terms.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-        top + terms.iter().map(|v| (v - top).exp()).sum::<f64>().ln()
+        ln_tail_at(&self.ln_nodes(), t)
     }
+
+    /// The quadrature's (σ̂/σ, ln weight) at each node ([`GateVariance::nodes`]).
+    fn ln_nodes(&self) -> [(f64, f64); NODES] {
+        let mut out = [(0.0, 0.0); NODES];
+        for (o, (s, w)) in out.iter_mut().zip(self.nodes()) {
+            *o = (s, w.ln());
+        }
+        out
+    }
+}
+
+/// ln P(output > t σ̂) on the quadrature `nodes` ([`GateVariance::ln_nodes`]).
+fn ln_tail_at(nodes: &[(f64, f64); NODES], t: f64) -> f64 {
+    let mut terms = [f64::NEG_INFINITY; NODES];
+    for (v, &(s, ln_w)) in terms.iter_mut().zip(nodes) {
+        *v = ln_w + ln_q(t * s);
+    }
+    let top = terms.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    top + terms.iter().map(|v| (v - top).exp()).sum::<f64>().ln()
 }
 
 /// Simpson weight of node `i` (of [`NODES`], step `h`) times the standard normal density there.

@@ -6,7 +6,7 @@
 //! photodetector (`physics::detector`) and `pipeline::detect` is the stage:
 //! these are the signal-detection kernels the stage runs.
 
-use crate::dsp::correlate::{CorrelationMethod, Correlator};
+use crate::dsp::correlate::{correlate_valid_part, CorrelationMethod, Correlator};
 use crate::dsp::correlate_codes;
 use crate::dsp::pulse::Shape;
 use std::ops::Range;
@@ -29,7 +29,16 @@ pub struct DetectorPlan {
     code_taps: CodeTaps,
     padded: Vec<f64>,
     output: Vec<f64>,
+    /// The last run was [`run_codes`](Self::run_codes)'s.
+    codes_ran: bool,
 }
+
+/// Longest template [`DetectorPlan::run_codes`] filters in integers where
+/// the f64 filter is the FFT's: on 2500 samples (`cargo bench --bench kernels
+/// -- correlate`) the integer filter takes 2.40 µs at 64 taps and 10.4 µs at
+/// 300 (about 0.035 µs a tap), the FFT 7.4–8.2 µs at either, so up to here
+/// the integer filter is the faster (and exact).
+const CODES_OVER_FFT_TAPS: usize = 192;
 
 /// A template's taps quantised to i16, for the exact integer filter.
 #[derive(Debug, Clone)]
@@ -137,6 +146,7 @@ impl DetectorPlan {
             code_taps,
             padded: Vec::with_capacity(max_samples + len),
             output: Vec::with_capacity(max_samples),
+            codes_ran: false,
         }
     }
 
@@ -186,26 +196,33 @@ impl DetectorPlan {
         self.padded.extend(x.iter().map(|v| v - mean));
         self.padded.resize(self.peak_tap + x.len() + (len - 1 - self.peak_tap), 0.0);
         self.correlator.correlate(&self.padded, &mut self.output);
+        self.codes_ran = false;
         &self.output
     }
 
     /// As [`run`](Self::run) on `x`, where `x[i]` is `codes[i]·g + o` (the
     /// channel's decode): the correlation runs exactly on the integer codes
     /// (`Σ q[j]·code` in i32) and the output is `scale·(g·Σ + (o − mean)·Σq)`.
-    /// It differs from what `run` gives by rounding only: a few ulp of the
-    /// terms' scale, |g·Σ| and |(o − mean)·Σq| (the f64 filter rounds at
-    /// every tap). False (nothing done; call `run`) where the sums might not
+    /// It differs from what `run` gives by rounding only: the f64 filter's
+    /// (the direct sums round at every tap, a few ulp of the terms' scale
+    /// |g·Σ| and |(o − mean)·Σq|; the FFT's rounding scales with the
+    /// block's norm). False (nothing done; call `run`) where the sums might not
     /// fit an i32 (Σ|q|·max|code| > i32::MAX: with a 64-tap template, codes
-    /// beyond about 12 bits; wider templates allow fewer), the correlator is
-    /// not the direct one, |g| or |o| exceeds 1e300 (the noise stage's
+    /// beyond about 12 bits; wider templates allow fewer), the f64 filter is
+    /// the FFT's and the template longer than [`CODES_OVER_FFT_TAPS`] (there
+    /// the FFT is the faster), |g| or |o| exceeds 1e300 (the noise stage's
     /// limit for codes that decode to finite volts) or `mean` is not finite.
     /// Afterwards the plan holds its input as `run` leaves it, so
     /// [`rerun_part`](Self::rerun_part) recomputes the outputs it is asked
     /// for as `run` would (the others keep this run's values).
     pub fn run_codes(&mut self, x: &[f64], codes: &[i16], g: f64, o: f64, mean: f64) -> bool {
         let ct = &mut self.code_taps;
+        let faster = match self.correlator.method() {
+            CorrelationMethod::Direct => true,
+            CorrelationMethod::Fft => ct.q.len() <= CODES_OVER_FFT_TAPS,
+        };
         if ct.q.is_empty()
-            || self.correlator.method() != CorrelationMethod::Direct
+            || !faster
             || codes.len() != x.len()
             || x.is_empty()
             // The noise stage's test for codes that decode to finite volts
@@ -247,6 +264,7 @@ impl DetectorPlan {
         for p in (0..edge).chain(n.saturating_sub(len - 1 - pt).max(edge)..n) {
             self.output[p] = a * f64::from(ct.sums[p]) + b * taps_in(p);
         }
+        self.codes_ran = true;
         true
     }
 
@@ -267,6 +285,7 @@ impl DetectorPlan {
         if !self.correlator.correlate_part(&self.padded, &mut self.output, part) {
             self.correlator.correlate(&self.padded, &mut self.output);
         }
+        self.codes_ran = false;
         &self.output
     }
 
@@ -274,10 +293,11 @@ impl DetectorPlan {
     /// input of `x.len()` samples that has since changed only at `changed`
     /// (sample indices): brings the output up to date by recomputing just
     /// the outputs whose template reads those samples, each bit for bit what
-    /// `run(x, mean)` would give there (after `run_codes` the others keep
-    /// its values, equal to `run`'s to rounding). False (nothing
-    /// done; call `run`) where the correlator cannot recompute part of its
-    /// output (the FFT method) or the last run was on another length.
+    /// `run(x, mean)` would give there with the direct method (after
+    /// `run_codes` the others keep its values, equal to `run`'s to
+    /// rounding). False (nothing done; call `run`) after `run` with the FFT
+    /// method (an FFT block's outputs depend on the whole block), or where
+    /// the last run was on another length.
     pub fn rerun_part(&mut self, x: &[f64], mean: f64, changed: Range<usize>) -> bool {
         let len = self.len();
         if self.padded.len() != x.len() + len - 1 || self.output.len() != x.len() || changed.end > x.len() {
@@ -292,7 +312,15 @@ impl DetectorPlan {
         }
         // Output p reads padded[p .. p + len], i.e. samples p − peak_tap .. p − peak_tap + len.
         let part = (changed.start + pt + 1).saturating_sub(len)..(changed.end + pt).min(x.len());
-        self.correlator.correlate_part(&self.padded, &mut self.output, part)
+        if self.correlator.correlate_part(&self.padded, &mut self.output, part.clone()) {
+            return true;
+        }
+        // An FFT plan's output came from the integer filter: its outputs
+        // are each their own sum, and those recomputed are the direct sums.
+        if self.codes_ran && !part.is_empty() {
+            correlate_valid_part(self.correlator.taps(), &self.padded, &mut self.output, part);
+        }
+        self.codes_ran
     }
 
     /// The last output of [`run`](Self::run).
@@ -499,6 +527,57 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn an_fft_plan_filters_codes_in_integers_up_to_its_tap_limit_and_reruns_parts() {
+        use crate::dsp::correlate::CorrelationMethod;
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(12);
+        let (n, g, o, mean) = (2500, 1.0 / 128.0, 0.05, 0.052);
+        let codes: Vec<i16> = (0..n).map(|_| rng.random_range(-128..=127)).collect();
+        let x: Vec<f64> = codes.iter().map(|&c| f64::from(c) * g + o).collect();
+        let mut seen = (false, false);
+        for (rise, fall) in [(4.0, 9.0), (6.0, 14.0), (12.0, 30.0), (30.0, 60.0)] {
+            let pulse = Shape::Parametric(crate::dsp::pulse::Pulse { sigma_rise: rise, sigma_fall: fall });
+            let mut plan = DetectorPlan::matched_filter(&pulse, n);
+            if plan.correlator.method() != CorrelationMethod::Fft {
+                continue;
+            }
+            let len = plan.len();
+            let want = plan.run(&x, mean).to_vec();
+            let ran = plan.run_codes(&x, &codes, g, o, mean);
+            assert_eq!(ran, len <= CODES_OVER_FFT_TAPS, "{len} taps");
+            if !ran {
+                seen.1 = true;
+                // After the FFT's own run a part cannot be recomputed.
+                assert!(!plan.rerun_part(&x, mean, 0..1));
+                continue;
+            }
+            seen.0 = true;
+            let scale = x.iter().map(|v| (v - mean).abs()).fold(0.0, f64::max) * len as f64;
+            for (p, (a, b)) in plan.output().iter().zip(&want).enumerate() {
+                assert!((a - b).abs() <= 1e-13 * scale, "{len} taps, output {p}: {a} against {b}");
+            }
+            // Samples changed after the integer run: the outputs that read them
+            // are recomputed (direct sums), the FFT's run of the changed
+            // samples agrees to rounding, and no other output moves.
+            let mut y = x.clone();
+            y[1200..1210].iter_mut().for_each(|v| *v += 0.3);
+            let before = plan.output().to_vec();
+            assert!(plan.rerun_part(&y, mean, 1200..1210), "{len} taps");
+            let after = plan.output().to_vec();
+            let full = plan.run(&y, mean).to_vec();
+            let reads = (1200 + plan.peak_tap + 1 - len)..(1210 + plan.peak_tap);
+            for p in 0..n {
+                if reads.contains(&p) {
+                    assert!((after[p] - full[p]).abs() <= 1e-13 * scale, "{len} taps, output {p}");
+                } else {
+                    assert_eq!(after[p].to_bits(), before[p].to_bits(), "{len} taps, output {p} moved");
+                }
+            }
+        }
+        assert!(seen.0 && seen.1, "the shapes gave an FFT plan on each side of the limit: {seen:?}");
     }
 
     #[test]

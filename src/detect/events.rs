@@ -685,7 +685,7 @@ impl EventTest {
                 col.push(0.0);
             }
         }
-        // qᵀRq (qq, the serial Σ q², is the lag-0 sum's value to rounding).
+        // qᵀRq (qq, the serial Σ q², is the form's value for white noise, ρ = [1], to rounding).
         let var = if noise.rho.len() > 1 { toeplitz_quadratic_form(&col, noise.rho, &mut self.basis.pad) } else { qq };
         self.col = col;
         if var > 0.0 && noise.sigma_v > 0.0 { num / (noise.sigma_v * var.sqrt()) } else { 0.0 }
@@ -917,7 +917,8 @@ impl BandCache {
                 band.tails.reserve(room);
                 band.moments.clear();
                 band.moments.reserve(room);
-                for b in band.cols.chunks_exact(len) {
+                // (A window of no samples has no columns.)
+                for b in band.cols.chunks_exact(len.max(1)) {
                     suffix_sums(&mut band.tails, b, |_| 1.0);
                     suffix_sums(&mut band.moments, b, |i| i as f64);
                 }

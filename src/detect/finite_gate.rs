@@ -202,12 +202,6 @@ impl GateVariance {
 }
 
 impl GateVariance {
-    /// ln P(output > t σ̂), averaged over the gate's σ̂ (the quadrature t_for solves on).
-    #[cfg(test)]
-    fn ln_tail(&self, t: f64) -> f64 {
-        ln_tail_at(&self.ln_nodes(), t)
-    }
-
     /// The quadrature's (σ̂/σ, ln weight) at each node ([`GateVariance::nodes`]).
     fn ln_nodes(&self) -> [(f64, f64); NODES] {
         let mut out = [(0.0, 0.0); NODES];
@@ -218,7 +212,8 @@ impl GateVariance {
     }
 }
 
-/// ln P(output > t σ̂) on the quadrature `nodes` ([`GateVariance::ln_nodes`]).
+/// ln P(output > t σ̂), averaged over the gate's σ̂ on the quadrature
+/// `nodes` ([`GateVariance::ln_nodes`]): what `t_for` solves on.
 fn ln_tail_at(nodes: &[(f64, f64); NODES], t: f64) -> f64 {
     let mut terms = [f64::NEG_INFINITY; NODES];
     for (v, &(s, ln_w)) in terms.iter_mut().zip(nodes) {
@@ -466,7 +461,14 @@ mod tests {
         // from 2 to 7 sigma.
         fn bisected(g: GateVariance, u: f64) -> f64 {
             let target = ln_q(u);
-            let ln_tail = |t: f64| g.ln_tail(t);
+            // The tail as it was written before its nodes were taken once
+            // per solve: each evaluation from `nodes()`, independent of
+            // `ln_nodes` and `ln_tail_at`.
+            let ln_tail = |t: f64| {
+                let terms: Vec<f64> = g.nodes().map(|(s, w)| w.ln() + ln_q(t * s)).collect();
+                let top = terms.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+                top + terms.iter().map(|v| (v - top).exp()).sum::<f64>().ln()
+            };
             let (mut lo, mut hi) = (u, 2.0 * u);
             while ln_tail(hi) > target && hi < 1e3 {
                 lo = hi;

@@ -214,7 +214,7 @@ impl DetectorPlan {
     /// limit for codes that decode to finite volts) or `mean` is not finite.
     /// Afterwards the plan holds its input as `run` leaves it, so
     /// [`rerun_part`](Self::rerun_part) recomputes the outputs it is asked
-    /// for as `run` would (the others keep this run's values).
+    /// for as the direct f64 filter would (the others keep this run's values).
     pub fn run_codes(&mut self, x: &[f64], codes: &[i16], g: f64, o: f64, mean: f64) -> bool {
         let ct = &mut self.code_taps;
         let faster = match self.correlator.method() {
@@ -554,6 +554,13 @@ mod tests {
                 assert!(!plan.rerun_part(&x, mean, 0..1));
                 continue;
             }
+            // Nor after an FFT run (full or partial) that follows an integer one.
+            plan.run(&x, mean);
+            assert!(!plan.rerun_part(&x, mean, 0..1), "{len} taps: after run");
+            assert!(plan.run_codes(&x, &codes, g, o, mean));
+            plan.run_part(&x, mean, 0..10);
+            assert!(!plan.rerun_part(&x, mean, 0..1), "{len} taps: after run_part");
+            assert!(plan.run_codes(&x, &codes, g, o, mean));
             seen.0 = true;
             let scale = x.iter().map(|v| (v - mean).abs()).fold(0.0, f64::max) * len as f64;
             for (p, (a, b)) in plan.output().iter().zip(&want).enumerate() {

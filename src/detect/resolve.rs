@@ -136,9 +136,10 @@ impl Resolver {
     ///
     /// `plan` must hold its run on `x` about `mean_v` (the detector's own
     /// output, which the first pass reads); after each subtracted pulse only
-    /// the outputs that read its samples are recomputed, where the plan's
-    /// correlator can (those bit for bit a full f64 run; else the filter
-    /// runs again).
+    /// the outputs that read its samples are recomputed, where the plan can
+    /// (as direct f64 sums: bit for bit a full run of the direct filter, equal
+    /// to the FFT's or the integer filter's to rounding; else the filter runs
+    /// again; see [`DetectorPlan::rerun_part`]).
     #[allow(clippy::too_many_arguments)]
     pub fn resolve(
         &mut self,

@@ -346,8 +346,9 @@ impl Neighbours {
         // Output k is Σ_t taps[t]·(x[k − peak_tap + t] − mean): the models
         // taken off change it by their share, x − self.x, summed over t in
         // order. The outputs' sums run side by side (lanes), on the share
-        // with zeros where k − peak_tap + t falls off the record (a zero
-        // term leaves a sum as it is): one pass over the taps, not one per output.
+        // with zeros where k − peak_tap + t falls off the record (with the
+        // taps finite, a zero term leaves a sum as it is: each starts at +0,
+        // so none is −0): one pass over the taps, not one per output.
         const LANES: usize = 2 * REFRESH + 1;
         let lo = a as isize - peak_tap as isize;
         let hi = lo + (LANES + taps.len()) as isize;

@@ -159,12 +159,18 @@ fn shipped_scenes_give_the_golden_reports() {
 }
 
 /// The lab scene (five returns) with each optional stage and detector mode
-/// switched on in turn, so that every stage's output is pinned.
+/// switched on in turn, so that every stage's output is pinned; and the
+/// embedded default scene on its own simulated frames.
 #[test]
 fn every_stage_and_mode_gives_the_golden_reports() {
     let lab = std::fs::read_to_string(root().join("replay-data/scenes/lab-table-10-20.toml")).unwrap();
     let burst = std::fs::read_to_string(root().join("replay-data/scenes/burst-1m83.toml")).unwrap();
+    let default = default_toml();
     let variants: Vec<(&str, &str, Vec<(&str, &str)>, u64)> = vec![
+        // The embedded default on its own frames: 8-bit codes, an 89-tap
+        // template the f64 filter would run by FFT (filtered in integers),
+        // coloured noise, events in the gates and the events stage on.
+        ("default-simulated", &default, vec![], 32),
         ("lab-leading_edge", &lab, vec![("timing.method", "\"leading_edge\"")], 16),
         ("lab-peak_parabolic", &lab, vec![("timing.method", "\"peak_parabolic\"")], 16),
         ("lab-peak_gaussian", &lab, vec![("timing.method", "\"peak_gaussian\"")], 16),

@@ -393,9 +393,9 @@ const FORM_LANES: usize = 32;
 /// cost a multiply and an add per lag and sample, and their last lags,
 /// short of a block, run one chain each); the terms qᵢ·(qᵢ + 2tᵢ) go to
 /// the lane of i mod [`FORM_LANES`], and the lanes are added in order.
-/// Every path (AVX-512, AVX2 with FMA, portable) takes those operations in
-/// that order, so they give the same bits. `pad` is scratch (q and the
-/// zeros after it), kept by the caller.
+/// One body is compiled for AVX-512, for AVX2 with FMA and portably (fused
+/// multiply-adds are exact-rounded on each), so every path gives the same
+/// bits. `pad` is scratch (q and the zeros after it), kept by the caller.
 pub fn toeplitz_quadratic_form(q: &[f64], rho: &[f64], pad: &mut Vec<f64>) -> f64 {
     let n = q.len();
     if n == 0 {
@@ -426,18 +426,26 @@ pub fn toeplitz_quadratic_form(q: &[f64], rho: &[f64], pad: &mut Vec<f64>) -> f6
     lanes.iter().sum()
 }
 
-/// The lanes of [`toeplitz_quadratic_form`], one sample at a time: `pad` is
-/// the `n` samples of q padded with zeros to whole blocks of
-/// [`FORM_LANES`] and `rho.len()` more. (Each tᵢ here runs over every lag;
-/// the vector paths leave out the lags that reach only the zeros past q,
-/// whose terms add exactly nothing.)
+/// The lanes of [`toeplitz_quadratic_form`]: `pad` is the `n` samples of q
+/// padded with zeros to whole blocks of [`FORM_LANES`] and `rho.len()`
+/// more. A block's lags that reach only the zeros past q (lane 0's last is
+/// n − 1 − i0) are left out: their terms add exactly nothing.
+#[inline(always)]
 fn form_lanes(pad: &[f64], n: usize, rho: &[f64], lanes: &mut [f64; FORM_LANES]) {
-    for b in 0..n.div_ceil(FORM_LANES) {
-        for (l, lane) in lanes.iter_mut().enumerate() {
-            let i = b * FORM_LANES + l;
-            let t = rho[1..].iter().zip(&pad[i + 1..]).fold(0.0f64, |t, (r, v)| r.mul_add(*v, t));
-            let qi = pad[i];
-            *lane = qi.mul_add(2.0f64.mul_add(t, qi), *lane);
+    let blocks = n.div_ceil(FORM_LANES);
+    assert!(pad.len() >= blocks * FORM_LANES + rho.len() && !rho.is_empty());
+    for b in 0..blocks {
+        let i0 = b * FORM_LANES;
+        let mut t = [0.0f64; FORM_LANES];
+        for (k, &r) in rho[..rho.len().min(n - i0)].iter().enumerate().skip(1) {
+            let v: &[f64; FORM_LANES] = pad[i0 + k..i0 + k + FORM_LANES].try_into().expect("a block");
+            for l in 0..FORM_LANES {
+                t[l] = r.mul_add(v[l], t[l]);
+            }
+        }
+        let q: &[f64; FORM_LANES] = pad[i0..i0 + FORM_LANES].try_into().expect("a block");
+        for l in 0..FORM_LANES {
+            lanes[l] = q[l].mul_add(2.0f64.mul_add(t[l], q[l]), lanes[l]);
         }
     }
 }
@@ -445,65 +453,13 @@ fn form_lanes(pad: &[f64], n: usize, rho: &[f64], lanes: &mut [f64; FORM_LANES])
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx2,fma")]
 fn form_lanes_avx512(pad: &[f64], n: usize, rho: &[f64], lanes: &mut [f64; FORM_LANES]) {
-    use std::arch::x86_64::{_mm512_fmadd_pd, _mm512_loadu_pd, _mm512_set1_pd, _mm512_setzero_pd, _mm512_storeu_pd};
-    let blocks = n.div_ceil(FORM_LANES);
-    assert!(pad.len() >= blocks * FORM_LANES + rho.len() && !rho.is_empty());
-    let p = pad.as_ptr();
-    let two = _mm512_set1_pd(2.0);
-    let mut tot = [_mm512_setzero_pd(); 4];
-    for b in 0..blocks {
-        let i0 = b * FORM_LANES;
-        let mut t = [_mm512_setzero_pd(); 4];
-        // Lags that reach past q only add zeros (lane i0's last is n − 1 − i0).
-        for (k, &r) in rho[..rho.len().min(n - i0)].iter().enumerate().skip(1) {
-            let r = _mm512_set1_pd(r);
-            for (z, t) in t.iter_mut().enumerate() {
-                // SAFETY: i0 + 8z + k + 8 <= blocks · 32 + rho.len() <= pad.len() (asserted).
-                *t = _mm512_fmadd_pd(r, unsafe { _mm512_loadu_pd(p.add(i0 + 8 * z + k)) }, *t);
-            }
-        }
-        for (z, (tot, t)) in tot.iter_mut().zip(t).enumerate() {
-            // SAFETY: as above, k = 0.
-            let qv = unsafe { _mm512_loadu_pd(p.add(i0 + 8 * z)) };
-            *tot = _mm512_fmadd_pd(qv, _mm512_fmadd_pd(two, t, qv), *tot);
-        }
-    }
-    for (z, v) in tot.iter().enumerate() {
-        // SAFETY: lanes has room for 4 · 8 values.
-        unsafe { _mm512_storeu_pd(lanes.as_mut_ptr().add(8 * z), *v) };
-    }
+    form_lanes(pad, n, rho, lanes);
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 fn form_lanes_avx2(pad: &[f64], n: usize, rho: &[f64], lanes: &mut [f64; FORM_LANES]) {
-    use std::arch::x86_64::{_mm256_fmadd_pd, _mm256_loadu_pd, _mm256_set1_pd, _mm256_setzero_pd, _mm256_storeu_pd};
-    let blocks = n.div_ceil(FORM_LANES);
-    assert!(pad.len() >= blocks * FORM_LANES + rho.len() && !rho.is_empty());
-    let p = pad.as_ptr();
-    let two = _mm256_set1_pd(2.0);
-    let mut tot = [_mm256_setzero_pd(); 8];
-    for b in 0..blocks {
-        let i0 = b * FORM_LANES;
-        let mut t = [_mm256_setzero_pd(); 8];
-        // Lags that reach past q only add zeros (lane i0's last is n − 1 − i0).
-        for (k, &r) in rho[..rho.len().min(n - i0)].iter().enumerate().skip(1) {
-            let r = _mm256_set1_pd(r);
-            for (z, t) in t.iter_mut().enumerate() {
-                // SAFETY: i0 + 4z + k + 4 <= blocks · 32 + rho.len() <= pad.len() (asserted).
-                *t = _mm256_fmadd_pd(r, unsafe { _mm256_loadu_pd(p.add(i0 + 4 * z + k)) }, *t);
-            }
-        }
-        for (z, (tot, t)) in tot.iter_mut().zip(t).enumerate() {
-            // SAFETY: as above, k = 0.
-            let qv = unsafe { _mm256_loadu_pd(p.add(i0 + 4 * z)) };
-            *tot = _mm256_fmadd_pd(qv, _mm256_fmadd_pd(two, t, qv), *tot);
-        }
-    }
-    for (z, v) in tot.iter().enumerate() {
-        // SAFETY: lanes has room for 8 · 4 values.
-        unsafe { _mm256_storeu_pd(lanes.as_mut_ptr().add(4 * z), *v) };
-    }
+    form_lanes(pad, n, rho, lanes);
 }
 
 /// Autocovariance of noise-gate segments, accumulated over frames with

@@ -114,7 +114,7 @@
 use crate::dsp::pulse::Shape;
 use crate::detect::finite_gate::rho_squared_sum;
 use crate::detect::gates::at_rail;
-use crate::math::autocov::toeplitz_quadratic_form;
+use crate::math::autocov::toeplitz_quadratic_form_padding;
 use crate::math::stats::chi2_upper;
 
 /// Pulses (each with its slope) whose columns one judgement reserves room
@@ -367,7 +367,7 @@ impl EventTest {
             return self.hidden_verdict(x, noise, pulse, peaks, c, first, len, threshold);
         }
         let band = self.bands.get(len, cfg.max_frequency);
-        let bands = band.cols.len() / len;
+        let bands = band.columns(len);
         // Step 1: what the event subspace explains of x beyond the pulses
         // (and slopes) of every reaching detection: the energy in the span
         // of both less the energy in the pulses' span alone.
@@ -528,7 +528,7 @@ impl EventTest {
         let cfg = self.cfg();
         let sigma = noise.sigma_v;
         let band = self.bands.get(len, cfg.max_frequency);
-        let bands = band.cols.len() / len;
+        let bands = band.columns(len);
         let basis = &mut self.basis;
         let (lo, hi) = pulse.support();
         let last = first + len - 1;
@@ -686,7 +686,7 @@ impl EventTest {
             }
         }
         // qᵀRq (qq, the serial Σ q², is the form's value for white noise, ρ = [1], to rounding).
-        let var = if noise.rho.len() > 1 { toeplitz_quadratic_form(&col, noise.rho, &mut self.basis.pad) } else { qq };
+        let var = if noise.rho.len() > 1 { toeplitz_quadratic_form_padding(&mut col, noise.rho) } else { qq };
         self.col = col;
         if var > 0.0 && noise.sigma_v > 0.0 { num / (noise.sigma_v * var.sqrt()) } else { 0.0 }
     }
@@ -875,6 +875,13 @@ struct Band {
     moments: Vec<f64>,
 }
 
+impl Band {
+    /// How many columns it holds for windows of `len` samples.
+    fn columns(&self, len: usize) -> usize {
+        self.cols.len() / len
+    }
+}
+
 /// Appends Σ_{i ≥ s} w(i)·vᵢ for s = 0..=v.len(), summed from the end.
 fn suffix_sums(out: &mut Vec<f64>, v: &[f64], w: impl Fn(usize) -> f64) {
     let at = out.len();
@@ -969,8 +976,6 @@ struct Basis {
     x_tails: Vec<f64>,
     /// Σ_{i ≥ s} i·(x − μ)ᵢ, s = 0..=len.
     x_moments: Vec<f64>,
-    /// Scratch of [`toeplitz_quadratic_form`].
-    pad: Vec<f64>,
     /// 1 / L's diagonal, one per kept column: the substitutions through L
     /// multiply (a chain of divisions waited some 13 cycles a row).
     inv_diag: Vec<f64>,
@@ -1040,7 +1045,7 @@ impl Basis {
     #[allow(clippy::too_many_arguments)]
     fn event_model(&mut self, band: &Band, len: usize, xw: &[f64], pulses: &mut PulseCache, pulse: &Shape, others: impl Iterator<Item = f64>, first: usize) {
         self.reset(band, len, xw);
-        for j in 0..band.cols.len() / len {
+        for j in 0..band.columns(len) {
             self.push(band, len, xw, Col::Band(j));
         }
         for p in others {
@@ -1198,7 +1203,7 @@ impl Basis {
         if start >= len {
             return;
         }
-        for j in 0..band.cols.len() / len {
+        for j in 0..band.columns(len) {
             let off = self.vals.len();
             self.vals.extend_from_slice(&band.cols[j * len + start..(j + 1) * len]);
             self.push(band, len, xw, Col::Sparse { start, off, len: len - start });
@@ -1244,7 +1249,8 @@ impl Basis {
 
     /// The pulse at `c` projected off the span: (qᵀ(x − μ), qᵀRq) with R
     /// the Toeplitz noise correlation in `rho` (white when empty). The dense
-    /// q goes to `q` (window length).
+    /// q goes to `q` (window length; where ρ is coloured, the zeros its form
+    /// reads follow it).
     // The window (band, length, samples, first index), the pulse and its
     // place, and the noise colour are all needed; a struct for one private
     // call would only rename them.
@@ -1286,7 +1292,7 @@ impl Basis {
                 Col::Ramp(s) => q[s..].iter_mut().enumerate().for_each(|(k, v)| *v -= beta * k as f64),
             }
         }
-        (num, toeplitz_quadratic_form(q, rho, &mut self.pad))
+        (num, toeplitz_quadratic_form_padding(q, rho))
     }
 }
 

@@ -397,15 +397,23 @@ const FORM_LANES: usize = 32;
 /// multiply-adds are exact-rounded on each), so every path gives the same
 /// bits. `pad` is scratch (q and the zeros after it), kept by the caller.
 pub fn toeplitz_quadratic_form(q: &[f64], rho: &[f64], pad: &mut Vec<f64>) -> f64 {
+    pad.clear();
+    pad.extend_from_slice(q);
+    toeplitz_quadratic_form_padding(pad, rho)
+}
+
+/// [`toeplitz_quadratic_form`] of q held in `q` itself, which is left
+/// padded with the zeros the form reads past it (for a caller that builds
+/// q only to take its form: no copy).
+pub fn toeplitz_quadratic_form_padding(q: &mut Vec<f64>, rho: &[f64]) -> f64 {
     let n = q.len();
     if n == 0 {
         return 0.0;
     }
     let lags = rho.len().clamp(1, n);
     let blocks = n.div_ceil(FORM_LANES);
-    pad.clear();
-    pad.extend_from_slice(q);
-    pad.resize(blocks * FORM_LANES + lags, 0.0);
+    q.resize(blocks * FORM_LANES + lags, 0.0);
+    let pad = &q[..];
     // Only ρ(1..) is read: white noise is ρ = [1].
     let rho: &[f64] = if rho.is_empty() { &[1.0] } else { &rho[..lags] };
     let mut lanes = [0.0f64; FORM_LANES];

@@ -40,6 +40,8 @@ pub struct Outcome {
 /// Frames per message between threads: amortises the hand-over (a wake-up
 /// costs a few microseconds) without holding many frames in flight.
 const CHUNK: usize = 8;
+/// Longest wait in [`Staged::settle_while`] before it asks again whether input has come.
+const SETTLE_POLL: std::time::Duration = std::time::Duration::from_micros(100);
 /// Messages a segment may hold queued ahead of it.
 const QUEUE: usize = 4;
 /// Frames run on one thread first whose step times are not used: the
@@ -305,6 +307,26 @@ impl Staged {
         if let Mode::Split(pool) = &mut self.mode {
             pool.send();
             pool.collect(true, &mut self.observer, &mut self.last_noise, out);
+        }
+    }
+
+    /// [`sync`](Self::sync) for as long as `idle()` holds: the pending
+    /// frames go to the threads and outcomes are taken as they come back,
+    /// until none is in flight or `idle()` turns false (checked after each
+    /// outcome, and at least every [`SETTLE_POLL`]). A caller whose input
+    /// ran dry gets its outcomes at once, as with `sync`; when input comes
+    /// back while it waits, it feeds the threads again at once, instead of
+    /// letting them run dry while the last frames finish.
+    pub fn settle_while(&mut self, idle: impl Fn() -> bool, out: &mut Vec<Outcome>) {
+        let Mode::Split(pool) = &mut self.mode else { return };
+        pool.send();
+        pool.collect(false, &mut self.observer, &mut self.last_noise, out);
+        while pool.in_flight > 0 && idle() {
+            match pool.out.recv_timeout(SETTLE_POLL) {
+                Ok(msgs) => pool.take(msgs, &mut self.observer, &mut self.last_noise, out),
+                Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {}
+                Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => break,
+            }
         }
     }
 

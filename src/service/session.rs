@@ -476,6 +476,7 @@ impl Sessions {
             durability: self.durability,
             saved_at: std::time::Instant::now(),
             unacked: Vec::new(),
+            held: Vec::new(),
             waiting: std::collections::VecDeque::new(),
             workers: self.workers_per_sensor,
             snapshots: self.snapshots.clone(),
@@ -610,9 +611,14 @@ struct Worker {
     durability: Durability,
     /// When the noise model was last saved.
     saved_at: std::time::Instant,
-    /// Verdicts of recorded frames held until the recording is flushed:
-    /// an acknowledgement means the frame is in the recording.
+    /// Verdicts held until [`release`](Worker::release): while frames are
+    /// queued they go out in groups (one wake-up of the ingest stream per
+    /// group, not per frame); when recording, an acknowledgement also
+    /// means the frame is in the recording.
     unacked: Vec<(oneshot::Sender<Verdict>, Verdict)>,
+    /// Reports held until [`release`](Worker::release), likewise (one
+    /// wake-up of the subscribers per group).
+    held: Vec<Report>,
     /// Dashboard snapshots: rebuilt pipelines get the observer again.
     snapshots: Option<Arc<Snapshots>>,
 }
@@ -620,6 +626,12 @@ struct Worker {
 /// Recorded frames held for one flush at most: under load the queue never
 /// empties, and a flush per this many frames bounds the wait for an ack.
 const ACKS_PER_FLUSH: usize = 256;
+
+/// Frames whose reports and verdicts are held at most while more frames are
+/// queued: under load each group wakes the subscribers' and the ingest
+/// stream's tasks once, not once a frame; when the queue empties they go
+/// out at once, so a sensor below capacity waits for nothing.
+const HELD_PER_RELEASE: usize = 32;
 
 impl Worker {
     fn run(mut self, mut rx: mpsc::Receiver<Job>) {
@@ -641,22 +653,27 @@ impl Worker {
                     }
                     if let Some(reason) = &self.recording_failed {
                         self.session.rejected("recording");
-                        let _ = done.send(Verdict::Unrecorded(reason.clone()));
-                        continue;
-                    }
-                    self.waiting.push_back((enqueued, done));
-                    self.pipeline.push(frame, &mut outcomes);
-                    // Nothing more queued: the frames on the pipeline's
-                    // threads are finished now rather than with later ones.
-                    if rx.is_empty() {
-                        self.pipeline.sync(&mut outcomes);
-                    }
-                    for o in outcomes.drain(..) {
-                        self.complete(o, &sensor);
+                        self.unacked.push((done, Verdict::Unrecorded(reason.clone())));
+                    } else {
+                        self.waiting.push_back((enqueued, done));
+                        self.pipeline.push(frame, &mut outcomes);
+                        // Nothing more queued: the frames on the pipeline's
+                        // threads are finished now rather than with later
+                        // ones, unless a frame comes meanwhile (then the
+                        // threads are fed first).
+                        if rx.is_empty() {
+                            self.pipeline.settle_while(|| rx.is_empty(), &mut outcomes);
+                        }
+                        for o in outcomes.drain(..) {
+                            self.complete(o, &sensor);
+                        }
                     }
                     self.session.metrics.queue_depth(rx.len());
-                    if self.recorder.is_some() && ((rx.is_empty() && self.waiting.is_empty()) || self.unacked.len() >= ACKS_PER_FLUSH) {
-                        self.flush_and_ack();
+                    let group = if self.recorder.is_some() { ACKS_PER_FLUSH } else { HELD_PER_RELEASE };
+                    if (rx.is_empty() && self.waiting.is_empty()) || self.unacked.len() >= group {
+                        self.release();
+                    } else if self.held.len() >= HELD_PER_RELEASE {
+                        self.publish_held();
                     }
                 }
                 Job::SetScene { scene, done } => {
@@ -665,13 +682,13 @@ impl Worker {
                         self.pipeline = p;
                         tracing::info!(sensor = %sensor, scene = %scene.name, "scene applied");
                     });
-                    self.flush_and_ack();
+                    self.release();
                     let _ = done.send(result);
                 }
             }
         }
         self.finish(&sensor);
-        self.flush_and_ack();
+        self.release();
         if let Some(w) = self.recorder.take()
             && let Err(e) = w.finish()
         {
@@ -688,12 +705,11 @@ impl Worker {
         for o in outcomes {
             self.complete(o, sensor);
         }
-        let mut reports = flushed.reports;
-        self.publish(&mut reports);
+        self.held.extend(flushed.reports);
     }
 
-    /// One frame's outcome: counted, its reports published, its verdict
-    /// sent (held until the recording is flushed, when recording).
+    /// One frame's outcome: counted, its reports and verdict held for
+    /// [`release`](Self::release).
     fn complete(&mut self, outcome: Outcome, sensor: &str) {
         let Some((enqueued, done)) = self.waiting.pop_front() else {
             tracing::error!(sensor = %sensor, "an outcome with no frame waiting for it");
@@ -724,15 +740,10 @@ impl Worker {
             // Only the recorder refuses this way (before the pipeline).
             Verdict::Unrecorded(_) => {}
         }
-        let mut reports = outcome.reports;
-        self.publish(&mut reports);
+        self.held.extend(outcome.reports);
         // Saved before the ack, so an ack after the period means a saved model.
         self.persist_noise(false);
-        if self.recorder.is_some() {
-            self.unacked.push((done, verdict));
-        } else {
-            let _ = done.send(verdict);
-        }
+        self.unacked.push((done, verdict));
     }
 
     /// A pipeline for `scene`, observed by the dashboard when there is one.
@@ -744,9 +755,11 @@ impl Worker {
         Ok(p)
     }
 
-    /// Writes the recording through (and syncs it, by policy), then sends
-    /// the verdicts held for it.
-    fn flush_and_ack(&mut self) {
+    /// Publishes the held reports, then writes the recording through (and
+    /// syncs it, by policy) and sends the held verdicts: an acknowledged
+    /// frame's reports are out before its ack.
+    fn release(&mut self) {
+        self.publish_held();
         if self.unacked.is_empty() {
             return;
         }
@@ -772,6 +785,8 @@ impl Worker {
     /// later one are refused with the reason, the sensor is faulted and
     /// health goes NOT_SERVING. The file keeps what reached it.
     fn fail_recording(&mut self, e: &dyn std::fmt::Display) {
+        // The held frames' reports go out: they were processed.
+        self.publish_held();
         let path = self
             .record_path
             .as_ref()
@@ -807,11 +822,12 @@ impl Worker {
         }
     }
 
-    fn publish(&mut self, reports: &mut Vec<Report>) {
+    /// Publishes the held reports (and the sensor's noise model with them).
+    fn publish_held(&mut self) {
         if let Some(n) = self.pipeline.noise_model() {
             *lock(&self.session.noise) = Some(n);
         }
-        for r in reports.drain(..) {
+        for r in self.held.drain(..) {
             let st = &self.session.stats;
             st.reports.fetch_add(1, Ordering::Relaxed);
             st.returns

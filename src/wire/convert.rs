@@ -121,35 +121,32 @@ pub fn frame_to_proto(frame: &Frame) -> proto::Frame {
     }
 }
 
-/// Splits `bytes` into `N`-byte little-endian chunks, refusing a ragged tail.
-fn chunks<const N: usize>(
-    bytes: &[u8],
-    field: &str,
+/// `bytes` as `N`-byte little-endian chunks, refusing a ragged tail;
+/// `field` names the field in the error (formatted only then).
+fn chunks<'a, const N: usize>(
+    bytes: &'a [u8],
+    field: &dyn Fn() -> String,
     kind: &str,
-) -> Result<Vec<[u8; N]>, ConvertError> {
+) -> Result<impl Iterator<Item = [u8; N]> + 'a, ConvertError> {
     if !bytes.len().is_multiple_of(N) {
         return Err(ConvertError::new(
-            field,
+            field(),
             format!(
                 "expected a multiple of {N} bytes for {kind} samples, found {} bytes",
                 bytes.len()
             ),
         ));
     }
-    Ok(bytes
-        .chunks_exact(N)
-        .map(|c| {
-            let mut a = [0u8; N];
-            a.copy_from_slice(c);
-            a
-        })
-        .collect())
+    Ok(bytes.chunks_exact(N).map(|c| <[u8; N]>::try_from(c).expect("chunks_exact gives N bytes")))
 }
 
-fn unpack(format: i32, bytes: &[u8], field: &str) -> Result<Samples, ConvertError> {
+/// The samples of `bytes` in `format`; `field` names the samples field in
+/// errors (formatted only then; a format error names `.format` instead).
+fn unpack(format: i32, bytes: &[u8], field: &dyn Fn() -> String) -> Result<Samples, ConvertError> {
+    let format_field = || field().replace(".samples", ".format");
     let format = proto::SampleFormat::try_from(format).map_err(|_| {
         ConvertError::new(
-            field.replace(".samples", ".format"),
+            format_field(),
             format!(
                 "expected a known sample format (I8, I16, I32, F32, F64), found value {format}"
             ),
@@ -158,44 +155,28 @@ fn unpack(format: i32, bytes: &[u8], field: &str) -> Result<Samples, ConvertErro
     Ok(match format {
         proto::SampleFormat::Unspecified => {
             return Err(ConvertError::new(
-                field.replace(".samples", ".format"),
+                format_field(),
                 "expected a sample format (I8, I16, I32, F32, F64), found SAMPLE_FORMAT_UNSPECIFIED",
             ));
         }
         proto::SampleFormat::I8 => Samples::I8(bytes.iter().map(|&b| b as i8).collect()),
-        proto::SampleFormat::I16 => Samples::I16(
-            chunks::<2>(bytes, field, "i16")?
-                .into_iter()
-                .map(i16::from_le_bytes)
-                .collect(),
-        ),
-        proto::SampleFormat::I32 => Samples::I32(
-            chunks::<4>(bytes, field, "i32")?
-                .into_iter()
-                .map(i32::from_le_bytes)
-                .collect(),
-        ),
+        proto::SampleFormat::I16 => Samples::I16(chunks::<2>(bytes, field, "i16")?.map(i16::from_le_bytes).collect()),
+        proto::SampleFormat::I32 => Samples::I32(chunks::<4>(bytes, field, "i32")?.map(i32::from_le_bytes).collect()),
         proto::SampleFormat::F32 => {
-            let v: Vec<f32> = chunks::<4>(bytes, field, "f32")?
-                .into_iter()
-                .map(f32::from_le_bytes)
-                .collect();
+            let v: Vec<f32> = chunks::<4>(bytes, field, "f32")?.map(f32::from_le_bytes).collect();
             if let Some(i) = v.iter().position(|x| !x.is_finite()) {
                 return Err(ConvertError::new(
-                    field,
+                    field(),
                     format!("expected finite samples, found {} at index {i}", v[i]),
                 ));
             }
             Samples::F32(v)
         }
         proto::SampleFormat::F64 => {
-            let v: Vec<f64> = chunks::<8>(bytes, field, "f64")?
-                .into_iter()
-                .map(f64::from_le_bytes)
-                .collect();
+            let v: Vec<f64> = chunks::<8>(bytes, field, "f64")?.map(f64::from_le_bytes).collect();
             if let Some(i) = v.iter().position(|x| !x.is_finite()) {
                 return Err(ConvertError::new(
-                    field,
+                    field(),
                     format!("expected finite samples, found {} at index {i}", v[i]),
                 ));
             }
@@ -284,7 +265,7 @@ pub fn frame_from_proto(msg: &proto::Frame) -> Result<Frame, ConvertError> {
                 ),
             ));
         }
-        let samples = unpack(c.format, &c.samples, &format!("channels[{i}].samples"))?;
+        let samples = unpack(c.format, &c.samples, &|| format!("channels[{i}].samples"))?;
         let role = proto::ChannelRole::try_from(c.role).map_err(|_| {
             ConvertError::new(
                 format!("channels[{i}].role"),

@@ -63,7 +63,10 @@ fn threaded_reports_are_bit_identical_to_one_thread() {
 
 /// Every outcome of a `Staged` pipeline on two threads, the ring forced on
 /// or off; `sync_at`: frames after which `sync` must hand back every
-/// outcome so far.
+/// outcome so far. `settle_while` is called too: after frame 480 with input
+/// coming back after two outcomes (it must return with frames still in
+/// flight, none lost), after every frame from 500 to 509 with input back at
+/// once, and after frame 620 with none (it must hand back every outcome).
 fn staged(scene: &Scene, frames: &[Frame], ring: bool, sync_at: usize) -> (Vec<String>, threaded::Cut) {
     let mut s = threaded::Staged::new(scene, "t", 2);
     s.prefer_ring(Some(ring));
@@ -84,6 +87,20 @@ fn staged(scene: &Scene, frames: &[Frame], ring: bool, sync_at: usize) -> (Vec<S
             assert_eq!(s.in_flight(), 0, "sync hands back every outcome");
             take(&mut out, &mut lines);
             assert_eq!(lines.iter().filter(|l| *l == "--").count(), sync_at, "one outcome per frame pushed");
+        }
+        if i + 1 == 480 {
+            let asked = std::cell::Cell::new(0);
+            s.settle_while(|| { asked.set(asked.get() + 1); asked.get() <= 2 }, &mut out);
+            assert!(s.in_flight() > 0, "input came back: the frames still in flight are left there");
+        }
+        if (500..510).contains(&(i + 1)) {
+            s.settle_while(|| false, &mut out);
+        }
+        if i + 1 == 620 {
+            s.settle_while(|| true, &mut out);
+            assert_eq!(s.in_flight(), 0, "settle_while with no input hands back every outcome");
+            take(&mut out, &mut lines);
+            assert_eq!(lines.iter().filter(|l| *l == "--").count(), 620, "one outcome per frame pushed");
         }
         take(&mut out, &mut lines);
     }

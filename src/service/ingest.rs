@@ -387,6 +387,19 @@ async fn start_batch(shared: &Shared, batch: proto::FrameBatch) -> PendingBatch 
             }
         }
     }
+    // The end of the batch: each sensor it fed sends its held verdicts (and
+    // reports) now, so the batch's ack waits for its own frames only.
+    let mut fed: Vec<&Arc<Session>> = Vec::new();
+    for p in &pending {
+        if let Outcome::Pipeline { session, .. } = &p.outcome
+            && !fed.iter().any(|s| Arc::ptr_eq(s, session))
+        {
+            fed.push(session);
+        }
+    }
+    for s in fed {
+        s.end_of_batch().await;
+    }
     PendingBatch { ack, pending }
 }
 

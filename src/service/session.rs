@@ -40,6 +40,8 @@ enum Job {
         /// Receives the pipeline's verdict.
         done: oneshot::Sender<Verdict>,
     },
+    /// The end of an ingest batch: the verdicts and reports held so far go out.
+    EndOfBatch,
     /// Replace the pipeline (after flushing the old one).
     SetScene {
         /// The validated scene.
@@ -223,6 +225,17 @@ impl Session {
         .map_err(|_| self.closed())?;
         self.metrics.queue_depth(tx.max_capacity() - tx.capacity());
         Ok(rx)
+    }
+
+    /// Marks the end of an ingest batch in the queue: once the frames queued
+    /// before it are processed, their verdicts and reports go out (the worker
+    /// holds them while frames are queued, to wake the ingest stream and the
+    /// subscribers once a batch, not once a frame). Nothing to do on a
+    /// closed queue: its frames were refused.
+    pub async fn end_of_batch(&self) {
+        if let Ok(tx) = self.sender() {
+            let _ = tx.send(Job::EndOfBatch).await;
+        }
     }
 
     /// Applies `scene` between two frames; resolves once the new pipeline runs.
@@ -477,6 +490,9 @@ impl Sessions {
             saved_at: std::time::Instant::now(),
             unacked: Vec::new(),
             held: Vec::new(),
+            taken: 0,
+            done: 0,
+            batch_ends: std::collections::VecDeque::new(),
             waiting: std::collections::VecDeque::new(),
             workers: self.workers_per_sensor,
             snapshots: self.snapshots.clone(),
@@ -619,6 +635,13 @@ struct Worker {
     /// Reports held until [`release`](Worker::release), likewise (one
     /// wake-up of the subscribers per group).
     held: Vec<Report>,
+    /// Frames taken from the queue so far...
+    taken: u64,
+    /// ... and those whose verdict is in (in `unacked` or sent).
+    done: u64,
+    /// Ends of ingest batches not yet released: the count of frames taken
+    /// before each; the held verdicts go out once `done` reaches it.
+    batch_ends: std::collections::VecDeque<u64>,
     /// Dashboard snapshots: rebuilt pipelines get the observer again.
     snapshots: Option<Arc<Snapshots>>,
 }
@@ -651,30 +674,21 @@ impl Worker {
                     } else if self.recorder.is_some() {
                         self.session.metrics.frame_recorded();
                     }
+                    self.taken += 1;
                     if let Some(reason) = &self.recording_failed {
                         self.session.rejected("recording");
                         self.unacked.push((done, Verdict::Unrecorded(reason.clone())));
+                        self.done += 1;
                     } else {
                         self.waiting.push_back((enqueued, done));
                         self.pipeline.push(frame, &mut outcomes);
-                        // Nothing more queued: the frames on the pipeline's
-                        // threads are finished now rather than with later
-                        // ones, unless a frame comes meanwhile (then the
-                        // threads are fed first).
-                        if rx.is_empty() {
-                            self.pipeline.settle_while(|| rx.is_empty(), &mut outcomes);
-                        }
-                        for o in outcomes.drain(..) {
-                            self.complete(o, &sensor);
-                        }
                     }
+                    self.settle(&rx, &mut outcomes, &sensor);
                     self.session.metrics.queue_depth(rx.len());
-                    let group = if self.recorder.is_some() { ACKS_PER_FLUSH } else { HELD_PER_RELEASE };
-                    if (rx.is_empty() && self.waiting.is_empty()) || self.unacked.len() >= group {
-                        self.release();
-                    } else if self.held.len() >= HELD_PER_RELEASE {
-                        self.publish_held();
-                    }
+                }
+                Job::EndOfBatch => {
+                    self.batch_ends.push_back(self.taken);
+                    self.settle(&rx, &mut outcomes, &sensor);
                 }
                 Job::SetScene { scene, done } => {
                     let result = self.build(&scene).map(|p| {
@@ -695,6 +709,22 @@ impl Worker {
             tracing::error!(sensor = %sensor, error = %e, "recording not finished");
         }
         tracing::info!(sensor = %sensor, "session drained");
+    }
+
+    /// After a frame or a batch's end: with nothing more queued, the frames
+    /// on the pipeline's threads are finished now rather than with later
+    /// ones, unless a frame comes meanwhile (then the threads are fed
+    /// first; the worker never waits for the queue with frames in flight
+    /// and the queue empty). The outcomes are completed, and what is held
+    /// goes out when due.
+    fn settle(&mut self, rx: &mpsc::Receiver<Job>, outcomes: &mut Vec<Outcome>, sensor: &str) {
+        if rx.is_empty() {
+            self.pipeline.settle_while(|| rx.is_empty(), outcomes);
+        }
+        for o in outcomes.drain(..) {
+            self.complete(o, sensor);
+        }
+        self.release_when_due(rx.is_empty());
     }
 
     /// Ends the pipeline: the outcomes of its frames, then what its flush
@@ -744,6 +774,21 @@ impl Worker {
         // Saved before the ack, so an ack after the period means a saved model.
         self.persist_noise(false);
         self.unacked.push((done, verdict));
+        self.done += 1;
+    }
+
+    /// Releases what is held when an ingest batch's frames all have their
+    /// verdicts, when the queue is empty and no frame is in the pipeline
+    /// (`queue_empty`: the queue's state), or when a group is full;
+    /// otherwise publishes the held reports once a group of them is in.
+    fn release_when_due(&mut self, queue_empty: bool) {
+        let group = if self.recorder.is_some() { ACKS_PER_FLUSH } else { HELD_PER_RELEASE };
+        let batch_done = self.batch_ends.front().is_some_and(|&end| end <= self.done);
+        if batch_done || (queue_empty && self.waiting.is_empty()) || self.unacked.len() >= group {
+            self.release();
+        } else if self.held.len() >= HELD_PER_RELEASE {
+            self.publish_held();
+        }
     }
 
     /// A pipeline for `scene`, observed by the dashboard when there is one.
@@ -759,6 +804,9 @@ impl Worker {
     /// syncs it, by policy) and sends the held verdicts: an acknowledged
     /// frame's reports are out before its ack.
     fn release(&mut self) {
+        while self.batch_ends.front().is_some_and(|&end| end <= self.done) {
+            self.batch_ends.pop_front();
+        }
         self.publish_held();
         if self.unacked.is_empty() {
             return;

@@ -1511,3 +1511,55 @@ async fn a_sensor_on_several_workers_reports_what_one_thread_does() {
         }
     }
 }
+
+/// A client that waits for each batch's ack before it sends the next (and
+/// one that keeps two batches ahead): the worker holds verdicts and reports
+/// while frames are queued, and must still release each batch's once its
+/// frames are done, on one thread and with the stages on two (past the
+/// pilot, frames in flight there). A hold that waited for frames that never
+/// come hangs this test (each ack has 60 s).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn acks_of_a_lock_step_client_come_whatever_the_workers() {
+    let all = frames("lockstep", 0..460, 4);
+    let want = direct_reports(&Scene::default_scene(), &all);
+    for (workers, ahead) in [(1, 1), (2, 1), (2, 2)] {
+        let config = ServerConfig { workers_per_sensor: workers, ..ServerConfig::default() };
+        let server = TestServer::start(config).await;
+        let mut c = server.connect(None).await;
+        let sub = client::subscribe(&mut c.reports, Default::default()).await.unwrap();
+        // Batches of 1, 7 and 32 frames in turn.
+        let mut batches = Vec::new();
+        let mut rest = &all[..];
+        for size in [1usize, 7, 32].into_iter().cycle() {
+            if rest.is_empty() {
+                break;
+            }
+            let (b, r) = rest.split_at(size.min(rest.len()));
+            batches.push(batch(b));
+            rest = r;
+        }
+        let sizes: Vec<u64> = batches.iter().map(|b| b.frames.len() as u64).collect();
+        let (tx, rx) = tokio::sync::mpsc::channel(8);
+        let mut acks = c.ingest.push(ReceiverStream::new(rx)).await.unwrap().into_inner();
+        let mut to_send = batches.into_iter();
+        for b in to_send.by_ref().take(ahead) {
+            tx.send(b).await.unwrap();
+        }
+        for (k, size) in sizes.iter().enumerate() {
+            let ack = tokio::time::timeout(std::time::Duration::from_secs(60), acks.message())
+                .await
+                .unwrap_or_else(|_| panic!("{workers} workers, {ahead} ahead: no ack for batch {k} in 60 s"))
+                .unwrap()
+                .unwrap();
+            assert_eq!((ack.accepted, ack.rejected), (*size, 0), "{workers} workers, {ahead} ahead: batch {k}");
+            if let Some(b) = to_send.next() {
+                tx.send(b).await.unwrap();
+            }
+        }
+        drop(tx);
+        server.shutdown().await.unwrap();
+        let (reports, skipped) = collect_events(sub).await;
+        assert_eq!(skipped, 0);
+        assert_eq!(reports, want, "{workers} workers, {ahead} ahead: the reports, in order");
+    }
+}

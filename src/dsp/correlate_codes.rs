@@ -263,6 +263,22 @@ mod tests {
     }
 
     #[test]
+    fn sums_past_the_limit_wrap_alike_on_every_path() {
+        // Every product at +2^30: 64 taps sum to 2^36, far past i32.
+        let q = vec![i16::MIN; 64];
+        let c = vec![i16::MIN; 64 + 200 - 1];
+        let want: Vec<i32> = (0..200)
+            .map(|k| q.iter().zip(&c[k..]).fold(0i32, |s, (&h, &x)| s.wrapping_add(i32::from(h) * i32::from(x))))
+            .collect();
+        let mut got = vec![0; 200];
+        correlate_valid(&q, &c, &mut got);
+        assert_eq!(got, want, "dispatched path ({:?})", path());
+        let mut got = vec![-1; 200];
+        portable(&q, &c, &mut got, 0);
+        assert_eq!(got, want, "portable path");
+    }
+
+    #[test]
     #[should_panic(expected = "even count")]
     fn an_odd_tap_count_is_refused() {
         correlate_valid(&[1, 2, 3], &[0; 10], &mut [0; 4]);

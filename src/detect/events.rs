@@ -1465,19 +1465,22 @@ fn fold_columns(q: &[f64], len: usize) -> Vec<(f64, Vec<f64>)> {
     out
 }
 
-/// [`energy_and_first`] through the folded columns of [`fold_columns`]:
-/// the same sums to rounding (each product pair added before it is
-/// multiplied), half the multiplications. `halves`: scratch.
-fn folded_energy_and_first(folded: &[(f64, Vec<f64>)], v: &[f64], halves: &mut (Vec<f64>, Vec<f64>)) -> (f64, f64) {
-    let len = v.len();
+/// [`energy_and_first`] of `x − mean` (`x`: the window's samples) through
+/// the folded columns of [`fold_columns`]: the same sums to rounding (each
+/// product pair added before it is multiplied), half the multiplications.
+/// The window less its mean is folded as it is read (each sample's
+/// difference taken as `x[i] − mean` would be). `halves`: scratch.
+fn folded_energy_and_first(folded: &[(f64, Vec<f64>)], x: &[f64], mean: f64, halves: &mut (Vec<f64>, Vec<f64>)) -> (f64, f64) {
+    let len = x.len();
     let h = len / 2;
     let (even, odd) = halves;
+    let (head, tail) = (&x[..h], &x[len - h..]);
     even.clear();
     odd.clear();
-    even.extend((0..h).map(|i| v[i] + v[len - 1 - i]));
-    odd.extend((0..h).map(|i| v[i] - v[len - 1 - i]));
+    even.extend(head.iter().zip(tail.iter().rev()).map(|(a, b)| (a - mean) + (b - mean)));
+    odd.extend(head.iter().zip(tail.iter().rev()).map(|(a, b)| (a - mean) - (b - mean)));
     if len % 2 == 1 {
-        even.push(v[h]);
+        even.push(x[h] - mean);
     }
     let (mut e, mut first) = (0.0, 0.0);
     for (j, (parity, col)) in folded.iter().enumerate() {
@@ -1692,12 +1695,12 @@ impl GateScreen {
         let s2 = sigma_v * sigma_v;
         for r in runs {
             for (k, start) in Self::windows(len, r).enumerate() {
-                self.xw.clear();
-                self.xw.extend(x[start..start + len].iter().map(|v| v - mean_v));
                 let (raw, first) = if self.folded.is_empty() {
+                    self.xw.clear();
+                    self.xw.extend(x[start..start + len].iter().map(|v| v - mean_v));
                     energy_and_first(&self.band, len, &self.xw)
                 } else {
-                    folded_energy_and_first(&self.folded, &self.xw, &mut self.halves)
+                    folded_energy_and_first(&self.folded, &x[start..start + len], mean_v, &mut self.halves)
                 };
                 shared.windows.push((raw, first, (k + 1) * len > r.len()));
                 let e = raw / s2;
@@ -2364,9 +2367,17 @@ mod tests {
             for seed in 0..20u64 {
                 let v: Vec<f64> = noise(len, 300 + seed).iter().map(|x| 0.2 + x).collect();
                 let (e, d) = energy_and_first(&band, len, &v);
-                let (ef, df) = folded_energy_and_first(&folded, &v, &mut halves);
+                let (ef, df) = folded_energy_and_first(&folded, &v, 0.0, &mut halves);
                 assert!((e - ef).abs() <= 1e-13 * e, "len {len}: {e} vs {ef}");
                 assert!((d - df).abs() <= 1e-13 * d.abs().max(1.0), "len {len}: {d} vs {df}");
+                // The window less a mean, folded as it is read: the very
+                // bits of folding the differences.
+                let mean = 0.37;
+                let raw: Vec<f64> = v.iter().map(|x| x + mean).collect();
+                let centred: Vec<f64> = raw.iter().map(|x| x - mean).collect();
+                let (eb, db) = folded_energy_and_first(&folded, &centred, 0.0, &mut halves);
+                let (em, dm) = folded_energy_and_first(&folded, &raw, mean, &mut halves);
+                assert_eq!((em.to_bits(), dm.to_bits()), (eb.to_bits(), db.to_bits()), "len {len}");
             }
         }
         // A column that is neither even nor odd: no folding.

@@ -289,7 +289,6 @@ impl Resolver {
             }
         }
         comps.retain(|c| c.amplitude_v > 0.0);
-        self.residual_from(x, mean_v, shape, comps, &window);
     }
 
     /// residual = x - mean - Σ pulses.

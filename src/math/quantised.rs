@@ -204,6 +204,31 @@ fn level_indices_body(x: &[f64], lo: f64, inv_step: f64, top: i64, index: &mut [
     }
 }
 
+/// Counts the samples at each level (`index`: each sample's level, below
+/// `counts.len() / 4`; `counts`: zeros, four counters per level) and
+/// leaves in `counts[k]` the count on levels 0..=k. Four samples at a time
+/// go to their level's four counters: neighbours on one level (most
+/// samples of a narrow spread) do not wait on one another's store.
+fn cumulative_counts(index: &[u32], counts: &mut [u32]) {
+    let quads = index.chunks_exact(4);
+    for &k in quads.remainder() {
+        counts[4 * k as usize] += 1;
+    }
+    for q in quads {
+        counts[4 * q[0] as usize] += 1;
+        counts[4 * q[1] as usize + 1] += 1;
+        counts[4 * q[2] as usize + 2] += 1;
+        counts[4 * q[3] as usize + 3] += 1;
+    }
+    // Level k's total goes to counts[k], which no level after k reads
+    // (they read from 4(k + 1) on).
+    let mut run = 0u32;
+    for k in 0..counts.len() / 4 {
+        run += counts[4 * k] + counts[4 * k + 1] + counts[4 * k + 2] + counts[4 * k + 3];
+        counts[k] = run;
+    }
+}
+
 /// Robust standard deviation of samples on a grid of step `step` (from
 /// [`grid_step`]): the probit fit described in the module documentation.
 /// `counts` is scratch (one counter per level), kept between calls.
@@ -229,26 +254,20 @@ pub fn quantised_sigma_within(x: &[f64], lo: f64, hi: f64, step: f64, counts: &m
         return None;
     }
     let levels = levels as usize;
-    // `counts` holds the level counts and, after them, each sample's level
-    // (scratch): the levels are found in one pass the compiler vectorises
-    // (no store between samples), then counted.
+    // `counts` holds four counters per level and, after them, each sample's
+    // level (scratch): the levels are found in one pass the compiler
+    // vectorises (no store between samples), then counted, four samples at
+    // a time into the level's four counters (neighbours on one level, most
+    // samples of a narrow spread, do not wait on one another's store).
     counts.clear();
-    counts.resize(levels + x.len(), 0);
-    let (counts, index) = counts.split_at_mut(levels);
+    counts.resize(4 * levels + x.len(), 0);
+    let (counts, index) = counts.split_at_mut(4 * levels);
     // Samples on the grid (as `grid_step` found it) sit next to an integer
     // number of steps from the lowest: the nearest integer is the same
     // whether (v − lo) is divided by the step or multiplied by its inverse.
     let inv_step = 1.0 / step;
     level_indices(x, lo, inv_step, levels as i64 - 1, index);
-    for &k in index.iter() {
-        counts[k as usize] += 1;
-    }
-    // Cumulative counts in place: cum[k] is the count on levels 0..=k.
-    let mut run = 0u32;
-    for c in counts.iter_mut() {
-        run += *c;
-        *c = run;
-    }
+    cumulative_counts(index, counts);
     let cum = &counts[..levels - 1];
     let n = x.len() as f64;
     // Boundary k lies between level k and k + 1, at lo + (k + ½)·step; F is
@@ -315,6 +334,20 @@ mod tests {
     use super::*;
     use rand::SeedableRng;
     use rand_distr::{Distribution, StandardNormal};
+
+    #[test]
+    fn cumulative_counts_are_the_running_histogram() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        for n in 0..40 {
+            for levels in [1usize, 2, 3, 7, 40] {
+                let index: Vec<u32> = (0..n).map(|_| rand::Rng::random_range(&mut rng, 0..levels as u32)).collect();
+                let mut counts = vec![0u32; 4 * levels];
+                cumulative_counts(&index, &mut counts);
+                let want: Vec<u32> = (0..levels as u32).map(|k| index.iter().filter(|&&i| i <= k).count() as u32).collect();
+                assert_eq!(&counts[..levels], &want[..], "{n} samples on {levels} levels");
+            }
+        }
+    }
 
     #[test]
     fn level_indices_are_the_same_on_every_path() {

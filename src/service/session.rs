@@ -691,8 +691,16 @@ impl Worker {
                     self.settle(&rx, &mut outcomes, &sensor);
                 }
                 Job::SetScene { scene, done } => {
+                    // Every frame before the change finished first: whatever
+                    // building the new pipeline says, none is left in flight.
+                    self.pipeline.settle_while(|| true, &mut outcomes);
+                    for o in outcomes.drain(..) {
+                        self.complete(o, &sensor);
+                    }
                     let result = self.build(&scene).map(|p| {
                         self.finish(&sensor);
+                        // Out while the old pipeline's noise model is the one read.
+                        self.publish_held();
                         self.pipeline = p;
                         tracing::info!(sensor = %sensor, scene = %scene.name, "scene applied");
                     });
@@ -778,12 +786,16 @@ impl Worker {
     }
 
     /// Releases what is held when an ingest batch's frames all have their
-    /// verdicts, when the queue is empty and no frame is in the pipeline
-    /// (`queue_empty`: the queue's state), or when a group is full;
-    /// otherwise publishes the held reports once a group of them is in.
+    /// verdicts (not when recording), when the queue is empty and no frame
+    /// is in the pipeline (`queue_empty`: the queue's state), or when a
+    /// group is full; otherwise publishes the held reports once a group of
+    /// them is in.
     fn release_when_due(&mut self, queue_empty: bool) {
-        let group = if self.recorder.is_some() { ACKS_PER_FLUSH } else { HELD_PER_RELEASE };
-        let batch_done = self.batch_ends.front().is_some_and(|&end| end <= self.done);
+        // Recording, each release flushes (and by policy syncs) the file:
+        // once per ACKS_PER_FLUSH frames under load, not once per batch.
+        let recording = self.recorder.is_some();
+        let group = if recording { ACKS_PER_FLUSH } else { HELD_PER_RELEASE };
+        let batch_done = !recording && self.batch_ends.front().is_some_and(|&end| end <= self.done);
         if batch_done || (queue_empty && self.waiting.is_empty()) || self.unacked.len() >= group {
             self.release();
         } else if self.held.len() >= HELD_PER_RELEASE {
@@ -863,6 +875,10 @@ impl Worker {
             return;
         }
         self.saved_at = std::time::Instant::now();
+        // The latest model (the session's is refreshed as reports go out).
+        if let Some(n) = self.pipeline.noise_model() {
+            *lock(&self.session.noise) = Some(n);
+        }
         if let Some(n) = self.session.noise()
             && let Err(e) = st.save_noise(&self.session.sensor, &n)
         {

@@ -44,8 +44,9 @@ enum Job {
     EndOfBatch,
     /// Replace the pipeline (after flushing the old one).
     SetScene {
-        /// The validated scene.
-        scene: Scene,
+        /// The validated scene (boxed: every queued job, frames and batch
+        /// ends included, is the size of the largest variant).
+        scene: Box<Scene>,
         /// Receives the outcome of building the new pipeline.
         done: oneshot::Sender<Result<(), String>>,
     },
@@ -243,7 +244,7 @@ impl Session {
         let tx = self.sender().map_err(|e| e.to_string())?;
         let (done, rx) = oneshot::channel();
         tx.send(Job::SetScene {
-            scene: scene.clone(),
+            scene: Box::new(scene.clone()),
             done,
         })
         .await

@@ -491,9 +491,7 @@ impl Sessions {
             saved_at: std::time::Instant::now(),
             unacked: Vec::new(),
             held: Vec::new(),
-            taken: 0,
-            done: 0,
-            batch_ends: std::collections::VecDeque::new(),
+            batches: Batches::default(),
             waiting: std::collections::VecDeque::new(),
             workers: self.workers_per_sensor,
             snapshots: self.snapshots.clone(),
@@ -636,15 +634,49 @@ struct Worker {
     /// Reports held until [`release`](Worker::release), likewise (one
     /// wake-up of the subscribers per group).
     held: Vec<Report>,
-    /// Frames taken from the queue so far...
-    taken: u64,
-    /// ... and those whose verdict is in (in `unacked` or sent).
-    done: u64,
-    /// Ends of ingest batches not yet released: the count of frames taken
-    /// before each; the held verdicts go out once `done` reaches it.
-    batch_ends: std::collections::VecDeque<u64>,
+    /// Which ingest batches have all their verdicts.
+    batches: Batches,
     /// Dashboard snapshots: rebuilt pipelines get the observer again.
     snapshots: Option<Arc<Snapshots>>,
+}
+
+/// The ingest batches in a sensor's queue, by frame counts: frames taken
+/// from the queue, frames with a verdict, and where each batch ended (the
+/// count of frames taken before its end was).
+#[derive(Debug, Default)]
+struct Batches {
+    taken: u64,
+    done: u64,
+    ends: std::collections::VecDeque<u64>,
+}
+
+impl Batches {
+    /// A frame was taken from the queue.
+    fn taken(&mut self) {
+        self.taken += 1;
+    }
+
+    /// A frame's verdict is in (frames get theirs in the order taken).
+    fn done(&mut self) {
+        self.done += 1;
+    }
+
+    /// A batch's end was taken from the queue.
+    fn end(&mut self) {
+        self.ends.push_back(self.taken);
+    }
+
+    /// Whether the oldest batch not yet forgotten has every verdict in.
+    fn one_done(&self) -> bool {
+        self.ends.front().is_some_and(|&end| end <= self.done)
+    }
+
+    /// Forgets the batches whose verdicts are all in (they went out).
+    fn forget_done(&mut self) {
+        while self.one_done() {
+            self.ends.pop_front();
+        }
+    }
 }
 
 /// Recorded frames held for one flush at most: under load the queue never
@@ -675,11 +707,11 @@ impl Worker {
                     } else if self.recorder.is_some() {
                         self.session.metrics.frame_recorded();
                     }
-                    self.taken += 1;
+                    self.batches.taken();
                     if let Some(reason) = &self.recording_failed {
                         self.session.rejected("recording");
                         self.unacked.push((done, Verdict::Unrecorded(reason.clone())));
-                        self.done += 1;
+                        self.batches.done();
                     } else {
                         self.waiting.push_back((enqueued, done));
                         self.pipeline.push(frame, &mut outcomes);
@@ -688,7 +720,7 @@ impl Worker {
                     self.session.metrics.queue_depth(rx.len());
                 }
                 Job::EndOfBatch => {
-                    self.batch_ends.push_back(self.taken);
+                    self.batches.end();
                     self.settle(&rx, &mut outcomes, &sensor);
                 }
                 Job::SetScene { scene, done } => {
@@ -783,7 +815,7 @@ impl Worker {
         // Saved before the ack, so an ack after the period means a saved model.
         self.persist_noise(false);
         self.unacked.push((done, verdict));
-        self.done += 1;
+        self.batches.done();
     }
 
     /// Releases what is held when an ingest batch's frames all have their
@@ -796,7 +828,7 @@ impl Worker {
         // once per ACKS_PER_FLUSH frames under load, not once per batch.
         let recording = self.recorder.is_some();
         let group = if recording { ACKS_PER_FLUSH } else { HELD_PER_RELEASE };
-        let batch_done = !recording && self.batch_ends.front().is_some_and(|&end| end <= self.done);
+        let batch_done = !recording && self.batches.one_done();
         if batch_done || (queue_empty && self.waiting.is_empty()) || self.unacked.len() >= group {
             self.release();
         } else if self.held.len() >= HELD_PER_RELEASE {
@@ -817,9 +849,7 @@ impl Worker {
     /// syncs it, by policy) and sends the held verdicts: an acknowledged
     /// frame's reports are out before its ack.
     fn release(&mut self) {
-        while self.batch_ends.front().is_some_and(|&end| end <= self.done) {
-            self.batch_ends.pop_front();
-        }
+        self.batches.forget_done();
         self.publish_held();
         if self.unacked.is_empty() {
             return;
@@ -903,5 +933,46 @@ impl Worker {
                 .false_alarm(r.false_alarm.rate, r.false_alarm.ci95, r.detector.pfa_cell);
             self.hub.publish(r);
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Batches;
+
+    #[test]
+    fn a_batch_is_done_once_its_own_frames_have_their_verdicts() {
+        let mut b = Batches::default();
+        assert!(!b.one_done(), "no batch yet");
+        // Batch A: three frames; batch B: two, queued behind it.
+        for _ in 0..3 {
+            b.taken();
+        }
+        b.end();
+        for _ in 0..2 {
+            b.taken();
+        }
+        b.end();
+        b.done();
+        b.done();
+        assert!(!b.one_done(), "A has a frame without its verdict");
+        b.done();
+        assert!(b.one_done(), "A's three frames are done; B's are not needed");
+        b.forget_done();
+        assert!(!b.one_done(), "A forgotten; B has none of its verdicts");
+        b.done();
+        assert!(!b.one_done());
+        b.done();
+        assert!(b.one_done());
+        b.forget_done();
+        assert!(!b.one_done());
+        // Ends with no frame taken since the last (ingest sends none for a
+        // batch without frames for the sensor, but they would be harmless):
+        // each is done at once.
+        b.end();
+        b.end();
+        assert!(b.one_done());
+        b.forget_done();
+        assert!(!b.one_done() && b.ends.is_empty());
     }
 }

@@ -726,7 +726,7 @@ impl Worker {
                 Job::SetScene { scene, done } => {
                     // Every frame before the change finished first: whatever
                     // building the new pipeline says, none is left in flight.
-                    self.pipeline.settle_while(|| true, &mut outcomes);
+                    self.pipeline.sync(&mut outcomes);
                     for o in outcomes.drain(..) {
                         self.complete(o, &sensor);
                     }
@@ -907,9 +907,7 @@ impl Worker {
         }
         self.saved_at = std::time::Instant::now();
         // The latest model (the session's is refreshed as reports go out).
-        if let Some(n) = self.pipeline.noise_model() {
-            *lock(&self.session.noise) = Some(n);
-        }
+        self.share_noise();
         if let Some(n) = self.session.noise()
             && let Err(e) = st.save_noise(&self.session.sensor, &n)
         {
@@ -917,11 +915,17 @@ impl Worker {
         }
     }
 
-    /// Publishes the held reports (and the sensor's noise model with them).
-    fn publish_held(&mut self) {
+    /// The pipeline's latest noise model becomes the session's (what status
+    /// reads and the state directory saves).
+    fn share_noise(&self) {
         if let Some(n) = self.pipeline.noise_model() {
             *lock(&self.session.noise) = Some(n);
         }
+    }
+
+    /// Publishes the held reports (and the sensor's noise model with them).
+    fn publish_held(&mut self) {
+        self.share_noise();
         for r in self.held.drain(..) {
             let st = &self.session.stats;
             st.reports.fetch_add(1, Ordering::Relaxed);

@@ -140,10 +140,11 @@ fn chunks<'a, const N: usize>(
     Ok(bytes.chunks_exact(N).map(|c| <[u8; N]>::try_from(c).expect("chunks_exact gives N bytes")))
 }
 
-/// The samples of `bytes` in `format`; `field` names the samples field in
-/// errors (formatted only then; a format error names `.format` instead).
-fn unpack(format: i32, bytes: &[u8], field: &dyn Fn() -> String) -> Result<Samples, ConvertError> {
-    let format_field = || field().replace(".samples", ".format");
+/// The samples of channel `i`, `bytes` in `format`; errors name the
+/// channel's `samples` or `format` field (formatted only then).
+fn unpack(format: i32, bytes: &[u8], i: usize) -> Result<Samples, ConvertError> {
+    let field = || format!("channels[{i}].samples");
+    let format_field = || format!("channels[{i}].format");
     let format = proto::SampleFormat::try_from(format).map_err(|_| {
         ConvertError::new(
             format_field(),
@@ -160,10 +161,10 @@ fn unpack(format: i32, bytes: &[u8], field: &dyn Fn() -> String) -> Result<Sampl
             ));
         }
         proto::SampleFormat::I8 => Samples::I8(bytes.iter().map(|&b| b as i8).collect()),
-        proto::SampleFormat::I16 => Samples::I16(chunks::<2>(bytes, field, "i16")?.map(i16::from_le_bytes).collect()),
-        proto::SampleFormat::I32 => Samples::I32(chunks::<4>(bytes, field, "i32")?.map(i32::from_le_bytes).collect()),
+        proto::SampleFormat::I16 => Samples::I16(chunks::<2>(bytes, &field, "i16")?.map(i16::from_le_bytes).collect()),
+        proto::SampleFormat::I32 => Samples::I32(chunks::<4>(bytes, &field, "i32")?.map(i32::from_le_bytes).collect()),
         proto::SampleFormat::F32 => {
-            let v: Vec<f32> = chunks::<4>(bytes, field, "f32")?.map(f32::from_le_bytes).collect();
+            let v: Vec<f32> = chunks::<4>(bytes, &field, "f32")?.map(f32::from_le_bytes).collect();
             if let Some(i) = v.iter().position(|x| !x.is_finite()) {
                 return Err(ConvertError::new(
                     field(),
@@ -173,7 +174,7 @@ fn unpack(format: i32, bytes: &[u8], field: &dyn Fn() -> String) -> Result<Sampl
             Samples::F32(v)
         }
         proto::SampleFormat::F64 => {
-            let v: Vec<f64> = chunks::<8>(bytes, field, "f64")?.map(f64::from_le_bytes).collect();
+            let v: Vec<f64> = chunks::<8>(bytes, &field, "f64")?.map(f64::from_le_bytes).collect();
             if let Some(i) = v.iter().position(|x| !x.is_finite()) {
                 return Err(ConvertError::new(
                     field(),
@@ -265,7 +266,7 @@ pub fn frame_from_proto(msg: &proto::Frame) -> Result<Frame, ConvertError> {
                 ),
             ));
         }
-        let samples = unpack(c.format, &c.samples, &|| format!("channels[{i}].samples"))?;
+        let samples = unpack(c.format, &c.samples, i)?;
         let role = proto::ChannelRole::try_from(c.role).map_err(|_| {
             ConvertError::new(
                 format!("channels[{i}].role"),

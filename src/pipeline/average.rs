@@ -29,7 +29,7 @@
 //! `partial_average`.
 
 use crate::detect::gates::GatePlacer;
-use super::{FrameError, Stage, Work};
+use super::{FrameError, Stage, Unit, Work};
 use crate::frame::FrameFlag;
 use crate::detect::noise_model::Moments;
 use crate::dsp::accumulate::{CodeAccumulator, mean_from_sums, robust_average_of};
@@ -191,7 +191,7 @@ impl Acc {
 #[derive(Debug)]
 struct Group {
     /// The first frame's work: becomes the output.
-    first: Work,
+    first: Unit,
     stop: Acc,
     start: Option<Acc>,
     /// Σ of single-frame gate variances, V².
@@ -212,7 +212,7 @@ impl Group {
 /// One frame kept for a robust or sliding average: aligned volts.
 #[derive(Debug)]
 struct Kept {
-    work: Work,
+    work: Unit,
     stop: Vec<f64>,
     start: Option<Vec<f64>>,
     var: f64,
@@ -249,7 +249,7 @@ pub struct Average {
     /// Spare accumulators.
     accs: Vec<Acc>,
     /// Units averaged away, until the pipeline takes them back.
-    consumed: Vec<Work>,
+    consumed: Vec<Unit>,
     /// Kept frames set aside while a group before them is emitted.
     rest: VecDeque<Kept>,
     /// Return-pulse template at a sampling period: (dt, taps, peak tap, energy).
@@ -460,7 +460,7 @@ impl Average {
         self.shifted = shifted;
     }
 
-    fn new_group(&mut self, w: Work) -> Group {
+    fn new_group(&mut self, w: Unit) -> Group {
         let n = w.frame.len();
         let stop = self.take_acc(n);
         let start = w.source.start.is_some().then(|| self.take_acc(n));
@@ -484,7 +484,7 @@ impl Average {
     #[allow(clippy::too_many_arguments)]
     fn finish(
         &mut self,
-        mut w: Work,
+        mut w: Unit,
         stop: Vec<f64>,
         start: Option<Vec<f64>>,
         count: u32,
@@ -492,7 +492,7 @@ impl Average {
         t_var_sum: f64,
         mean_t_s: Option<f64>,
         seq_last: u64,
-    ) -> Work {
+    ) -> Unit {
         // The unit pays for the storage lent to it with spare storage of its
         // own (storage an earlier stage lent to its frame first): the unit's
         // and the pool's counts stay the same, whichever units the groups end
@@ -551,7 +551,7 @@ impl Average {
         w
     }
 
-    fn emit_group(&mut self, mut g: Group, out: &mut Vec<Work>, partial: bool) {
+    fn emit_group(&mut self, mut g: Group, out: &mut Vec<Unit>, partial: bool) {
         let mut stop = self.take_volts();
         g.stop.mean_v(&mut stop);
         let start = match &mut g.start {
@@ -596,7 +596,7 @@ impl Average {
     }
 
     /// Block mean with accumulators.
-    fn process_block_mean(&mut self, w: Work, out: &mut Vec<Work>) {
+    fn process_block_mean(&mut self, w: Unit, out: &mut Vec<Unit>) {
         let geometry_ok =
             |g: &Option<Group>| g.as_ref().is_none_or(|g| Self::matches(&g.first, &w));
         if !geometry_ok(&self.group) || !geometry_ok(&self.block) {
@@ -665,7 +665,7 @@ impl Average {
 
     /// Tests the finished guard block against the group and merges it, or
     /// ends the group at the change.
-    fn close_block(&mut self, out: &mut Vec<Work>) {
+    fn close_block(&mut self, out: &mut Vec<Unit>) {
         let Some(mut b) = self.block.take() else {
             return;
         };
@@ -763,7 +763,7 @@ impl Average {
     }
 
     /// Robust or sliding: frames kept, statistic at each report.
-    fn process_kept(&mut self, w: Work, out: &mut Vec<Work>) {
+    fn process_kept(&mut self, w: Unit, out: &mut Vec<Unit>) {
         if self
             .kept
             .front()
@@ -855,7 +855,7 @@ impl Average {
     /// emptied: the front frame's own unit carries the report. In sliding
     /// mode the window stays, and a consumed unit is made a copy of the
     /// front frame's (a new one only while there is none).
-    fn report_window(&mut self, out: &mut Vec<Work>, partial: bool) {
+    fn report_window(&mut self, out: &mut Vec<Unit>, partial: bool) {
         let Some(front) = self.kept.front() else {
             return;
         };
@@ -915,7 +915,7 @@ impl Average {
         out.push(w);
     }
 
-    fn emit_kept(&mut self, out: &mut Vec<Work>, partial: bool) {
+    fn emit_kept(&mut self, out: &mut Vec<Unit>, partial: bool) {
         if self.kept.is_empty() {
             return;
         }
@@ -1051,7 +1051,7 @@ impl Stage for Average {
         "average"
     }
 
-    fn process(&mut self, w: Work, out: &mut Vec<Work>) -> Result<(), FrameError> {
+    fn process(&mut self, w: Unit, out: &mut Vec<Unit>) -> Result<(), FrameError> {
         if self.stores_frames() {
             self.process_kept(w, out);
         } else {
@@ -1060,7 +1060,7 @@ impl Stage for Average {
         Ok(())
     }
 
-    fn flush(&mut self, out: &mut Vec<Work>) {
+    fn flush(&mut self, out: &mut Vec<Unit>) {
         if self.stores_frames() {
             if self.cfg.mode == AveragingMode::Block {
                 self.emit_kept(out, true);
@@ -1073,7 +1073,7 @@ impl Stage for Average {
         }
     }
 
-    fn consumed(&mut self) -> Option<Work> {
+    fn consumed(&mut self) -> Option<Unit> {
         self.consumed.pop()
     }
 }

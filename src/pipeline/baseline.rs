@@ -3,7 +3,7 @@
 //! slow drift. The offset is subtracted through the stop channel's
 //! `offset_v`, so integer codes stay integer (exact averaging downstream).
 
-use super::{FrameError, Stage, Work};
+use super::{FrameError, Stage, Unit};
 use crate::frame::FrameFlag;
 use crate::detect::gates::GatePlacer;
 use crate::dsp::offset::{DriftTracker, OffsetEstimator, robust_offset};
@@ -40,7 +40,7 @@ impl Stage for Baseline {
         "baseline"
     }
 
-    fn process(&mut self, mut w: Work, out: &mut Vec<Work>) -> Result<(), FrameError> {
+    fn process(&mut self, mut w: Unit, out: &mut Vec<Unit>) -> Result<(), FrameError> {
         let ranges = w.quiet_ranges(&mut self.gates);
         w.frame.channels[w.source.stop].volts_into(&mut self.volts);
         self.scratch.clear();

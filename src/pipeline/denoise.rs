@@ -13,7 +13,7 @@
 //! unchanged, flagged `no_interference_learned`.
 
 use crate::detect::gates::GatePlacer;
-use super::{FrameError, Stage, Work};
+use super::{FrameError, Stage, Unit, Work};
 use crate::frame::FrameFlag;
 use crate::dsp::interference::{BurstCanceller, BurstLearner, BurstTemplate};
 use crate::dsp::notch::ZeroPhaseFilter;
@@ -25,7 +25,7 @@ enum State {
     /// Collecting noise gates; the frames wait here.
     Learning {
         learner: BurstLearner,
-        held: Vec<Work>,
+        held: Vec<Unit>,
     },
     /// Cancelling with a learned template (planned per frame length).
     Cancelling {
@@ -83,7 +83,7 @@ impl Denoise {
     }
 
     /// Ends learning: plans the canceller (or gives up) and runs the held frames.
-    fn finish_learning(&mut self, out: &mut Vec<Work>) {
+    fn finish_learning(&mut self, out: &mut Vec<Unit>) {
         let State::Learning { learner, held } = std::mem::replace(&mut self.state, State::Idle)
         else {
             return;
@@ -100,7 +100,7 @@ impl Denoise {
         }
     }
 
-    fn cancel(&mut self, mut w: Work, out: &mut Vec<Work>) {
+    fn cancel(&mut self, mut w: Unit, out: &mut Vec<Unit>) {
         match &mut self.state {
             State::Idle => {
                 w.report.flags.push(FrameFlag::NoInterferenceLearned);
@@ -178,7 +178,7 @@ impl Stage for Denoise {
         "denoise"
     }
 
-    fn process(&mut self, w: Work, out: &mut Vec<Work>) -> Result<(), FrameError> {
+    fn process(&mut self, w: Unit, out: &mut Vec<Unit>) -> Result<(), FrameError> {
         if let State::Learning { held, .. } = &self.state {
             let fresh = held.is_empty().then(|| self.learner_for(&w));
             let ranges = w.quiet_ranges(&mut self.gates);
@@ -200,7 +200,7 @@ impl Stage for Denoise {
         Ok(())
     }
 
-    fn flush(&mut self, out: &mut Vec<Work>) {
+    fn flush(&mut self, out: &mut Vec<Unit>) {
         self.finish_learning(out);
     }
 }

@@ -26,7 +26,7 @@
 //!   gate noise) and Pd uses the Student-t form with 2·training degrees of
 //!   freedom (exact in form for CA, an approximation for OS).
 
-use super::{stop_codes, FrameError, GateCount, Stage, Work};
+use super::{stop_codes, FrameError, GateCount, Stage, Unit, Work};
 use crate::frame::FrameFlag;
 use crate::detect::cfar::{CfarMethod, CfarPlan};
 use crate::detect::colour::{output_gain_from_acf, taps_acf, NoiseColour, OutputColour};
@@ -720,7 +720,7 @@ impl Stage for Detect {
         self.kind.name()
     }
 
-    fn process(&mut self, mut w: Work, out: &mut Vec<Work>) -> Result<(), FrameError> {
+    fn process(&mut self, mut w: Unit, out: &mut Vec<Unit>) -> Result<(), FrameError> {
         let dt = w.frame.sample_interval_s;
         let n = w.buffers.stop_v.len();
         self.plan_raw(dt, n);

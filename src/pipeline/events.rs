@@ -13,7 +13,7 @@
 //! `[events] enabled`.
 
 use super::detect::FalseAlarmCounter;
-use super::{FrameError, GateCount, Stage, Work};
+use super::{FrameError, GateCount, Stage, Unit};
 use crate::detect::events::{EventTemplate, EventTest, EventTestConfig, NoiseTerms, Verdict};
 use crate::detect::gates::at_rail;
 use crate::detect::return_shape::ReturnShapeLearner;
@@ -341,7 +341,7 @@ impl Stage for Events {
         "events"
     }
 
-    fn process(&mut self, mut w: Work, out: &mut Vec<Work>) -> Result<(), FrameError> {
+    fn process(&mut self, mut w: Unit, out: &mut Vec<Unit>) -> Result<(), FrameError> {
         let (frame, gates) = (MAX_DETECTIONS + MAX_HIDDEN_CANDIDATES, 2 * MAX_DETECTIONS + MAX_HIDDEN_CANDIDATES);
         emptied_with_room(&mut w.buffers.interfered, MAX_DETECTIONS);
         emptied_with_room(&mut w.buffers.placed, MAX_DETECTIONS);

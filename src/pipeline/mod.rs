@@ -50,6 +50,10 @@ impl FrameError {
     }
 }
 
+/// A unit of work as it passes from stage to stage: boxed, so that passing
+/// it on moves a pointer rather than the unit's kilobyte.
+pub type Unit = Box<Work>;
+
 /// One unit of work moving through the stages: a frame (or an averaged group)
 /// and what the stages have found so far, in named parts. Each part says
 /// which stage writes it and which stages read it; a stage reads only parts
@@ -311,7 +315,7 @@ pub(crate) fn stop_codes<'a>(samples: &'a Samples, wide: &'a mut Vec<i16>) -> Op
 /// Puts a unit whose work is done (its report went out, or a stage consumed
 /// it) with the spare units: storage lent to its frame comes back to its
 /// buffers and the frame, the caller's, is dropped now rather than held.
-fn retire(spare: &mut Vec<Work>, mut w: Work) {
+fn retire(spare: &mut Vec<Unit>, mut w: Unit) {
     w.reclaim_volts();
     w.frame = Frame::empty();
     spare.push(w);
@@ -322,13 +326,13 @@ pub trait Stage: Send {
     /// Name in reports: the file name and the scene's word for it.
     fn name(&self) -> &'static str;
     /// Processes one unit; pushes 0..n units to `out`.
-    fn process(&mut self, work: Work, out: &mut Vec<Work>) -> Result<(), FrameError>;
+    fn process(&mut self, work: Unit, out: &mut Vec<Unit>) -> Result<(), FrameError>;
     /// End of input: pushes whatever is held back.
-    fn flush(&mut self, _out: &mut Vec<Work>) {}
+    fn flush(&mut self, _out: &mut Vec<Unit>) {}
     /// A unit the stage has consumed and no longer needs (a frame averaged
     /// into another unit), if any: the pipeline reuses its buffers for the
     /// next frames. Called after every `process` and `flush` until `None`.
-    fn consumed(&mut self) -> Option<Work> {
+    fn consumed(&mut self) -> Option<Unit> {
         None
     }
 }
@@ -346,11 +350,11 @@ pub struct Pipeline {
     last_noise: Option<NoiseSummary>,
     observer: Option<Observer>,
     /// Units entering the next stage (kept for their capacity).
-    entering: Vec<Work>,
+    entering: Vec<Unit>,
     /// Units the current stage pushes (kept for their capacity).
-    leaving: Vec<Work>,
+    leaving: Vec<Unit>,
     /// Units whose report went out: their buffers are reused for the next frames.
-    spare: Vec<Work>,
+    spare: Vec<Unit>,
     /// Reports handed back by [`Pipeline::recycle`], reused for the next reports.
     spare_reports: Vec<Report>,
 }
@@ -454,7 +458,7 @@ impl Pipeline {
     }
 
     /// Runs `entering` through the stages from index `first` on.
-    fn run_from(&mut self, first: usize, entering: &mut Vec<Work>, out: &mut Vec<Report>) -> Result<(), FrameError> {
+    fn run_from(&mut self, first: usize, entering: &mut Vec<Unit>, out: &mut Vec<Report>) -> Result<(), FrameError> {
         let mut leaving = std::mem::take(&mut self.leaving);
         let mut result = Ok(());
         for stage in &mut self.stages[first..] {

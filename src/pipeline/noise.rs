@@ -9,7 +9,7 @@
 //! contamination flag stay per frame (they judge this frame's gate). With
 //! N = 0 (the default) every frame is fitted on its own gates alone.
 
-use super::{stop_codes, FrameError, Stage, Work};
+use super::{stop_codes, FrameError, Stage, Unit};
 use crate::frame::{FrameFlag, Samples};
 use crate::detect::events::{EventTestConfig, GateScreen};
 use crate::detect::gates::{codes_keep_order, GateCleaner, GatePlacer};
@@ -110,7 +110,7 @@ impl Stage for Noise {
         "noise"
     }
 
-    fn process(&mut self, mut w: Work, out: &mut Vec<Work>) -> Result<(), FrameError> {
+    fn process(&mut self, mut w: Unit, out: &mut Vec<Unit>) -> Result<(), FrameError> {
         let s = &self.scene;
         let mut stop_v = std::mem::take(&mut w.buffers.stop_v);
         w.frame.channels[w.source.stop].volts_into(&mut stop_v);

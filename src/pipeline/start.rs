@@ -3,7 +3,7 @@
 //! pulse is missing: laser off, a dropped tap) the reference is the trigger
 //! plus `channels.reference_offset_s`, and the report says so.
 
-use super::{FrameError, Stage, Work};
+use super::{FrameError, Stage, Unit};
 use crate::frame::{FrameFlag, Samples};
 use crate::detect::kernels::DetectorPlan;
 use crate::math::select::mad_sigma;
@@ -68,7 +68,7 @@ impl Stage for Start {
         "start"
     }
 
-    fn process(&mut self, mut w: Work, out: &mut Vec<Work>) -> Result<(), FrameError> {
+    fn process(&mut self, mut w: Unit, out: &mut Vec<Unit>) -> Result<(), FrameError> {
         w.reference.t_ref_s = self.reference_offset_s;
         w.reference.t_ref_sigma_s = 0.0;
         let Some(s) = w.source.start else {

@@ -20,7 +20,7 @@
 //! Units that finish (their report went out, or averaging consumed them) go
 //! back to segment 0, whose validate stage reuses their buffers.
 
-use super::{retire, FrameError, Observer, Pipeline, Stage, Work};
+use super::{retire, FrameError, Observer, Pipeline, Stage, Unit};
 use crate::frame::{Frame, NoiseSummary, Report};
 use crate::scene::Scene;
 use std::sync::mpsc::{channel, sync_channel, Receiver, Sender, SyncSender};
@@ -57,7 +57,7 @@ pub const PILOT_FRAMES: usize = PILOT_WARMUP + PILOT_TIMED;
 
 /// One push's units on their way through the segments.
 struct InFlight {
-    units: Vec<Work>,
+    units: Vec<Unit>,
     result: Result<(), FrameError>,
     /// A stage's flush made these (not a frame).
     flush: bool,
@@ -181,9 +181,9 @@ struct Pool {
     /// Frames pushed and not yet sent (sent by the chunk).
     pending: Vec<Frame>,
     out: Receiver<Vec<Msg>>,
-    spare_tx: Sender<Work>,
+    spare_tx: Sender<Unit>,
     /// Finished units on their way back to the head.
-    back: Vec<Work>,
+    back: Vec<Unit>,
     /// Frames sent whose outcome has not come back.
     in_flight: usize,
     /// What the stages' final flushes completed.
@@ -397,7 +397,7 @@ impl Staged {
         }
         groups.reverse();
         let spare = std::mem::take(&mut pipeline.spare);
-        let (spare_tx, spare_rx) = channel::<Work>();
+        let (spare_tx, spare_rx) = channel::<Unit>();
         let rebuild = |first: usize| Rebuild { scene: self.scene.clone(), sensor: self.sensor.clone(), first };
         if threads.len() == 3 {
             let [(f0, g0), (f1, g1), (f2, g2)]: [(usize, Vec<Box<dyn Stage>>); 3] = groups.try_into().ok().expect("three segments");
@@ -673,10 +673,10 @@ impl Rebuild {
 /// unit it held is lost); without, the panic goes on up.
 fn run_stages(
     stages: &mut [Box<dyn Stage>],
-    units: &mut Vec<Work>,
-    leaving: &mut Vec<Work>,
+    units: &mut Vec<Unit>,
+    leaving: &mut Vec<Unit>,
     result: &mut Result<(), FrameError>,
-    retired: &mut Vec<Work>,
+    retired: &mut Vec<Unit>,
     panic: &mut Option<String>,
     rebuild: Option<(&Rebuild, usize)>,
 ) {
@@ -711,7 +711,7 @@ fn run_stages(
 
 /// Flushes `stages` in order as [`Pipeline::flush`] does, each stage's
 /// output run through the rest of the segment; one message per stage.
-fn flush_stages(stages: &mut [Box<dyn Stage>], out: &mut Vec<Msg>, retired: &mut Vec<Work>, rebuild: &Rebuild) {
+fn flush_stages(stages: &mut [Box<dyn Stage>], out: &mut Vec<Msg>, retired: &mut Vec<Unit>, rebuild: &Rebuild) {
     let mut leaving = Vec::new();
     for i in 0..stages.len() {
         let mut units = Vec::new();
@@ -736,10 +736,10 @@ fn flush_stages(stages: &mut [Box<dyn Stage>], out: &mut Vec<Msg>, retired: &mut
 /// `spare`) and runs `stages` on it: one message per frame.
 fn head_chunk(
     validate: &mut super::validate::Validate,
-    spare: &mut Vec<Work>,
+    spare: &mut Vec<Unit>,
     chunk: Vec<Frame>,
     stages: &mut [Box<dyn Stage>],
-    leaving: &mut Vec<Work>,
+    leaving: &mut Vec<Unit>,
     rebuild: &Rebuild,
 ) -> Vec<Msg> {
     let mut msgs = Vec::with_capacity(chunk.len());
@@ -764,7 +764,7 @@ fn head_chunk(
 
 /// Runs `stages` on what the segment before passed on; true once the end
 /// of input (a flush) has passed.
-fn pass_on(stages: &mut [Box<dyn Stage>], msgs: Vec<Msg>, leaving: &mut Vec<Work>, retired: &mut Vec<Work>, rebuild: &Rebuild) -> (Vec<Msg>, bool) {
+fn pass_on(stages: &mut [Box<dyn Stage>], msgs: Vec<Msg>, leaving: &mut Vec<Unit>, retired: &mut Vec<Unit>, rebuild: &Rebuild) -> (Vec<Msg>, bool) {
     let mut next = Vec::with_capacity(msgs.len());
     let mut ended = false;
     for msg in msgs {
@@ -786,8 +786,8 @@ fn pass_on(stages: &mut [Box<dyn Stage>], msgs: Vec<Msg>, leaving: &mut Vec<Work
 /// runs its stages.
 fn head_segment(
     mut validate: super::validate::Validate,
-    mut spare: Vec<Work>,
-    spare_rx: Receiver<Work>,
+    mut spare: Vec<Unit>,
+    spare_rx: Receiver<Unit>,
     frames: Receiver<Vec<Frame>>,
     mut stages: Vec<Box<dyn Stage>>,
     out: Out,
@@ -807,7 +807,7 @@ fn head_segment(
 }
 
 /// A later segment: runs its stages on what the segment before it passes on.
-fn segment(mut stages: Vec<Box<dyn Stage>>, from: Receiver<Vec<Msg>>, out: Out, spare_tx: Sender<Work>, rebuild: Rebuild) {
+fn segment(mut stages: Vec<Box<dyn Stage>>, from: Receiver<Vec<Msg>>, out: Out, spare_tx: Sender<Unit>, rebuild: Rebuild) {
     let mut leaving = Vec::new();
     let mut retired = Vec::new();
     while let Ok(msgs) = from.recv() {
@@ -828,8 +828,8 @@ fn segment(mut stages: Vec<Box<dyn Stage>>, from: Receiver<Vec<Msg>>, out: Out, 
 /// reused here directly.
 fn ring_head(
     mut validate: super::validate::Validate,
-    mut spare: Vec<Work>,
-    spare_rx: Receiver<Work>,
+    mut spare: Vec<Unit>,
+    spare_rx: Receiver<Unit>,
     input: Receiver<HeadMsg>,
     to_middle: SyncSender<Vec<Msg>>,
     out: Sender<Vec<Msg>>,
@@ -878,7 +878,7 @@ pub fn panic_message(panic: &(dyn std::any::Any + Send)) -> String {
 }
 
 /// A finished unit's report; the unit goes to `spare` for reuse.
-fn finish(mut w: Work, spare: &mut Vec<Work>) -> Report {
+fn finish(mut w: Unit, spare: &mut Vec<Unit>) -> Report {
     let report = std::mem::take(&mut w.report);
     retire(spare, w);
     report

@@ -2,7 +2,7 @@
 //! reference and the calibrated delay, and turns it into a range with its
 //! uncertainty, amplitude, SNR, probability of detection and flags.
 
-use super::{FrameError, Stage, Work};
+use super::{FrameError, Stage, Unit};
 use crate::detect::finite_gate::{detection_probability, rho_squared_sum};
 use crate::detect::resolve::MISFIT_LIMIT;
 use crate::detect::error_table::ErrorTable;
@@ -429,7 +429,7 @@ impl Stage for Timing {
         self.method.name()
     }
 
-    fn process(&mut self, mut w: Work, out: &mut Vec<Work>) -> Result<(), FrameError> {
+    fn process(&mut self, mut w: Unit, out: &mut Vec<Unit>) -> Result<(), FrameError> {
         let dt = w.frame.sample_interval_s;
         if self.pulse.as_ref().is_none_or(|p| p.0 != dt) {
             let shape = self.pulse_cfg.shape(dt);

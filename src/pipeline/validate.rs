@@ -2,7 +2,7 @@
 //! channels. The only stage that turns a frame into work; a bad frame is
 //! refused here with the field at fault named.
 
-use super::{Buffers, FrameError, NoiseModel, Source, ThresholdTerms, TimeReference, Work};
+use super::{Buffers, FrameError, NoiseModel, Source, ThresholdTerms, TimeReference, Unit, Work};
 use crate::detect::gates::Gates;
 use std::sync::Arc;
 use crate::frame::{limits, FrameFlag};
@@ -54,7 +54,7 @@ impl Validate {
 
     /// Validates `frame` and pushes its work, reusing a unit from `spare`
     /// (its buffers and report keep their capacity) when there is one.
-    pub fn process(&mut self, frame: Frame, spare: &mut Vec<Work>, out: &mut Vec<Work>) -> Result<(), FrameError> {
+    pub fn process(&mut self, frame: Frame, spare: &mut Vec<Unit>, out: &mut Vec<Unit>) -> Result<(), FrameError> {
         let err = |field: &str, msg: String| Err(FrameError::new(&frame, field, msg));
         if frame.channels.is_empty() {
             return err("channels", "the frame has no channels".into());
@@ -167,7 +167,7 @@ impl Validate {
                 w.report.reset();
                 w
             }
-            None => Work {
+            None => Box::new(Work {
                 frame: Frame::empty(),
                 source,
                 buffers: Buffers::default(),
@@ -178,7 +178,7 @@ impl Validate {
                 },
                 threshold: ThresholdTerms::default(),
                 report: Report::default(),
-            },
+            }),
         };
         let report = &mut w.report;
         report.sensor.push_str(&frame.sensor_id);

@@ -265,14 +265,31 @@ const GRID_CACHE: usize = 256;
 /// chunk by chunk exactly as [`Centered::on_grid`] fills them, so that a
 /// second pass at the same delay reads the very values.
 struct GridCache {
-    /// Delay (bits) the values are for; None: nothing held.
-    delay: Option<u64>,
-    values: [(f64, f64); GRID_CACHE],
+    /// Delay (bits) and count the values are for; None: nothing held.
+    held: Option<(u64, usize)>,
+    /// Written before read: left uninitialised at first (a fit's window
+    /// is a fraction of it; zeroing 4 kB per fit cost more than its sums).
+    values: [std::mem::MaybeUninit<(f64, f64)>; GRID_CACHE],
 }
 
 impl GridCache {
     fn new() -> GridCache {
-        GridCache { delay: None, values: [(0.0, 0.0); GRID_CACHE] }
+        GridCache { held: None, values: [std::mem::MaybeUninit::uninit(); GRID_CACHE] }
+    }
+
+    /// The first `n` values, filled by `fill` unless they hold `delay` already.
+    #[inline(always)]
+    fn at(&mut self, n: usize, delay: f64, fill: impl FnOnce(&mut [(f64, f64)])) -> &[(f64, f64)] {
+        let slots = &mut self.values[..n];
+        // SAFETY: MaybeUninit<(f64, f64)> has the layout of (f64, f64); the
+        // values are written through the slice before any is read (f64
+        // has no invalid bit patterns, so writing through it is sound).
+        let values = unsafe { &mut *(slots as *mut [std::mem::MaybeUninit<(f64, f64)>] as *mut [(f64, f64)]) };
+        if self.held != Some((delay.to_bits(), n)) {
+            fill(values);
+            self.held = Some((delay.to_bits(), n));
+        }
+        values
     }
 }
 
@@ -286,13 +303,12 @@ impl Centered<'_> {
     fn on_grid<S: PulseShape + ?Sized>(&self, first: usize, shape: &S, delay: f64, cache: &mut GridCache, mut f: impl FnMut(f64, f64, f64)) {
         let n = self.x.len();
         if n <= GRID_CACHE {
-            if cache.delay != Some(delay.to_bits()) {
-                for (c, g) in cache.values[..n].chunks_mut(GRID_CHUNK).enumerate() {
+            let values = cache.at(n, delay, |values| {
+                for (c, g) in values.chunks_mut(GRID_CHUNK).enumerate() {
                     shape.fill_grid((first + c * GRID_CHUNK) as f64 - delay, g);
                 }
-                cache.delay = Some(delay.to_bits());
-            }
-            for (x, &(v, dv)) in self.x.iter().zip(&cache.values[..n]) {
+            });
+            for (x, &(v, dv)) in self.x.iter().zip(values) {
                 f(x - self.baseline, v, dv);
             }
             return;

@@ -52,11 +52,17 @@ pub struct Timed {
 
 /// Times the pulse around `input.peak` with `method`.
 pub fn time_pulse(method: TimingMethod, input: &TimingInput) -> Timed {
+    time_pulse_with(method, input, &mlfit::FitOptions::default())
+}
+
+/// [`time_pulse`] with the ML fit's options `fit` (the other methods do
+/// not read them).
+pub fn time_pulse_with(method: TimingMethod, input: &TimingInput, fit: &mlfit::FitOptions) -> Timed {
     let peak_fit = peak_interp(input, false);
     match method {
         TimingMethod::PeakParabolic => peak_fit,
         TimingMethod::PeakGaussian => peak_interp(input, true),
-        TimingMethod::Ml => ml(input, peak_fit.peak_index),
+        TimingMethod::Ml => ml(input, peak_fit.peak_index, fit),
         TimingMethod::ConstantFraction => constant_fraction(input).unwrap_or(Timed { fallback: true, ..peak_fit }),
         TimingMethod::LeadingEdge => leading_edge(input).unwrap_or(Timed { fallback: true, ..peak_fit }),
     }
@@ -361,7 +367,7 @@ fn peak_interp(input: &TimingInput, gaussian: bool) -> Timed {
     finish(input, peak_index, amplitude, peak_index + input.pulse.fraction_offset(input.fraction), None)
 }
 
-fn ml(input: &TimingInput, start: f64) -> Timed {
+fn ml(input: &TimingInput, start: f64, opts: &mlfit::FitOptions) -> Timed {
     let (lo, hi) = input.pulse.support();
     let n = input.x.len();
     let first = (start + lo).floor().max(0.0) as usize;
@@ -369,7 +375,7 @@ fn ml(input: &TimingInput, start: f64) -> Timed {
     if last <= first + 2 {
         return peak_interp(input, false);
     }
-    let fit = mlfit::fit_delay(input.x, input.mean_v, input.pulse, start, first..last, 30);
+    let fit = mlfit::fit_delay_with(input.x, input.mean_v, input.pulse, start, first..last, 30, opts);
     if !fit.amplitude.is_finite() || !fit.delay.is_finite() || fit.amplitude <= 0.0 || (fit.delay - start).abs() > 3.0 {
         return Timed { fallback: true, ..peak_interp(input, false) };
     }

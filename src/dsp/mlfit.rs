@@ -66,6 +66,21 @@ pub struct FitOptions {
     pub max_step: f64,
 }
 
+impl FitOptions {
+    /// For a start at the interpolated peak of a matched filter of the same
+    /// shape on the same samples: no coarse scan. The filter has already
+    /// searched the projected cost's numerator on the sample grid, so the
+    /// scan's neighbours hardly ever hold a better basin. On the reference
+    /// scene's pulses, from 4 σ (peak over noise) up, none of 10 000 trials
+    /// per level gives other bits; at 2 σ, near the matched filter's
+    /// threshold, about one in a thousand does, with no loss in the delay's
+    /// RMS error or in gross errors that the test can detect
+    /// (`tests/suite/dsp.rs`, `ml_from_a_matched_peak_needs_no_scan`).
+    pub fn from_matched_peak() -> FitOptions {
+        FitOptions { search_half_width: 0.0, ..FitOptions::default() }
+    }
+}
+
 impl Default for FitOptions {
     fn default() -> Self {
         FitOptions {

@@ -9,7 +9,8 @@ use crate::detect::kernels::DetectorPlan;
 use crate::math::select::mad_sigma;
 use crate::math::sum;
 use crate::detect::error_table::ErrorTable;
-use crate::detect::pulse_timing::{time_pulse, mismatch_gap, ShapeFit, TimingInput, MISMATCH_Z};
+use crate::dsp::mlfit::FitOptions;
+use crate::detect::pulse_timing::{time_pulse_with, mismatch_gap, ShapeFit, TimingInput, MISMATCH_Z};
 use crate::dsp::pulse::Shape;
 use crate::scene::{Scene, TimingMethod};
 use super::timing::{MismatchSwing, ModelFloor, PhaseDensity};
@@ -169,7 +170,10 @@ impl Stage for Start {
             fraction: self.fraction,
             leading_edge_v: self.leading_edge_v,
         };
-        let mut timed = time_pulse(self.method, &input);
+        // The start is the peak of the pulse's own matched filter, and the
+        // pulse stands at least 6 σ above its noise: the ML fit needs no
+        // coarse scan around it (see `FitOptions::from_matched_peak`).
+        let mut timed = time_pulse_with(self.method, &input, &FitOptions::from_matched_peak());
         timed.index += a as f64;
         timed.peak_index += a as f64;
         let table = if timed.fallback { &self.fallback_errors } else { &self.errors };

@@ -259,9 +259,13 @@ pub fn quantised_sigma_within(x: &[f64], lo: f64, hi: f64, step: f64, counts: &m
     // vectorises (no store between samples), then counted, four samples at
     // a time into the level's four counters (neighbours on one level, most
     // samples of a narrow spread, do not wait on one another's store).
-    counts.clear();
-    counts.resize(4 * levels + x.len(), 0);
-    let (counts, index) = counts.split_at_mut(4 * levels);
+    // Only the counters need zeros: every sample's level is written.
+    let need = 4 * levels + x.len();
+    if counts.len() < need {
+        counts.resize(need, 0);
+    }
+    counts[..4 * levels].fill(0);
+    let (counts, index) = counts[..need].split_at_mut(4 * levels);
     // Samples on the grid (as `grid_step` found it) sit next to an integer
     // number of steps from the lowest: the nearest integer is the same
     // whether (v − lo) is divided by the step or multiplied by its inverse.

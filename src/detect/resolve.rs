@@ -47,6 +47,8 @@ pub const MISFIT_LIMIT: f64 = 1.5;
 #[derive(Debug, Default, Clone)]
 pub struct Resolver {
     residual: Vec<f64>,
+    /// Block maxima of the filter output over the range gate.
+    blocks: crate::math::select::BlockMaxima,
     /// The components before a trial split (restored when the split fails).
     before: Vec<Component>,
     /// The components less the one being tested for its place.
@@ -166,15 +168,31 @@ impl Resolver {
         debug_assert_eq!(plan.output().len(), n, "the plan ran on x");
         // Samples of the residual changed since the plan's output (None: none).
         let mut changed: Option<Range<usize>> = None;
+        let end = range.end.min(n);
+        let first = range.start.min(end);
+        let taps = plan.len();
         while comps.len() < max {
+            // The range's outputs by blocks, each block's maximum kept: after
+            // a pulse is taken out only the blocks near it are read again.
             let y = match changed.take() {
-                Some(c) if !plan.rerun_part(&self.residual, 0.0, c.clone()) => plan.run(&self.residual, 0.0),
-                _ => plan.output(),
+                None => {
+                    self.blocks.fill(&plan.output()[first..end]);
+                    plan.output()
+                }
+                Some(c) if plan.rerun_part(&self.residual, 0.0, c.clone()) => {
+                    // Outputs within a template's length of a changed sample moved.
+                    let (a, b) = (c.start.saturating_sub(taps).max(first), (c.end + taps).min(end));
+                    self.blocks.refresh(&plan.output()[first..end], a.saturating_sub(first)..b.saturating_sub(first));
+                    plan.output()
+                }
+                Some(_) => {
+                    let y = plan.run(&self.residual, 0.0);
+                    self.blocks.fill(&y[first..end]);
+                    y
+                }
             };
-            let end = range.end.min(y.len());
-            // The last largest output of the range (as `max_by` over total_cmp), in eight lanes.
-            let first = range.start.min(end);
-            let Some(p) = crate::math::select::last_max_index(&y[first..end]).map(|i| first + i) else {
+            // The last largest output of the range (as `max_by` over total_cmp).
+            let Some(p) = self.blocks.last_max_index(&y[first..end]).map(|i| first + i) else {
                 break;
             };
             if !(y[p] > threshold) {

@@ -28,6 +28,83 @@ pub fn min_max(x: &[f64]) -> (f64, f64) {
     (lo, hi)
 }
 
+/// [`last_max_index`] of a slice that changes in small ranges between
+/// searches (the resolver's filter output: each resolved pulse changes the
+/// outputs near it only): the maximum of every block of [`BlockMaxima::BLOCK`]
+/// values is kept, a change refreshes the blocks it touches, and a search
+/// reads the block maxima and then one block. The same index as
+/// [`last_max_index`] on the whole slice (its serial path where that takes one).
+#[derive(Debug, Clone, Default)]
+pub struct BlockMaxima {
+    /// Largest value of each block (NaN where the block holds one).
+    maxima: Vec<f64>,
+}
+
+impl BlockMaxima {
+    /// Values per block.
+    pub const BLOCK: usize = 64;
+
+    /// Takes the maxima of all of `x`.
+    pub fn fill(&mut self, x: &[f64]) {
+        self.maxima.clear();
+        self.maxima.extend(x.chunks(Self::BLOCK).map(block_max));
+    }
+
+    /// Refreshes the blocks of `x` (the slice given to [`fill`](Self::fill),
+    /// changed since only within `changed`) that `changed` touches.
+    pub fn refresh(&mut self, x: &[f64], changed: std::ops::Range<usize>) {
+        let end = changed.end.min(x.len());
+        if changed.start >= end {
+            return;
+        }
+        for b in changed.start / Self::BLOCK..end.div_ceil(Self::BLOCK) {
+            let c = &x[b * Self::BLOCK..((b + 1) * Self::BLOCK).min(x.len())];
+            self.maxima[b] = block_max(c);
+        }
+    }
+
+    /// [`last_max_index`] of `x` (the slice the maxima are of).
+    pub fn last_max_index(&self, x: &[f64]) -> Option<usize> {
+        debug_assert_eq!(self.maxima.len(), x.len().div_ceil(Self::BLOCK));
+        let mut m = f64::NEG_INFINITY;
+        for &v in &self.maxima {
+            if v.is_nan() {
+                return last_max_index(x);
+            }
+            m = if v > m { v } else { m };
+        }
+        if m == 0.0 || x.is_empty() {
+            return last_max_index(x);
+        }
+        // m ≠ ±0 and no NaN: the last index holding m is in the last block whose maximum it is.
+        let b = self.maxima.iter().rposition(|&v| v == m)?;
+        let block = &x[b * Self::BLOCK..((b + 1) * Self::BLOCK).min(x.len())];
+        block.iter().rposition(|&v| v == m).map(|i| b * Self::BLOCK + i)
+    }
+}
+
+/// Largest value of `c` by `>` in eight lanes; NaN if `c` holds one.
+fn block_max(c: &[f64]) -> f64 {
+    let mut acc = [f64::NEG_INFINITY; 8];
+    let mut nan = false;
+    let chunks = c.chunks_exact(8);
+    let rest = chunks.remainder();
+    for q in chunks {
+        for l in 0..8 {
+            nan |= q[l].is_nan();
+            acc[l] = if q[l] > acc[l] { q[l] } else { acc[l] };
+        }
+    }
+    for (l, &v) in rest.iter().enumerate() {
+        nan |= v.is_nan();
+        acc[l] = if v > acc[l] { v } else { acc[l] };
+    }
+    if nan {
+        return f64::NAN;
+    }
+    acc.iter().copied().fold(f64::NEG_INFINITY, |a, b| if b > a { b } else { a })
+}
+
 /// Index of the last largest value of `x` under [`f64::total_cmp`], which is
 /// what `(0..x.len()).max_by(|&a, &b| x[a].total_cmp(&x[b]))` returns (None
 /// for an empty slice): the maximum in eight lanes, then the last index
@@ -268,6 +345,35 @@ impl CodeDiffMad {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn block_maxima_find_what_last_max_index_finds_as_the_values_change() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        for n in [0usize, 1, 7, 63, 64, 65, 200, 1000] {
+            // Values on a coarse grid (ties), zeros of both signs and, now and then, a NaN.
+            let mut x: Vec<f64> = (0..n).map(|_| (rng.random_range(-8..4) as f64) * 0.5).collect();
+            let mut blocks = BlockMaxima::default();
+            blocks.fill(&x);
+            for round in 0..60 {
+                assert_eq!(blocks.last_max_index(&x), last_max_index(&x), "n {n} round {round}");
+                if n == 0 {
+                    break;
+                }
+                let a = rng.random_range(0..n);
+                let b = (a + rng.random_range(1..40)).min(n);
+                for v in &mut x[a..b] {
+                    *v = match rng.random_range(0..20) {
+                        0 => -0.0,
+                        1 => 0.0,
+                        2 if round % 7 == 3 => f64::NAN,
+                        _ => (rng.random_range(-8..6) as f64) * 0.5,
+                    };
+                }
+                blocks.refresh(&x, a..b);
+            }
+        }
+    }
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 

@@ -123,15 +123,23 @@ impl Channel {
 
     /// Writes the channel in volts into `out` (cleared first).
     pub fn volts_into(&self, out: &mut Vec<f64>) {
+        self.volts_of_into(0..self.samples.len(), out);
+    }
+
+    /// Samples `range` (clamped to the channel) in volts into `out` (cleared
+    /// first): each the very value [`volts_into`](Self::volts_into) gives it.
+    pub fn volts_of_into(&self, range: std::ops::Range<usize>, out: &mut Vec<f64>) {
         out.clear();
         let (g, o) = (self.volts_per_code, self.offset_v);
+        let end = range.end.min(self.samples.len());
+        let r = range.start.min(end)..end;
         // One loop per sample type (not a `match` per sample), so each vectorises.
         match &self.samples {
-            Samples::I8(v) => out.extend(v.iter().map(|&x| x as f64 * g + o)),
-            Samples::I16(v) => decode_i16(v, g, o, out),
-            Samples::I32(v) => out.extend(v.iter().map(|&x| x as f64 * g + o)),
-            Samples::F32(v) => out.extend(v.iter().map(|&x| x as f64 * g + o)),
-            Samples::F64(v) => out.extend(v.iter().map(|&x| x * g + o)),
+            Samples::I8(v) => out.extend(v[r].iter().map(|&x| x as f64 * g + o)),
+            Samples::I16(v) => decode_i16(&v[r], g, o, out),
+            Samples::I32(v) => out.extend(v[r].iter().map(|&x| x as f64 * g + o)),
+            Samples::F32(v) => out.extend(v[r].iter().map(|&x| x as f64 * g + o)),
+            Samples::F64(v) => out.extend(v[r].iter().map(|&x| x * g + o)),
         }
     }
 

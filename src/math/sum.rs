@@ -60,6 +60,111 @@ pub fn sum_sq_dev(x: &[f64], mean: f64) -> f64 {
     })
 }
 
+/// [`sum`] of the volts `code · g + o` (decoded as `Channel::volts_into`
+/// decodes them: a multiply, then an add), bit for bit, without storing
+/// them: a channel's statistics need not write the whole channel in volts.
+pub fn code_sum(codes: &[i16], g: f64, o: f64) -> f64 {
+    #[cfg(target_arch = "x86_64")]
+    if wide() {
+        // SAFETY: AVX-512F checked just above.
+        return unsafe { code_sum_avx512(codes, g, o) };
+    }
+    lane_sum_codes(codes, |c| c as f64 * g + o)
+}
+
+/// [`sum_sq_dev`] of the volts `code · g + o`, bit for bit (see [`code_sum`]).
+pub fn code_sum_sq_dev(codes: &[i16], g: f64, o: f64, mean: f64) -> f64 {
+    #[cfg(target_arch = "x86_64")]
+    if wide() {
+        // SAFETY: AVX-512F checked just above.
+        return unsafe { code_sum_sq_dev_avx512(codes, g, o, mean) };
+    }
+    code_sum_sq_dev_body(codes, g, o, mean)
+}
+
+#[inline(always)]
+fn code_sum_sq_dev_body(codes: &[i16], g: f64, o: f64, mean: f64) -> f64 {
+    lane_sum_codes(codes, |c| {
+        let d = (c as f64 * g + o) - mean;
+        d * d
+    })
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx2")]
+fn code_sum_avx512(codes: &[i16], g: f64, o: f64) -> f64 {
+    lane_sum_codes_avx512(codes, |v| v, |c| c as f64 * g + o, g, o)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx2")]
+fn code_sum_sq_dev_avx512(codes: &[i16], g: f64, o: f64, mean: f64) -> f64 {
+    use std::arch::x86_64::{_mm512_mul_pd, _mm512_set1_pd, _mm512_sub_pd};
+    let m = _mm512_set1_pd(mean);
+    lane_sum_codes_avx512(
+        codes,
+        |v| {
+            let d = _mm512_sub_pd(v, m);
+            _mm512_mul_pd(d, d)
+        },
+        |c| {
+            let d = (c as f64 * g + o) - mean;
+            d * d
+        },
+        g,
+        o,
+    )
+}
+
+/// [`lane_sum_codes`] with the eight lanes in one AVX-512 register: each
+/// code decoded (`c · g + o`, a multiply, then an add), mapped by `fv`
+/// (`f` for the remainder, the same operations), then added to its lane.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx2")]
+fn lane_sum_codes_avx512(
+    x: &[i16],
+    fv: impl Fn(std::arch::x86_64::__m512d) -> std::arch::x86_64::__m512d,
+    f: impl Fn(i16) -> f64,
+    g: f64,
+    o: f64,
+) -> f64 {
+    use std::arch::x86_64::{__m128i, _mm256_cvtepi16_epi32, _mm512_add_pd, _mm512_cvtepi32_pd, _mm512_mul_pd, _mm512_set1_pd, _mm512_storeu_pd, _mm_loadu_si128};
+    let (gv, ov) = (_mm512_set1_pd(g), _mm512_set1_pd(o));
+    let mut acc = _mm512_set1_pd(-0.0);
+    let chunks = x.chunks_exact(LANES);
+    let rest = chunks.remainder();
+    for c in chunks {
+        // SAFETY: `c` holds eight i16, 128 bits.
+        let codes = unsafe { _mm_loadu_si128(c.as_ptr().cast::<__m128i>()) };
+        let v = _mm512_add_pd(_mm512_mul_pd(_mm512_cvtepi32_pd(_mm256_cvtepi16_epi32(codes)), gv), ov);
+        acc = _mm512_add_pd(acc, fv(v));
+    }
+    let mut lanes = [0.0f64; LANES];
+    // SAFETY: `lanes` holds eight f64.
+    unsafe { _mm512_storeu_pd(lanes.as_mut_ptr(), acc) };
+    for (l, &v) in rest.iter().enumerate() {
+        lanes[l] += f(v);
+    }
+    fold(lanes)
+}
+
+/// [`lane_sum`] over codes: code `i` goes to lane `i % 8` as value `i` does there.
+#[inline(always)]
+fn lane_sum_codes(x: &[i16], f: impl Fn(i16) -> f64) -> f64 {
+    let mut acc = [-0.0f64; LANES];
+    let chunks = x.chunks_exact(LANES);
+    let rest = chunks.remainder();
+    for c in chunks {
+        for l in 0..LANES {
+            acc[l] += f(c[l]);
+        }
+    }
+    for (l, &v) in rest.iter().enumerate() {
+        acc[l] += f(v);
+    }
+    fold(acc)
+}
+
 /// (Σ s², Σ d·s, Σ d²) of d_i = x_i − mean over the pairs (x_i, s_i) (the
 /// shorter slice sets the length): a least-squares amplitude fit's sums,
 /// in one pass.
@@ -151,6 +256,19 @@ fn all_finite_body(x: &[f64]) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn code_sums_are_the_sums_of_the_decoded_volts_bit_for_bit() {
+        for n in [0usize, 1, 7, 8, 9, 1003] {
+            let codes: Vec<i16> = (0..n).map(|i| ((i * 7919 % 4099) as i32 - 2049) as i16).collect();
+            for (g, o) in [(3.05e-5, -0.013), (1.0 / 256.0, 0.0), (-2e-3, 1.5)] {
+                let volts: Vec<f64> = codes.iter().map(|&c| c as f64 * g + o).collect();
+                assert_eq!(code_sum(&codes, g, o).to_bits(), sum(&volts).to_bits(), "n {n}");
+                let mean = sum(&volts) / n.max(1) as f64;
+                assert_eq!(code_sum_sq_dev(&codes, g, o, mean).to_bits(), sum_sq_dev(&volts, mean).to_bits(), "n {n}");
+            }
+        }
+    }
 
     #[test]
     fn sums_match_the_serial_sums_to_rounding_and_follow_the_lane_order_exactly() {

@@ -79,30 +79,38 @@ impl Stage for Start {
             return Ok(());
         };
         let dt = w.frame.sample_interval_s;
-        w.frame.channels[s].volts_into(&mut self.volts);
-        let x = &mut self.volts;
         let ch = &w.frame.channels[s];
         // Integer codes on a finite scale decode to finite volts (|code| ≤ 2¹⁵):
         // nothing to check.
         let (g, o) = (ch.volts_per_code, ch.offset_v);
         let codes_finite = matches!(ch.samples, Samples::I16(_)) && g.abs() <= 1e300 && o.abs() <= 1e300;
-        // Keep the reference finite whatever the samples hold.
-        if !codes_finite && !sum::all_finite(x) {
-            let (sum, n) = x.iter().filter(|v| v.is_finite()).fold((0.0, 0usize), |(s, n), v| (s + v, n + 1));
-            let finite_mean = if n > 0 { sum / n as f64 } else { 0.0 };
-            x.iter_mut().filter(|v| !v.is_finite()).for_each(|v| *v = finite_mean);
-        }
         // The start pulse occupies a small part of the channel: the largest
         // excursion locates the pulse, and the baseline and noise are
         // measured on the samples well away from it (the median and MAD of
         // the whole channel when too few are left).
-        let n = x.len();
-        let peak = match &ch.samples {
-            Samples::I16(c) if codes_finite => last_max_code(c, g, o),
+        let n = ch.samples.len();
+        // Where the codes locate the pulse, the statistics are taken on the
+        // codes as they decode and only the pulse's neighbourhood is
+        // decoded (the same bits); otherwise the whole channel, in volts.
+        let coded = match &ch.samples {
+            Samples::I16(c) if codes_finite => last_max_code(c, g, o).map(|p| (&c[..], p)),
             _ => None,
+        };
+        let x = &mut self.volts;
+        x.clear();
+        if coded.is_none() {
+            ch.volts_into(x);
+            // Keep the reference finite whatever the samples hold.
+            if !codes_finite && !sum::all_finite(x) {
+                let (sum, n) = x.iter().filter(|v| v.is_finite()).fold((0.0, 0usize), |(s, n), v| (s + v, n + 1));
+                let finite_mean = if n > 0 { sum / n as f64 } else { 0.0 };
+                x.iter_mut().filter(|v| !v.is_finite()).for_each(|v| *v = finite_mean);
+            }
         }
-        .or_else(|| crate::math::select::last_max_index(x))
-        .unwrap_or(0);
+        let peak = match coded {
+            Some((_, p)) => p,
+            None => crate::math::select::last_max_index(x).unwrap_or(0),
+        };
         if self.plan.as_ref().is_none_or(|p| p.0 != dt || p.2.len() > n + 1) {
             let pulse = self.pulse_cfg.shape(dt);
             let plan = DetectorPlan::matched_filter(&pulse, n);
@@ -117,13 +125,25 @@ impl Stage for Start {
         // `math::sum` (vectorised; no division per sample).
         let a = (away_lo.max(0.0) as usize).min(n);
         let b = ((away_hi + 1.0).max(0.0) as usize).min(n).max(a);
-        let (left, right) = (&x[..a], &x[b..]);
-        let count = left.len() + right.len();
+        let count = a + (n - b);
         let (baseline, sigma) = if count >= 8 {
-            let mean = (sum::sum(left) + sum::sum(right)) / count as f64;
-            let ss = sum::sum_sq_dev(left, mean) + sum::sum_sq_dev(right, mean);
+            let (mean, ss) = match coded {
+                Some((c, _)) => {
+                    let (left, right) = (&c[..a], &c[b..]);
+                    let mean = (sum::code_sum(left, g, o) + sum::code_sum(right, g, o)) / count as f64;
+                    (mean, sum::code_sum_sq_dev(left, g, o, mean) + sum::code_sum_sq_dev(right, g, o, mean))
+                }
+                None => {
+                    let (left, right) = (&x[..a], &x[b..]);
+                    let mean = (sum::sum(left) + sum::sum(right)) / count as f64;
+                    (mean, sum::sum_sq_dev(left, mean) + sum::sum_sq_dev(right, mean))
+                }
+            };
             (mean, (ss / (count - 1) as f64).sqrt())
         } else {
+            if coded.is_some() {
+                ch.volts_into(x);
+            }
             self.scratch.clear();
             self.scratch.extend_from_slice(x);
             let median = *self.scratch.select_nth_unstable_by(n / 2, |a, b| a.total_cmp(b)).1;
@@ -135,7 +155,20 @@ impl Stage for Start {
         // one step (LSB²/12), whatever the quiet baseline shows.
         let lsb = if ch.samples.is_integer() { ch.volts_per_code.abs() } else { 0.0 };
         let sigma = (sigma * sigma + lsb * lsb / 12.0).sqrt().max(f64::MIN_POSITIVE);
-        let amplitude = x[peak] - baseline;
+        // Only the neighbourhood of the pulse is filtered and timed: four
+        // template lengths either side hold everything every method reads.
+        let reach = 4 * self.plan.as_ref().expect("built above").2.len() + 8;
+        let a = peak.saturating_sub(reach);
+        let b = (peak + reach + 1).min(n);
+        // `x` holds the channel from sample `off` on: all of it, or only
+        // the neighbourhood where the statistics were taken on the codes.
+        let off = if x.is_empty() {
+            ch.volts_of_into(a..b, x);
+            a
+        } else {
+            0
+        };
+        let amplitude = x[peak - off] - baseline;
         if !(amplitude >= self.min_amplitude_v.max(6.0 * sigma)) {
             w.report.flags.push(FrameFlag::NoStartPulse);
             w.report.t_start_s = w.reference.t_ref_s;
@@ -145,12 +178,7 @@ impl Stage for Start {
         let (_, pulse, plan) = self.plan.as_mut().expect("built above");
         // The detector output peak is searched near the raw peak: the template may not match exactly.
         let norm = plan.norm();
-        // Only the neighbourhood of the pulse is filtered and timed: four
-        // template lengths either side hold everything every method reads.
-        let reach = 4 * plan.len() + 8;
-        let a = peak.saturating_sub(reach);
-        let b = (peak + reach + 1).min(n);
-        let xw = &x[a..b];
+        let xw = &x[a - off..b - off];
         let w_half = (pulse.fwhm() * 0.5).ceil() as usize + 1;
         let lo = (peak - a).saturating_sub(w_half);
         let hi = (peak - a + w_half + 1).min(xw.len());

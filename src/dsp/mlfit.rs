@@ -150,8 +150,31 @@ pub fn fit_delay_with<S: PulseShape + ?Sized>(
     let yw = Centered { x: xw, baseline };
     // The shape on the window at the last delay evaluated: the sums after an
     // accepted step, and the final sums and residual, read the same delay.
-    let mut grid = GridCache::new();
-    let grid = &mut grid;
+    // The thread's own cache (emptied first): 4 kB zeroed once per thread,
+    // not once per fit (a fresh one where a fit runs inside another's).
+    thread_local! {
+        static GRID: std::cell::RefCell<GridCache> = std::cell::RefCell::new(GridCache::new());
+    }
+    GRID.with(|cell| match cell.try_borrow_mut() {
+        Ok(mut grid) => {
+            grid.held = None;
+            fit_in(first, yw, shape, delay0, max_iter, opts, &mut grid)
+        }
+        Err(_) => fit_in(first, yw, shape, delay0, max_iter, opts, &mut GridCache::new()),
+    })
+}
+
+/// [`fit_delay_with`] on the window's values less the baseline, `yw`
+/// (from sample `first`), with the shape's values kept in `grid`.
+fn fit_in<S: PulseShape + ?Sized>(
+    first: usize,
+    yw: Centered,
+    shape: &S,
+    delay0: f64,
+    max_iter: u32,
+    opts: &FitOptions,
+    grid: &mut GridCache,
+) -> MlFit {
 
     let mut delay = delay0;
     let s0 = yw.sums(first, shape, delay0, grid);
@@ -247,7 +270,7 @@ pub fn fit_delay_with<S: PulseShape + ?Sized>(
         iterations,
         converged: converged && has_signal,
         slope_energy: s.gg,
-        residual_rms: (rss / xw.len() as f64).sqrt(),
+        residual_rms: (rss / yw.x.len() as f64).sqrt(),
     }
 }
 
@@ -278,28 +301,23 @@ const GRID_CACHE: usize = 256;
 
 /// The shape's (value, slope) on the window at one delay (its bits), filled
 /// chunk by chunk exactly as [`Centered::on_grid`] fills them, so that a
-/// second pass at the same delay reads the very values.
+/// second pass at the same delay reads the very values. One fit's: emptied
+/// (`held` None) before the next.
 struct GridCache {
     /// Delay (bits) and count the values are for; None: nothing held.
     held: Option<(u64, usize)>,
-    /// Written before read: left uninitialised at first (a fit's window
-    /// is a fraction of it; zeroing 4 kB per fit cost more than its sums).
-    values: [std::mem::MaybeUninit<(f64, f64)>; GRID_CACHE],
+    values: [(f64, f64); GRID_CACHE],
 }
 
 impl GridCache {
     fn new() -> GridCache {
-        GridCache { held: None, values: [std::mem::MaybeUninit::uninit(); GRID_CACHE] }
+        GridCache { held: None, values: [(0.0, 0.0); GRID_CACHE] }
     }
 
     /// The first `n` values, filled by `fill` unless they hold `delay` already.
     #[inline(always)]
     fn at(&mut self, n: usize, delay: f64, fill: impl FnOnce(&mut [(f64, f64)])) -> &[(f64, f64)] {
-        let slots = &mut self.values[..n];
-        // SAFETY: MaybeUninit<(f64, f64)> has the layout of (f64, f64); the
-        // values are written through the slice before any is read (f64
-        // has no invalid bit patterns, so writing through it is sound).
-        let values = unsafe { &mut *(slots as *mut [std::mem::MaybeUninit<(f64, f64)>] as *mut [(f64, f64)]) };
+        let values = &mut self.values[..n];
         if self.held != Some((delay.to_bits(), n)) {
             fill(values);
             self.held = Some((delay.to_bits(), n));

@@ -1596,10 +1596,11 @@ fn dof_from_spread(spread: f64) -> f64 {
 /// energy (cos/sin up to the events' highest frequency, as step 1) exceeds
 /// the upper `alpha` quantile of its null is dropped. The null is learned
 /// from every window offered, pooled over frames (the last [`NULL_CAP`]):
-/// a scaled χ² fitted to its 5 % and 25 % quantiles, which stay put while
-/// up to three windows in four hold events (a receiver whose events come
-/// in every frame, with the laser off, still has most of its gate windows
-/// clean; the quartiles of step 1's own fit do not survive that). Until
+/// a scaled χ² fitted to its 25 % and 50 % quantiles, the lower half,
+/// which moves little while a minority of windows hold events (a receiver
+/// whose events come in every frame, with the laser off, still has most of
+/// its gate windows clean; the upper quartile of step 1's own fit does not
+/// survive that). Until
 /// [`NULL_MIN`] windows are in, nothing is dropped. Nor is anything where
 /// the band is not slow against the window (more than a quarter of its
 /// dimensions: a capture sampled far slower than the events' band).
@@ -1785,7 +1786,7 @@ impl GateScreen {
         (self.kept.iter().map(|r| r.len()).sum::<usize>() >= len).then_some(&self.kept[..])
     }
 
-    /// Refits the null from the 5 % and 25 % quantiles when enough windows are new.
+    /// Refits the null from the 25 % and 50 % quantiles when enough windows are new.
     fn refit(&mut self) {
         if self.values.len() < NULL_MIN {
             return;
@@ -2132,6 +2133,11 @@ mod tests {
             let b: Vec<f64> = (0..n + 3).map(|_| rng.sample::<f64, _>(StandardNormal)).collect();
             let want = lane_sum(&a, &b, |x, y| x * y);
             assert_eq!(dot(&a, &b).to_bits(), want.to_bits(), "n {n}");
+            #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("avx512f") {
+                // SAFETY: AVX-512F checked just above.
+                assert_eq!(unsafe { dot_avx512(&a, &b) }.to_bits(), want.to_bits(), "n {n}");
+            }
             assert_eq!(dot(&b, &a).to_bits(), lane_sum(&b, &a, |x, y| x * y).to_bits(), "n {n}");
         }
     }
@@ -2447,6 +2453,9 @@ mod tests {
                 let (eb, db) = folded_energy_and_first(&folded, &centred, 0.0, &mut halves);
                 let (em, dm) = folded_energy_and_first(&folded, &raw, mean, &mut halves);
                 assert_eq!((em.to_bits(), dm.to_bits()), (eb.to_bits(), db.to_bits()), "len {len}");
+                // The portable loop and the AVX-512 compile of it: the same bits.
+                let (ep, dp) = folded_energy_and_first_body(&folded, &raw, mean, &mut halves);
+                assert_eq!((em.to_bits(), dm.to_bits()), (ep.to_bits(), dp.to_bits()), "len {len}");
             }
         }
         // A column that is neither even nor odd: no folding.

@@ -10,7 +10,7 @@
 
 use super::kernels::DetectorPlan;
 use crate::math::linalg::solve_in_place;
-use crate::dsp::mlfit::{fit_delay_with, FitOptions};
+use crate::dsp::mlfit::fit_delay;
 use crate::dsp::pulse::Shape;
 use std::ops::Range;
 
@@ -168,7 +168,7 @@ impl Resolver {
         debug_assert_eq!(plan.output().len(), n, "the plan ran on x");
         // Samples of the residual changed since the plan's output (None: none).
         let mut changed: Option<Range<usize>> = None;
-        let end = range.end.min(n);
+        let end = range.end.min(plan.output().len());
         let first = range.start.min(end);
         let taps = plan.len();
         while comps.len() < max {
@@ -545,9 +545,7 @@ impl Resolver {
 
     fn fit(&self, shape: &Shape, start: f64, detected_at: usize, sigma_v: f64, window: &dyn Fn(f64) -> Range<usize>) -> Component {
         let w = window(start);
-        // The start is the interpolated peak of this shape's matched filter
-        // on these samples: no coarse scan (see `FitOptions::from_matched_peak`).
-        let fit = fit_delay_with(&self.residual, 0.0, shape, start, w.clone(), 30, &FitOptions::from_matched_peak());
+        let fit = fit_delay(&self.residual, 0.0, shape, start, w.clone(), 30);
         let ok = fit.amplitude.is_finite() && fit.delay.is_finite() && (fit.delay - start).abs() <= 3.0;
         Component {
             peak_index: if ok { fit.delay } else { start },

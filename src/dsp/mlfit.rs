@@ -68,14 +68,14 @@ pub struct FitOptions {
 
 impl FitOptions {
     /// For a start at the interpolated peak of a matched filter of the same
-    /// shape on the same samples: no coarse scan. The filter has already
-    /// searched the projected cost's numerator on the sample grid, so the
-    /// scan's neighbours hardly ever hold a better basin. On the reference
-    /// scene's pulses, from 4 σ (peak over noise) up, none of 10 000 trials
-    /// per level gives other bits; at 2 σ, near the matched filter's
-    /// threshold, about one in a thousand does, with no loss in the delay's
-    /// RMS error or in gross errors that the test can detect
-    /// (`tests/suite/dsp.rs`, `ml_from_a_matched_peak_needs_no_scan`).
+    /// shape on the same samples, on a pulse well above its noise: no coarse
+    /// scan. The filter has already searched the projected cost's numerator
+    /// on the sample grid. On the reference scene's start and return pulses
+    /// at 4 σ and 6 σ (peak over noise), none of 10 000 fits per level gives
+    /// other bits than the scanned fit (`tests/suite/dsp.rs`); at 2 σ about
+    /// one in a thousand does. The start stage, which times only pulses of
+    /// 6 σ and more, uses it; the resolver, which fits down to its
+    /// threshold and beside overlapping pulses, keeps the scan.
     pub fn from_matched_peak() -> FitOptions {
         FitOptions { search_half_width: 0.0, ..FitOptions::default() }
     }
@@ -151,17 +151,20 @@ pub fn fit_delay_with<S: PulseShape + ?Sized>(
     // The shape on the window at the last delay evaluated: the sums after an
     // accepted step, and the final sums and residual, read the same delay.
     // The thread's own cache (emptied first): 4 kB zeroed once per thread,
-    // not once per fit (a fresh one where a fit runs inside another's).
+    // not once per fit (a fresh one where a fit runs inside another's, or
+    // while the thread's storage is torn down).
     thread_local! {
         static GRID: std::cell::RefCell<GridCache> = std::cell::RefCell::new(GridCache::new());
     }
-    GRID.with(|cell| match cell.try_borrow_mut() {
-        Ok(mut grid) => {
+    GRID.try_with(|cell| {
+        cell.try_borrow_mut().ok().map(|mut grid| {
             grid.held = None;
             fit_in(first, yw, shape, delay0, max_iter, opts, &mut grid)
-        }
-        Err(_) => fit_in(first, yw, shape, delay0, max_iter, opts, &mut GridCache::new()),
+        })
     })
+    .ok()
+    .flatten()
+    .unwrap_or_else(|| fit_in(first, yw, shape, delay0, max_iter, opts, &mut GridCache::new()))
 }
 
 /// [`fit_delay_with`] on the window's values less the baseline, `yw`

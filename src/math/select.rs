@@ -85,37 +85,20 @@ impl BlockMaxima {
 
 /// Largest value of `c` by `>` in eight lanes; NaN if `c` holds one.
 fn block_max(c: &[f64]) -> f64 {
-    let mut acc = [f64::NEG_INFINITY; 8];
-    let mut nan = false;
-    let chunks = c.chunks_exact(8);
-    let rest = chunks.remainder();
-    for q in chunks {
-        for l in 0..8 {
-            nan |= q[l].is_nan();
-            acc[l] = if q[l] > acc[l] { q[l] } else { acc[l] };
-        }
+    match lane_max(c) {
+        (_, true) => f64::NAN,
+        (m, false) => m,
     }
-    for (l, &v) in rest.iter().enumerate() {
-        nan |= v.is_nan();
-        acc[l] = if v > acc[l] { v } else { acc[l] };
-    }
-    if nan {
-        return f64::NAN;
-    }
-    acc.iter().copied().fold(f64::NEG_INFINITY, |a, b| if b > a { b } else { a })
 }
 
-/// Index of the last largest value of `x` under [`f64::total_cmp`], which is
-/// what `(0..x.len()).max_by(|&a, &b| x[a].total_cmp(&x[b]))` returns (None
-/// for an empty slice): the maximum in eight lanes, then the last index
-/// holding it, instead of one serial comparison chain. Ties at zero (where
-/// the total order tells −0 from +0) and NaNs take the serial path.
-pub fn last_max_index(x: &[f64]) -> Option<usize> {
-    let serial = || (0..x.len()).max_by(|&a, &b| x[a].total_cmp(&x[b]));
+/// (largest value of `x` by `>`, whether `x` holds a NaN), in eight lanes
+/// (one serial comparison chain otherwise); −∞ for an empty slice.
+#[inline(always)]
+fn lane_max(x: &[f64]) -> (f64, bool) {
     let mut acc = [f64::NEG_INFINITY; 8];
+    let mut nan = false;
     let chunks = x.chunks_exact(8);
     let rest = chunks.remainder();
-    let mut nan = false;
     for c in chunks {
         for l in 0..8 {
             nan |= c[l].is_nan();
@@ -126,7 +109,18 @@ pub fn last_max_index(x: &[f64]) -> Option<usize> {
         nan |= v.is_nan();
         acc[l] = if v > acc[l] { v } else { acc[l] };
     }
-    let m = acc.iter().copied().fold(f64::NEG_INFINITY, |a, b| if b > a { b } else { a });
+    (acc.iter().copied().fold(f64::NEG_INFINITY, |a, b| if b > a { b } else { a }), nan)
+}
+
+/// Index of the last largest value of `x` under [`f64::total_cmp`], which is
+/// what `(0..x.len()).max_by(|&a, &b| x[a].total_cmp(&x[b]))` returns (None
+/// for an empty slice): the maximum in eight lanes, then the last index
+/// holding it, instead of one serial comparison chain. Ties at zero (where
+/// the total order tells −0 from +0) and NaNs take the serial path.
+pub fn last_max_index(x: &[f64]) -> Option<usize> {
+    let serial = || (0..x.len()).max_by(|&a, &b| x[a].total_cmp(&x[b]));
+    let (m, nan) = lane_max(x);
+    let rest = &x[x.len() - x.len() % 8..];
     if nan || m == 0.0 || x.is_empty() {
         return serial();
     }

@@ -98,7 +98,9 @@ impl Stage for Start {
         };
         let x = &mut self.volts;
         x.clear();
-        if coded.is_none() {
+        // Whether `x` holds the whole channel in volts.
+        let mut decoded = coded.is_none();
+        if decoded {
             ch.volts_into(x);
             // Keep the reference finite whatever the samples hold.
             if !codes_finite && !sum::all_finite(x) {
@@ -141,8 +143,9 @@ impl Stage for Start {
             };
             (mean, (ss / (count - 1) as f64).sqrt())
         } else {
-            if coded.is_some() {
+            if !decoded {
                 ch.volts_into(x);
+                decoded = true;
             }
             self.scratch.clear();
             self.scratch.extend_from_slice(x);
@@ -162,11 +165,11 @@ impl Stage for Start {
         let b = (peak + reach + 1).min(n);
         // `x` holds the channel from sample `off` on: all of it, or only
         // the neighbourhood where the statistics were taken on the codes.
-        let off = if x.is_empty() {
+        let off = if decoded {
+            0
+        } else {
             ch.volts_of_into(a..b, x);
             a
-        } else {
-            0
         };
         let amplitude = x[peak - off] - baseline;
         if !(amplitude >= self.min_amplitude_v.max(6.0 * sigma)) {
@@ -200,7 +203,9 @@ impl Stage for Start {
         };
         // The start is the peak of the pulse's own matched filter, and the
         // pulse stands at least 6 σ above its noise: the ML fit needs no
-        // coarse scan around it (see `FitOptions::from_matched_peak`).
+        // coarse scan around it (see `FitOptions::from_matched_peak`: the
+        // same bits as with it there, so the error table, measured with
+        // the scan, describes this fit).
         let mut timed = time_pulse_with(self.method, &input, &FitOptions::from_matched_peak());
         timed.index += a as f64;
         timed.peak_index += a as f64;

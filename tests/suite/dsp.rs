@@ -843,14 +843,16 @@ proptest::proptest! {
 }
 
 /// The ML fit started at the interpolated peak of the pulse's own matched
-/// filter (as the start stage and the resolver start it) needs no coarse
-/// scan: on the reference scene's start and return pulses, in white noise,
-/// the fit without it gives the very bits of the fit with it from 4 σ
-/// (peak over noise) up, and near the matched filter's threshold (2 σ) it
-/// is no worse: the paired differences in squared error and in gross
-/// errors (> 3 samples) stay within three standard errors of zero.
+/// filter, as the start stage starts it, needs no coarse scan on a pulse
+/// well above its noise: on the reference scene's start and return pulses,
+/// in white noise, the fit without it gives the very bits of the fit with
+/// it at 4 σ and 6 σ (peak over noise; the start stage times pulses of
+/// 6 σ and more). None in 10 000 trials per level and pulse: a rate below
+/// 3e-4 at 95 % confidence (fixed seed). Below 4 σ the scan does matter now
+/// and then, which is why the resolver, which fits down to its threshold,
+/// keeps it.
 #[test]
-fn ml_from_a_matched_peak_needs_no_scan() {
+fn ml_from_a_matched_peak_needs_no_scan_well_above_the_noise() {
     const TRIALS: usize = 10_000;
     let scene = tofwave::bench::reference_scene();
     let dt = scene.digitiser.sample_interval_s;
@@ -858,45 +860,21 @@ fn ml_from_a_matched_peak_needs_no_scan() {
     for (name, shape) in [("start", scene.start_pulse.shape(dt)), ("return", scene.return_pulse.shape(dt))] {
         let (taps, peak_tap) = shape.template();
         let (lo, hi) = shape.support();
-        for snr in [2.0, 4.0, 6.0] {
-            let (mut differ, mut d_sq, mut d_sq2) = (0usize, 0.0, 0.0);
-            let (mut only_scan_gross, mut only_plain_gross) = (0i64, 0i64);
+        for snr in [4.0, 6.0] {
+            let mut differ = 0usize;
             for _ in 0..TRIALS {
                 let truth = 200.0 + rng.random::<f64>();
                 let x: Vec<f64> = (0..400).map(|k| snr * shape.value_and_slope(k as f64 - truth).0 + rng.sample::<f64, _>(StandardNormal)).collect();
-                // The matched filter's largest output near the pulse, interpolated.
-                let y = |p: usize| taps.iter().enumerate().map(|(j, t)| t * x[p + j - peak_tap]).sum::<f64>();
-                let best = (180..221).max_by(|&a, &b| y(a).total_cmp(&y(b))).expect("a range");
-                let start = best as f64 + tofwave::dsp::interp::parabolic(y(best - 1), y(best), y(best + 1)).0;
+                // The matched filter near the pulse, its largest output interpolated.
+                let y: Vec<f64> = (0..400).map(|p| if p < 179 || p > 221 { f64::NEG_INFINITY } else { taps.iter().enumerate().map(|(j, t)| t * x[p + j - peak_tap]).sum() }).collect();
+                let best = (180..221).max_by(|&a, &b| y[a].total_cmp(&y[b])).expect("a range");
+                let start = best as f64 + tofwave::dsp::interp::parabolic(y[best - 1], y[best], y[best + 1]).0;
                 let window = (start + lo).floor() as usize..(start + hi).ceil() as usize + 1;
                 let scanned = fit_delay_with(&x, 0.0, &shape, start, window.clone(), 30, &FitOptions::default());
                 let plain = fit_delay_with(&x, 0.0, &shape, start, window, 30, &FitOptions::from_matched_peak());
-                differ += usize::from(scanned.delay.to_bits() != plain.delay.to_bits());
-                let (ea, eb) = (scanned.delay - truth, plain.delay - truth);
-                let d = eb * eb - ea * ea;
-                d_sq += d;
-                d_sq2 += d * d;
-                match (ea.abs() > 3.0, eb.abs() > 3.0) {
-                    (true, false) => only_scan_gross += 1,
-                    (false, true) => only_plain_gross += 1,
-                    _ => {}
-                }
+                differ += usize::from(scanned.delay.to_bits() != plain.delay.to_bits() || scanned.amplitude.to_bits() != plain.amplitude.to_bits());
             }
-            if snr >= 4.0 {
-                // None in TRIALS: the rate is below 3/TRIALS at 95 % confidence.
-                assert_eq!(differ, 0, "{name} pulse at {snr} σ: {differ} of {TRIALS} fits differ");
-                continue;
-            }
-            let n = TRIALS as f64;
-            let mean = d_sq / n;
-            let se = ((d_sq2 / n - mean * mean).max(0.0) / n).sqrt();
-            assert!(mean <= 3.0 * se + 1e-12, "{name} pulse at {snr} σ: squared error grows by {mean:e} samples² (standard error {se:e}; {differ} fits differ)");
-            // Discordant gross errors: equally likely either way if neither fit is better.
-            let discordant = (only_scan_gross + only_plain_gross) as f64;
-            assert!(
-                (only_plain_gross - only_scan_gross) as f64 <= 3.0 * discordant.sqrt() + 1.0,
-                "{name} pulse at {snr} σ: gross errors only without the scan {only_plain_gross}, only with it {only_scan_gross}"
-            );
+            assert_eq!(differ, 0, "{name} pulse at {snr} σ: {differ} of {TRIALS} fits differ");
         }
     }
 }

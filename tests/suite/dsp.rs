@@ -866,7 +866,7 @@ fn ml_from_a_matched_peak_needs_no_scan_well_above_the_noise() {
                 let truth = 200.0 + rng.random::<f64>();
                 let x: Vec<f64> = (0..400).map(|k| snr * shape.value_and_slope(k as f64 - truth).0 + rng.sample::<f64, _>(StandardNormal)).collect();
                 // The matched filter near the pulse, its largest output interpolated.
-                let y: Vec<f64> = (0..400).map(|p| if p < 179 || p > 221 { f64::NEG_INFINITY } else { taps.iter().enumerate().map(|(j, t)| t * x[p + j - peak_tap]).sum() }).collect();
+                let y: Vec<f64> = (0..400).map(|p| if !(179..=221).contains(&p) { f64::NEG_INFINITY } else { taps.iter().enumerate().map(|(j, t)| t * x[p + j - peak_tap]).sum() }).collect();
                 let best = (180..221).max_by(|&a, &b| y[a].total_cmp(&y[b])).expect("a range");
                 let start = best as f64 + tofwave::dsp::interp::parabolic(y[best - 1], y[best], y[best + 1]).0;
                 let window = (start + lo).floor() as usize..(start + hi).ceil() as usize + 1;

@@ -1341,7 +1341,7 @@ fn dot_avx512(a: &[f64], b: &[f64]) -> f64 {
     let mut l = [0.0f64; 8];
     // SAFETY: `l` holds eight values.
     unsafe { _mm512_storeu_pd(l.as_mut_ptr(), acc) };
-    let head = ((l[0] + l[4]) + (l[1] + l[5])) + ((l[2] + l[6]) + (l[3] + l[7]));
+    let head = fold_lanes(&l);
     a[whole..n].iter().zip(&b[whole..n]).fold(head, |s, (x, y)| s + x * y)
 }
 
@@ -1406,7 +1406,7 @@ fn centred_dots4_body(pairs: [(&[f64], &[f64]); 4], centre: f64) -> [f64; 4] {
                 acc[k] += (a[c + k] - centre) * b[c + k];
             }
         }
-        let head = ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7]));
+        let head = fold_lanes(acc);
         a[whole..].iter().zip(&b[whole..]).fold(head, |s, (x, y)| s + (x - centre) * y)
     })
 }
@@ -1427,8 +1427,15 @@ fn lane_sum(a: &[f64], b: &[f64], f: impl Fn(f64, f64) -> f64) -> f64 {
             acc[k] += f(x[k], y[k]);
         }
     }
-    let head = ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7]));
+    let head = fold_lanes(&acc);
     ra.iter().zip(rb).fold(head, |s, (x, y)| s + f(*x, *y))
+}
+
+/// The eight partial sums of [`lane_sum`], [`dot`] and [`centred_dots4`]
+/// added in their fixed order: ((0+4)+(1+5)) + ((2+6)+(3+7)).
+#[inline(always)]
+fn fold_lanes(acc: &[f64; 8]) -> f64 {
+    ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7]))
 }
 
 /// The part of a cached pulse ([`PulseCache::get`]) inside the window

@@ -307,8 +307,9 @@ const GRID_CACHE: usize = 256;
 /// second pass at the same delay reads the very values. One fit's: emptied
 /// (`held` None) before the next.
 struct GridCache {
-    /// Delay (bits) and count the values are for; None: nothing held.
-    held: Option<(u64, usize)>,
+    /// Delay (bits) the values are for (the window is the fit's, one
+    /// length throughout); None: nothing held.
+    held: Option<u64>,
     values: [(f64, f64); GRID_CACHE],
 }
 
@@ -321,9 +322,9 @@ impl GridCache {
     #[inline(always)]
     fn at(&mut self, n: usize, delay: f64, fill: impl FnOnce(&mut [(f64, f64)])) -> &[(f64, f64)] {
         let values = &mut self.values[..n];
-        if self.held != Some((delay.to_bits(), n)) {
+        if self.held != Some(delay.to_bits()) {
             fill(values);
-            self.held = Some((delay.to_bits(), n));
+            self.held = Some(delay.to_bits());
         }
         values
     }

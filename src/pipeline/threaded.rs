@@ -402,7 +402,10 @@ impl Staged {
         if threads.len() == 3 {
             let [(f0, g0), (f1, g1), (f2, g2)]: [(usize, Vec<Box<dyn Stage>>); 3] = groups.try_into().ok().expect("three segments");
             let (head_tx, head_rx) = channel::<HeadMsg>();
-            let (mid_tx, mid_rx) = sync_channel::<Vec<Msg>>(QUEUE);
+            // Unbounded as the head's own queue is: the head thread never
+            // waits to hand a chunk on (it would leave the last segment's
+            // work queued behind it idle); `limit` bounds what is in flight.
+            let (mid_tx, mid_rx) = channel::<Vec<Msg>>();
             let (out_tx, out_rx) = channel::<Vec<Msg>>();
             let (back, spare_b, r1) = (head_tx.clone(), spare_tx.clone(), rebuild(f1));
             let mid = std::thread::Builder::new().name("tofwave-seg1".into()).spawn(move || segment(g1, mid_rx, Out::Back(back), spare_b, r1));
@@ -414,7 +417,7 @@ impl Staged {
                 .spawn(move || ring_head(validate, spare, spare_rx, head_rx, mid_tx, out_tx, ends));
             self.mode = Mode::Split(Pool {
                 frames: Some(FramesTx::Ring(head_tx)),
-                limit: 2 * QUEUE * CHUNK,
+                limit: 4 * QUEUE * CHUNK,
                 pending: Vec::with_capacity(CHUNK),
                 out: out_rx,
                 spare_tx,
@@ -831,7 +834,7 @@ fn ring_head(
     mut spare: Vec<Unit>,
     spare_rx: Receiver<Unit>,
     input: Receiver<HeadMsg>,
-    to_middle: SyncSender<Vec<Msg>>,
+    to_middle: Sender<Vec<Msg>>,
     out: Sender<Vec<Msg>>,
     mut ends: Ends,
 ) {
@@ -843,8 +846,9 @@ fn ring_head(
                 let Some(tx) = &to_middle else { continue };
                 spare.extend(spare_rx.try_iter());
                 let msgs = head_chunk(&mut validate, &mut spare, chunk, &mut ends.first, &mut leaving, &ends.rebuild_first);
-                // The middle segment never waits on this thread (its queue
-                // back here is unbounded), so a full queue to it drains.
+                // Neither queue between the two threads is bounded, so
+                // neither thread ever waits on the other to take a chunk
+                // (the calling thread's in-flight limit bounds both).
                 if tx.send(msgs).is_err() {
                     return;
                 }

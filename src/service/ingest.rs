@@ -107,8 +107,17 @@ pub(crate) fn check_against_scene(frame: &Frame, scene: &Scene) -> Result<(), Ed
     Ok(())
 }
 
-/// Batches queued but not yet acknowledged, per stream.
-const ACKS_IN_FLIGHT: usize = 2;
+/// Frames a stream may have taken in and not yet acknowledged: enough to
+/// keep a sensor's queue and its pipeline's threads full while the acks of
+/// the batches before travel back (with the batch-counted window of old, four
+/// batches of 32 frames held a two-thread pipeline's ring short, and a
+/// client sending one frame per batch had four frames in flight). A batch
+/// larger than this takes the whole window.
+const FRAMES_IN_FLIGHT: usize = 256;
+
+/// Batches a stream may have taken in and not yet acknowledged (one frame
+/// each at most [`FRAMES_IN_FLIGHT`]: the frames bound binds first).
+const ACKS_IN_FLIGHT: usize = FRAMES_IN_FLIGHT;
 
 /// What one stream has acknowledged so far.
 #[derive(Default)]
@@ -144,14 +153,19 @@ impl grpc::ingest_server::Ingest for IngestService {
             tracing::info!(?peer, "ingest stream opened");
             // Acks are finished by a second task, so the next batch is decoded
             // and queued while the pipeline works on this one. At most
-            // ACKS_IN_FLIGHT batches wait for their verdicts: backpressure holds.
-            let (pending_tx, mut pending_rx) = mpsc::channel::<PendingBatch>(ACKS_IN_FLIGHT);
+            // FRAMES_IN_FLIGHT frames (ACKS_IN_FLIGHT batches) wait for their
+            // verdicts: backpressure holds. A batch's permits go back once
+            // its ack is out.
+            let (pending_tx, mut pending_rx) = mpsc::channel::<(PendingBatch, tokio::sync::OwnedSemaphorePermit)>(ACKS_IN_FLIGHT);
+            let window = Arc::new(tokio::sync::Semaphore::new(FRAMES_IN_FLIGHT));
             let ack_out = tx.clone();
             let acker = tokio::spawn(async move {
                 let mut totals = StreamTotals::default();
-                while let Some(batch) = pending_rx.recv().await {
+                while let Some((batch, permit)) = pending_rx.recv().await {
                     let ack = finish_batch(batch, &mut totals).await;
-                    if ack_out.send(Ok(ack)).await.is_err() {
+                    let sent = ack_out.send(Ok(ack)).await;
+                    drop(permit);
+                    if sent.is_err() {
                         break;
                     }
                 }
@@ -170,8 +184,11 @@ impl grpc::ingest_server::Ingest for IngestService {
                 };
                 match msg {
                     Ok(Some(batch)) => {
+                        let frames = batch.frames.len().clamp(1, FRAMES_IN_FLIGHT) as u32;
+                        // The semaphore is never closed: an error cannot happen.
+                        let Ok(permit) = window.clone().acquire_many_owned(frames).await else { break };
                         let pending = start_batch(&shared, batch).await;
-                        if pending_tx.send(pending).await.is_err() {
+                        if pending_tx.send((pending, permit)).await.is_err() {
                             break;
                         }
                     }

@@ -269,11 +269,7 @@ impl PulseCache {
 /// them, and the scaled χ² fitted to their quartiles.
 #[derive(Debug, Clone, Default)]
 struct EmpiricalNull {
-    values: Vec<f64>,
-    next: usize,
-    /// Values added since the last fit.
-    fresh: usize,
-    sorted: Vec<f64>,
+    ring: NullRing,
     /// Window length the values were taken with.
     len: usize,
     /// The upper `fit_alpha` limit of the scaled χ² fitted to the quartiles.
@@ -770,17 +766,12 @@ impl EventTest {
             return;
         }
         if self.null.len != len {
-            self.null = EmpiricalNull {
-                len,
-                values: Vec::with_capacity(NULL_CAP),
-                sorted: Vec::with_capacity(NULL_CAP),
-                ..EmpiricalNull::default()
-            };
+            self.null = EmpiricalNull { len, ring: NullRing::reserved(), ..EmpiricalNull::default() };
         }
         let band = self.bands.get(len, cfg.max_frequency);
         let null = &mut self.null;
         let s2 = noise.sigma_v * noise.sigma_v;
-        let mut push = |v: f64| ring_push(&mut null.values, &mut null.next, &mut null.fresh, v);
+        let mut push = |v: f64| null.ring.push(v);
         if shared.len == len && shared.f_max == cfg.max_frequency && shared.runs == runs {
             // The screen's windows are these runs' consecutive windows plus
             // one aligned on each run's end; the constant column's
@@ -803,11 +794,8 @@ impl EventTest {
                 }
             }
         }
-        if null.values.len() >= NULL_MIN && (null.fresh >= refit_after(null.values.len()) || null.limit.is_none()) {
-            null.fresh = 0;
-            null.sorted.clear();
-            null.sorted.extend_from_slice(&null.values);
-            let [q1, med, q3] = order_statistics(&mut null.sorted, [0.25, 0.5, 0.75]);
+        if null.ring.len() >= NULL_MIN && (null.ring.fresh_at_least(refit_after(null.ring.len())) || null.limit.is_none()) {
+            let [q1, med, q3] = null.ring.refit_quantiles([0.25, 0.5, 0.75]);
             if med > 0.0 {
                 let nu = dof_from_spread((q3 - q1) / med);
                 let a = med / chi2_upper(nu, 0.5);
@@ -1447,16 +1435,152 @@ fn clip(pulse: (i64, &[(f64, f64)]), first: usize, len: usize) -> Option<(usize,
     (hi > lo).then(|| ((lo - first as i64) as usize, &values[(lo - a) as usize..(hi - a) as usize]))
 }
 
-/// Adds `v` to a learned null's last [`NULL_CAP`] values (`next`: the slot
-/// to overwrite once full) and counts it among those since the last fit.
-fn ring_push(values: &mut Vec<f64>, next: &mut usize, fresh: &mut usize, v: f64) {
-    if values.len() < NULL_CAP {
-        values.push(v);
-    } else {
-        values[*next] = v;
+/// A learned null's last [`NULL_CAP`] values (a ring), with a sorted copy
+/// brought up to date at each refit by one merge of the values that came
+/// and went since the last (a few dozen of 2048): the quantiles are then
+/// read off, where selecting them afresh took a partition of the whole.
+/// The copy holds order keys ([`order_key`]): plain integer comparisons,
+/// with no branch to mispredict in the merge.
+#[derive(Debug, Clone, Default)]
+struct NullRing {
+    values: Vec<f64>,
+    /// Next slot of `values` to overwrite once full.
+    next: usize,
+    /// Values added since the last refit.
+    fresh: usize,
+    /// The keys of `values` as of the last refit, ascending; valid while `synced`.
+    sorted: Vec<u64>,
+    synced: bool,
+    /// The keys of the values overwritten since the last refit (while `synced`).
+    gone: Vec<u64>,
+    /// Scratch: the keys of the values added since the last refit, and the next `sorted`.
+    came: Vec<u64>,
+    merged: Vec<u64>,
+}
+
+/// Values overwritten between two refits beyond which the sorted copy is
+/// rebuilt by a sort instead (a frame with very many gate windows).
+const NULL_GONE_MAX: usize = NULL_CAP / 4;
+
+/// An unsigned key whose order is `f64::total_cmp`'s (the sign bit set for
+/// a positive value, every bit flipped for a negative one); equal keys are
+/// equal bits.
+#[inline(always)]
+fn order_key(x: f64) -> u64 {
+    let b = x.to_bits();
+    b ^ ((((b as i64) >> 63) as u64) | (1 << 63))
+}
+
+/// The value whose [`order_key`] is `k`.
+#[inline(always)]
+fn from_order_key(k: u64) -> f64 {
+    f64::from_bits(if k >> 63 == 1 { k ^ (1 << 63) } else { !k })
+}
+
+impl NullRing {
+    /// An empty ring, its storage reserved (nothing grows per frame).
+    fn reserved() -> NullRing {
+        NullRing {
+            values: Vec::with_capacity(NULL_CAP),
+            sorted: Vec::with_capacity(NULL_CAP),
+            merged: Vec::with_capacity(NULL_CAP),
+            gone: Vec::with_capacity(NULL_GONE_MAX),
+            came: Vec::with_capacity(NULL_CAP),
+            ..NullRing::default()
+        }
     }
-    *next = (*next + 1) % NULL_CAP;
-    *fresh += 1;
+
+    fn len(&self) -> usize {
+        self.values.len()
+    }
+
+    /// Adds `v`, overwriting the oldest value once there are [`NULL_CAP`].
+    fn push(&mut self, v: f64) {
+        if self.values.len() < NULL_CAP {
+            self.values.push(v);
+        } else {
+            if self.synced {
+                if self.gone.len() < NULL_GONE_MAX {
+                    self.gone.push(order_key(self.values[self.next]));
+                } else {
+                    self.synced = false;
+                }
+            }
+            self.values[self.next] = v;
+        }
+        self.next = (self.next + 1) % NULL_CAP;
+        self.fresh += 1;
+    }
+
+    /// Whether `due` values or more came since the last refit.
+    fn fresh_at_least(&self, due: usize) -> bool {
+        self.fresh >= due
+    }
+
+    /// The values (at least one) at the sorted positions round((n − 1)·p)
+    /// for the increasing fractions `ps`, as a full sort by `total_cmp`
+    /// places them (bit for bit); starts the count of fresh values again.
+    fn refit_quantiles<const N: usize>(&mut self, ps: [f64; N]) -> [f64; N] {
+        let fresh = std::mem::take(&mut self.fresh);
+        let n = self.values.len();
+        if !(self.synced && fresh <= n && self.merge_fresh(fresh)) {
+            self.sorted.clear();
+            self.sorted.extend(self.values.iter().map(|&v| order_key(v)));
+            self.sorted.sort_unstable();
+        }
+        self.gone.clear();
+        self.synced = true;
+        ps.map(|p| from_order_key(self.sorted[((n - 1) as f64 * p).round() as usize]))
+    }
+
+    /// `sorted` less the keys gone plus those of the `fresh` values last
+    /// added: the few changes taken in order, the runs of keys between them
+    /// copied whole (the scans for where each change falls run over every
+    /// key once, their branch all but always the same way); false (and
+    /// `sorted` as it was) where a key gone is not in it (never, short of a
+    /// bug: the caller sorts afresh).
+    fn merge_fresh(&mut self, fresh: usize) -> bool {
+        self.came.clear();
+        self.came.extend((0..fresh).map(|i| order_key(self.values[(self.next + NULL_CAP - fresh + i) % NULL_CAP])));
+        self.came.sort_unstable();
+        self.gone.sort_unstable();
+        let (sorted, came, gone, merged) = (&self.sorted, &self.came, &self.gone, &mut self.merged);
+        merged.clear();
+        let (mut cur, mut j, mut k) = (0usize, 0usize, 0usize);
+        loop {
+            let g = gone.get(j).copied();
+            let c = came.get(k).copied();
+            match (g, c) {
+                (None, None) => break,
+                // A key gone (before a new one, or with none left): the
+                // first equal key from `cur` on is dropped.
+                (Some(g), c) if c.is_none_or(|c| g <= c) => {
+                    let p = cur + sorted[cur..].iter().position(|&s| s >= g).unwrap_or(sorted.len() - cur);
+                    if sorted.get(p) != Some(&g) {
+                        return false;
+                    }
+                    merged.extend_from_slice(&sorted[cur..p]);
+                    cur = p + 1;
+                    j += 1;
+                }
+                // A key that came: in after the keys not above it.
+                (_, Some(c)) => {
+                    let p = cur + sorted[cur..].iter().position(|&s| s > c).unwrap_or(sorted.len() - cur);
+                    merged.extend_from_slice(&sorted[cur..p]);
+                    merged.push(c);
+                    cur = p;
+                    k += 1;
+                }
+                (Some(_), None) => unreachable!("taken by the arm above"),
+            }
+        }
+        merged.extend_from_slice(&sorted[cur..]);
+        if merged.len() != self.values.len() {
+            return false;
+        }
+        std::mem::swap(&mut self.sorted, &mut self.merged);
+        true
+    }
 }
 
 /// Σ (q_jᵀv)² over the orthonormal columns of `q` (the energy of `v` in
@@ -1627,13 +1751,7 @@ pub struct GateScreen {
     /// Scratch: the window folded, (x_i + x_{len−1−i}, x_i − x_{len−1−i}).
     halves: (Vec<f64>, Vec<f64>),
     /// Band energies (σ² units) of the windows offered, the last [`NULL_CAP`].
-    values: Vec<f64>,
-    /// Next slot of `values` to overwrite once full.
-    next: usize,
-    /// Windows offered since the last fit.
-    fresh: usize,
-    /// Scratch for the quantiles.
-    sorted: Vec<f64>,
+    null: NullRing,
     /// The upper `alpha` quantile of the fitted null, σ² units.
     limit: Option<f64>,
     /// Probability that a clean window is dropped.
@@ -1694,8 +1812,7 @@ impl GateScreen {
             band,
             folded,
             halves: (Vec::with_capacity(len / 2), Vec::with_capacity(len / 2)),
-            values: Vec::with_capacity(NULL_CAP),
-            sorted: Vec::with_capacity(NULL_CAP),
+            null: NullRing::reserved(),
             alpha,
             kept: Vec::with_capacity(SCREEN_MAX_RUNS),
             energies: Vec::with_capacity(64),
@@ -1758,7 +1875,7 @@ impl GateScreen {
                 };
                 shared.windows.push((raw, first, (k + 1) * len > r.len()));
                 let e = raw / s2;
-                ring_push(&mut self.values, &mut self.next, &mut self.fresh, e);
+                self.null.push(e);
                 self.energies.push(e);
             }
         }
@@ -1795,52 +1912,19 @@ impl GateScreen {
 
     /// Refits the null from the 25 % and 50 % quantiles when enough windows are new.
     fn refit(&mut self) {
-        if self.values.len() < NULL_MIN {
+        if self.null.len() < NULL_MIN {
             return;
         }
-        if self.fresh < refit_after(self.values.len()) && self.limit.is_some() {
+        if !self.null.fresh_at_least(refit_after(self.null.len())) && self.limit.is_some() {
             return;
         }
-        self.fresh = 0;
-        self.sorted.clear();
-        self.sorted.extend_from_slice(&self.values);
-        let [q25, q50] = order_statistics(&mut self.sorted, [0.25, 0.5]);
+        let [q25, q50] = self.null.refit_quantiles([0.25, 0.5]);
         if q25 > 0.0 && q50 > q25 {
             let nu = dof_from_lower(q25 / q50);
             let a = q50 / chi2_upper(nu, 0.5);
             self.limit = Some(a * chi2_upper(nu, self.alpha));
         }
     }
-}
-
-/// The values of `v` (at least one) at the sorted positions
-/// round((n − 1)·p) for the increasing fractions `ps`, as a full sort by
-/// `total_cmp` would place them (bit for bit), by selection: O(n) each
-/// instead of a sort's O(n log n) (the nulls refit from 2048 values every
-/// dozen frames). `v` is left partly ordered.
-fn order_statistics<const N: usize>(v: &mut [f64], ps: [f64; N]) -> [f64; N] {
-    let n = v.len();
-    let ats = ps.map(|p| ((n - 1) as f64 * p).round() as usize);
-    debug_assert!(ats.windows(2).all(|w| w[0] <= w[1]), "increasing fractions");
-    let mut out = [0.0; N];
-    select_at(v, 0, &ats, &mut out);
-    out
-}
-
-/// Selects the middle of the positions `ats` (increasing; positions of the
-/// whole, `v` starting at position `base`) first, then those below it in
-/// the part before it and those above in the part after: each part half
-/// the values, where selecting in increasing order would leave the
-/// larger part for each next one.
-fn select_at(v: &mut [f64], base: usize, ats: &[usize], out: &mut [f64]) {
-    let Some(&at) = ats.get(ats.len() / 2) else { return };
-    let (below, x, above) = v.select_nth_unstable_by(at - base, f64::total_cmp);
-    let x = *x;
-    let lo = ats.partition_point(|&a| a < at);
-    let hi = ats.partition_point(|&a| a <= at);
-    out[lo..hi].fill(x);
-    select_at(below, base, &ats[..lo], &mut out[..lo]);
-    select_at(above, at + 1, &ats[hi..], &mut out[hi..]);
 }
 
 /// Degrees of freedom ν of the χ² whose 25 % quantile over its median is
@@ -2150,20 +2234,39 @@ mod tests {
     }
 
     #[test]
-    fn order_statistics_are_the_sorted_values_bit_for_bit() {
-        for (n, seed) in [(1usize, 1u64), (2, 2), (3, 7), (5, 8), (16, 3), (17, 4), (2048, 5), (2047, 6)] {
-            // Noise with repeats (rounded) and signed zeros among it.
-            let mut v: Vec<f64> = noise(n, seed).iter().map(|x| (x * 4.0).round() / 4.0).collect();
-            if n > 4 {
-                v[1] = -0.0;
-                v[3] = 0.0;
+    fn a_null_ring_s_quantiles_are_those_of_a_full_sort_bit_for_bit() {
+        // Noise with repeats (rounded) and signed zeros, pushed in bursts
+        // of every size: while the ring fills, as it wraps, and beyond
+        // what the merge follows (the copy is sorted afresh then).
+        let v: Vec<f64> = noise(12_000, 5).iter().map(|x| (x * 4.0).round() / 4.0).collect();
+        let mut ring = NullRing::reserved();
+        let mut shadow: std::collections::VecDeque<f64> = Default::default();
+        let mut at = 0;
+        for (round, burst) in [1usize, 2, 13, 16, 64, 64, 700, 900, 600, 64, 3, 0, 64, 1, NULL_GONE_MAX + 5, 64, 2100, 64, 64].into_iter().enumerate() {
+            for _ in 0..burst {
+                let x = match at % 97 {
+                    5 => -0.0,
+                    6 => 0.0,
+                    _ => v[at % v.len()],
+                };
+                at += 1;
+                ring.push(x);
+                shadow.push_back(x);
+                if shadow.len() > NULL_CAP {
+                    shadow.pop_front();
+                }
             }
-            let mut sorted = v.clone();
+            if shadow.is_empty() {
+                continue;
+            }
+            let mut sorted: Vec<f64> = shadow.iter().copied().collect();
             sorted.sort_unstable_by(f64::total_cmp);
-            let at = |p: f64| sorted[((n - 1) as f64 * p).round() as usize];
-            let got = order_statistics(&mut v.clone(), [0.05, 0.25, 0.5, 0.75]);
-            let want = [at(0.05), at(0.25), at(0.5), at(0.75)];
-            assert_eq!(got.map(f64::to_bits), want.map(f64::to_bits), "n {n}");
+            let n = sorted.len();
+            let q = |p: f64| sorted[((n - 1) as f64 * p).round() as usize];
+            let got = ring.refit_quantiles([0.05, 0.25, 0.5, 0.75]);
+            assert_eq!(got.map(f64::to_bits), [q(0.05), q(0.25), q(0.5), q(0.75)].map(f64::to_bits), "round {round}");
+            assert_eq!(ring.sorted.iter().map(|&k| from_order_key(k).to_bits()).collect::<Vec<_>>(), sorted.iter().map(|x| x.to_bits()).collect::<Vec<_>>(), "round {round}");
+            assert!(!ring.fresh_at_least(1));
         }
     }
 
@@ -2413,15 +2516,15 @@ mod tests {
             screen.screen(&x, screen_mean, 0.01, &runs, &mut shared);
             assert!(!shared.windows.is_empty());
             let noise = NoiseTerms { mean_v: model_mean, sigma_v: 0.0101, rho: &rho };
-            let old = read.null.values.len();
+            let old = read.null.ring.values.len();
             read.learn_null(&x, noise, &runs, &s, &shared);
             computed.learn_null(&x, noise, &runs, &s, &GateBand::default());
-            assert_eq!(read.null.values.len(), computed.null.values.len());
-            assert!(read.null.values.len() > old);
+            assert_eq!(read.null.ring.values.len(), computed.null.ring.values.len());
+            assert!(read.null.ring.values.len() > old);
             // This frame's windows (the null holds fewer than its cap here).
             // The screen folds the window (half the products): the same
             // energies to rounding.
-            for (a, b) in read.null.values[old..].iter().zip(&computed.null.values[old..]) {
+            for (a, b) in read.null.ring.values[old..].iter().zip(&computed.null.ring.values[old..]) {
                 assert!((a - b).abs() <= 1e-12 * b.abs().max(1.0), "frame {frame}: {a} vs {b}");
             }
         }
@@ -2430,11 +2533,11 @@ mod tests {
         // Other runs than the screen's (it dropped windows): computed.
         let x = noise(2500, 5);
         screen.screen(&x, 0.0, 1.0, &runs, &mut shared);
-        let before = read.null.values.len();
+        let before = read.null.ring.values.len();
         read.learn_null(&x, NoiseTerms { mean_v: 0.0, sigma_v: 1.0, rho: &rho }, &[1300..2000], &s, &shared);
         computed.learn_null(&x, NoiseTerms { mean_v: 0.0, sigma_v: 1.0, rho: &rho }, &[1300..2000], &s, &GateBand::default());
-        assert!(read.null.values.len() > before);
-        assert_eq!(read.null.values[before..], computed.null.values[before..]);
+        assert!(read.null.ring.values.len() > before);
+        assert_eq!(read.null.ring.values[before..], computed.null.ring.values[before..]);
     }
 
     #[test]

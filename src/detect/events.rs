@@ -1439,8 +1439,7 @@ fn clip(pulse: (i64, &[(f64, f64)]), first: usize, len: usize) -> Option<(usize,
 /// brought up to date at each refit by one merge of the values that came
 /// and went since the last (a few dozen of 2048): the quantiles are then
 /// read off, where selecting them afresh took a partition of the whole.
-/// The copy holds order keys ([`order_key`]): plain integer comparisons,
-/// with no branch to mispredict in the merge.
+/// The copy holds order keys ([`order_key`]): plain integer comparisons.
 #[derive(Debug, Clone, Default)]
 struct NullRing {
     values: Vec<f64>,
@@ -1456,6 +1455,9 @@ struct NullRing {
     /// Scratch: the keys of the values added since the last refit, and the next `sorted`.
     came: Vec<u64>,
     merged: Vec<u64>,
+    /// Refits that merged (the rest sorted afresh): what the tests check.
+    #[cfg(test)]
+    merges: usize,
 }
 
 /// Values overwritten between two refits beyond which the sorted copy is
@@ -1523,7 +1525,9 @@ impl NullRing {
     fn refit_quantiles<const N: usize>(&mut self, ps: [f64; N]) -> [f64; N] {
         let fresh = std::mem::take(&mut self.fresh);
         let n = self.values.len();
-        if !(self.synced && fresh <= n && self.merge_fresh(fresh)) {
+        // Nothing came (and so nothing went) since the last refit: the copy stands.
+        let current = self.synced && fresh == 0;
+        if !(current || self.synced && fresh <= n && self.merge_fresh(fresh)) {
             self.sorted.clear();
             self.sorted.extend(self.values.iter().map(|&v| order_key(v)));
             self.sorted.sort_unstable();
@@ -1579,6 +1583,10 @@ impl NullRing {
             return false;
         }
         std::mem::swap(&mut self.sorted, &mut self.merged);
+        #[cfg(test)]
+        {
+            self.merges += 1;
+        }
         true
     }
 }
@@ -2234,19 +2242,56 @@ mod tests {
     }
 
     #[test]
+    fn order_keys_order_as_total_cmp_does_and_come_back_bit_for_bit() {
+        let specials = [
+            f64::NAN,
+            -f64::NAN,
+            f64::from_bits(0x7ff0_0000_0000_0001),
+            f64::from_bits(0xfff8_0000_0000_0001),
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            0.0,
+            -0.0,
+            f64::MIN_POSITIVE,
+            -f64::MIN_POSITIVE,
+            f64::from_bits(1),
+            f64::from_bits(0x8000_0000_0000_0001),
+            f64::MAX,
+            f64::MIN,
+            1.0,
+            -1.0,
+            1.0 + f64::EPSILON,
+        ];
+        for &a in &specials {
+            assert_eq!(from_order_key(order_key(a)).to_bits(), a.to_bits(), "{a:?}");
+            for &b in &specials {
+                assert_eq!(order_key(a).cmp(&order_key(b)), a.total_cmp(&b), "{a:?} against {b:?}");
+            }
+        }
+    }
+
+    #[test]
     fn a_null_ring_s_quantiles_are_those_of_a_full_sort_bit_for_bit() {
-        // Noise with repeats (rounded) and signed zeros, pushed in bursts
-        // of every size: while the ring fills, as it wraps, and beyond
-        // what the merge follows (the copy is sorted afresh then).
+        // Noise with repeats (rounded), signed zeros, infinities, NaNs of
+        // both signs and subnormals, pushed in bursts of every size: while
+        // the ring fills, as it wraps, and beyond what the merge follows
+        // (more overwritten than it records; more pushed than the ring
+        // holds): the copy is sorted afresh then, and merged otherwise.
         let v: Vec<f64> = noise(12_000, 5).iter().map(|x| (x * 4.0).round() / 4.0).collect();
+        let special = [-0.0, 0.0, f64::INFINITY, f64::NEG_INFINITY, f64::NAN, -f64::NAN, f64::from_bits(3), f64::from_bits(0x8000_0000_0000_0005)];
         let mut ring = NullRing::reserved();
         let mut shadow: std::collections::VecDeque<f64> = Default::default();
         let mut at = 0;
-        for (round, burst) in [1usize, 2, 13, 16, 64, 64, 700, 900, 600, 64, 3, 0, 64, 1, NULL_GONE_MAX + 5, 64, 2100, 64, 64].into_iter().enumerate() {
+        let bursts = [1usize, 2, 13, 16, NULL_CAP + 20, 64, 64, 700, 900, 500, 64, 3, 0, 64, 1, NULL_GONE_MAX + 5, 64, 2100, 64, 64, NULL_GONE_MAX, 64];
+        // Whether each refit should merge: not the first; nor where more
+        // came than the ring holds (the fifth: 52 overwritten, fewer than
+        // NULL_GONE_MAX), or more than NULL_GONE_MAX were overwritten (the
+        // ring is full from the fifth on: every value then overwrites one).
+        let merges = [false, true, true, true, false, true, true, false, false, true, true, true, true, true, true, false, true, false, true, true, true, true];
+        for (round, (burst, merge)) in bursts.into_iter().zip(merges).enumerate() {
             for _ in 0..burst {
                 let x = match at % 97 {
-                    5 => -0.0,
-                    6 => 0.0,
+                    k @ 5..=12 => special[k - 5],
                     _ => v[at % v.len()],
                 };
                 at += 1;
@@ -2256,16 +2301,16 @@ mod tests {
                     shadow.pop_front();
                 }
             }
-            if shadow.is_empty() {
-                continue;
-            }
             let mut sorted: Vec<f64> = shadow.iter().copied().collect();
             sorted.sort_unstable_by(f64::total_cmp);
             let n = sorted.len();
             let q = |p: f64| sorted[((n - 1) as f64 * p).round() as usize];
+            let before = ring.merges;
             let got = ring.refit_quantiles([0.05, 0.25, 0.5, 0.75]);
             assert_eq!(got.map(f64::to_bits), [q(0.05), q(0.25), q(0.5), q(0.75)].map(f64::to_bits), "round {round}");
             assert_eq!(ring.sorted.iter().map(|&k| from_order_key(k).to_bits()).collect::<Vec<_>>(), sorted.iter().map(|x| x.to_bits()).collect::<Vec<_>>(), "round {round}");
+            // A refit with nothing new keeps the copy (neither merged nor sorted).
+            assert_eq!(ring.merges - before, usize::from(merge && burst > 0), "round {round}: merged?");
             assert!(!ring.fresh_at_least(1));
         }
     }

@@ -42,8 +42,12 @@ pub struct Outcome {
 const CHUNK: usize = 8;
 /// Longest wait in [`Staged::settle_while`] before it asks again whether input has come.
 const SETTLE_POLL: std::time::Duration = std::time::Duration::from_micros(100);
-/// Messages a segment may hold queued ahead of it.
+/// Messages a segment of the chain may hold queued ahead of it.
 const QUEUE: usize = 4;
+/// Most frames in flight in the ring (its queues are unbounded: this is
+/// their bound): sixteen chunks, so that each of its queues can hold work
+/// while the calling thread, which feeds it, is off the core.
+const RING_IN_FLIGHT: usize = 16 * CHUNK;
 /// Frames run on one thread first whose step times are not used: the
 /// pipeline's start-up (plans built, error tables measured, the pooled colour
 /// and the thresholds it sets still settling) costs far more per frame than
@@ -176,7 +180,8 @@ enum Mode {
 struct Pool {
     frames: Option<FramesTx>,
     /// Most frames in flight before `push` waits for outcomes (the ring's
-    /// input queue is unbounded; the chain's head queue bounds its own).
+    /// queues are unbounded, this bounds them; the chain's bounded queues
+    /// hold the caller back themselves).
     limit: usize,
     /// Frames pushed and not yet sent (sent by the chunk).
     pending: Vec<Frame>,
@@ -417,7 +422,7 @@ impl Staged {
                 .spawn(move || ring_head(validate, spare, spare_rx, head_rx, mid_tx, out_tx, ends));
             self.mode = Mode::Split(Pool {
                 frames: Some(FramesTx::Ring(head_tx)),
-                limit: 4 * QUEUE * CHUNK,
+                limit: RING_IN_FLIGHT,
                 pending: Vec::with_capacity(CHUNK),
                 out: out_rx,
                 spare_tx,
@@ -535,7 +540,7 @@ fn push_timed(pipeline: &mut Pipeline, frame: Frame, mut costs: Option<&mut [f64
 }
 
 impl Pool {
-    /// Sends the pending frames as one chunk (blocks while the head's queue is full).
+    /// Sends the pending frames as one chunk (on the chain, blocks while the head's queue is full).
     fn send(&mut self) {
         if self.pending.is_empty() {
             return;

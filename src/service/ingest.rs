@@ -17,7 +17,7 @@ use crate::telemetry;
 use crate::wire::{self, ConvertError, proto};
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
-use tokio::sync::{mpsc, oneshot};
+use tokio::sync::{mpsc, oneshot, OwnedSemaphorePermit, Semaphore};
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status, Streaming};
 
@@ -107,16 +107,19 @@ pub(crate) fn check_against_scene(frame: &Frame, scene: &Scene) -> Result<(), Ed
     Ok(())
 }
 
-/// Frames a stream may have taken in and not yet acknowledged: enough to
-/// keep a sensor's queue and its pipeline's threads full while the acks of
-/// the batches before travel back (with the batch-counted window of old, four
-/// batches of 32 frames held a two-thread pipeline's ring short, and a
-/// client sending one frame per batch had four frames in flight). A batch
-/// larger than this takes the whole window.
-const FRAMES_IN_FLIGHT: usize = 256;
+/// Frames a stream may have taken in and not yet acknowledged: more than a
+/// sensor's queue, its pipeline's threads and the verdicts a session holds
+/// back (up to 256 while recording) take together, so that the acks of the
+/// batches before are on their way while those frames are worked on.
+const FRAMES_IN_FLIGHT: usize = 512;
 
-/// Batches a stream may have taken in and not yet acknowledged (one frame
-/// each at most [`FRAMES_IN_FLIGHT`]: the frames bound binds first).
+/// Most of the window one batch takes: at least four batches overlap, however
+/// large (frames in flight may then exceed [`FRAMES_IN_FLIGHT`]).
+const FRAMES_PER_BATCH_PERMIT: usize = FRAMES_IN_FLIGHT / 4;
+
+/// Batches a stream may have taken in and not yet acknowledged: each holds
+/// at least one permit of the window, so the channel of pending batches
+/// never fills.
 const ACKS_IN_FLIGHT: usize = FRAMES_IN_FLIGHT;
 
 /// What one stream has acknowledged so far.
@@ -152,12 +155,12 @@ impl grpc::ingest_server::Ingest for IngestService {
             }
             tracing::info!(?peer, "ingest stream opened");
             // Acks are finished by a second task, so the next batch is decoded
-            // and queued while the pipeline works on this one. At most
-            // FRAMES_IN_FLIGHT frames (ACKS_IN_FLIGHT batches) wait for their
-            // verdicts: backpressure holds. A batch's permits go back once
-            // its ack is out.
-            let (pending_tx, mut pending_rx) = mpsc::channel::<(PendingBatch, tokio::sync::OwnedSemaphorePermit)>(ACKS_IN_FLIGHT);
-            let window = Arc::new(tokio::sync::Semaphore::new(FRAMES_IN_FLIGHT));
+            // and queued while the pipeline works on this one. A batch takes
+            // one permit of the window per frame (FRAMES_PER_BATCH_PERMIT at
+            // most) before it is read into the queues and gives them back once
+            // its ack is out: backpressure holds.
+            let (pending_tx, mut pending_rx) = mpsc::channel::<(PendingBatch, OwnedSemaphorePermit)>(ACKS_IN_FLIGHT);
+            let window = Arc::new(Semaphore::new(FRAMES_IN_FLIGHT));
             let ack_out = tx.clone();
             let acker = tokio::spawn(async move {
                 let mut totals = StreamTotals::default();
@@ -184,9 +187,8 @@ impl grpc::ingest_server::Ingest for IngestService {
                 };
                 match msg {
                     Ok(Some(batch)) => {
-                        let frames = batch.frames.len().clamp(1, FRAMES_IN_FLIGHT) as u32;
-                        // The semaphore is never closed: an error cannot happen.
-                        let Ok(permit) = window.clone().acquire_many_owned(frames).await else { break };
+                        let frames = batch.frames.len().clamp(1, FRAMES_PER_BATCH_PERMIT) as u32;
+                        let permit = window.clone().acquire_many_owned(frames).await.expect("the window is never closed");
                         let pending = start_batch(&shared, batch).await;
                         if pending_tx.send((pending, permit)).await.is_err() {
                             break;

@@ -107,11 +107,13 @@ pub(crate) fn check_against_scene(frame: &Frame, scene: &Scene) -> Result<(), Ed
     Ok(())
 }
 
-/// Frames a stream may have taken in and not yet acknowledged: more than a
-/// sensor's queue, its pipeline's threads and the verdicts a session holds
-/// back (up to 256 while recording) take together, so that the acks of the
-/// batches before are on their way while those frames are worked on.
-const FRAMES_IN_FLIGHT: usize = 512;
+/// Frames a stream may have taken in and not yet acknowledged: enough for a
+/// sensor's queue and its pipeline's threads to stay fed while the acks of
+/// the batches before travel back (a two-thread ring holds up to 136).
+/// While a session records it holds its verdicts back for up to 256 frames
+/// (`ACKS_PER_FLUSH`), so a single stream then waits for each such group's
+/// acks.
+const FRAMES_IN_FLIGHT: usize = 256;
 
 /// Most of the window one batch takes: at least four batches overlap, however
 /// large (frames in flight may then exceed [`FRAMES_IN_FLIGHT`]).

@@ -794,7 +794,7 @@ impl EventTest {
                 }
             }
         }
-        if null.ring.len() >= NULL_MIN && (null.ring.fresh_at_least(refit_after(null.ring.len())) || null.limit.is_none()) {
+        if null.ring.len() >= NULL_MIN && (null.ring.fresh >= refit_after(null.ring.len()) || null.limit.is_none()) {
             let [q1, med, q3] = null.ring.refit_quantiles([0.25, 0.5, 0.75]);
             if med > 0.0 {
                 let nu = dof_from_spread((q3 - q1) / med);
@@ -1514,11 +1514,6 @@ impl NullRing {
         self.fresh += 1;
     }
 
-    /// Whether `due` values or more came since the last refit.
-    fn fresh_at_least(&self, due: usize) -> bool {
-        self.fresh >= due
-    }
-
     /// The values (at least one) at the sorted positions round((n − 1)·p)
     /// for the increasing fractions `ps`, as a full sort by `total_cmp`
     /// places them (bit for bit); starts the count of fresh values again.
@@ -1923,7 +1918,7 @@ impl GateScreen {
         if self.null.len() < NULL_MIN {
             return;
         }
-        if !self.null.fresh_at_least(refit_after(self.null.len())) && self.limit.is_some() {
+        if self.null.fresh < refit_after(self.null.len()) && self.limit.is_some() {
             return;
         }
         let [q25, q50] = self.null.refit_quantiles([0.25, 0.5]);
@@ -2241,27 +2236,23 @@ mod tests {
         }
     }
 
+    /// Zeros of both signs, infinities, NaNs of both signs and subnormals.
+    const ODD_FLOATS: [f64; 8] = [-0.0, 0.0, f64::INFINITY, f64::NEG_INFINITY, f64::NAN, -f64::NAN, f64::from_bits(3), f64::from_bits(0x8000_0000_0000_0005)];
+
     #[test]
     fn order_keys_order_as_total_cmp_does_and_come_back_bit_for_bit() {
-        let specials = [
-            f64::NAN,
-            -f64::NAN,
+        let more = [
             f64::from_bits(0x7ff0_0000_0000_0001),
             f64::from_bits(0xfff8_0000_0000_0001),
-            f64::INFINITY,
-            f64::NEG_INFINITY,
-            0.0,
-            -0.0,
             f64::MIN_POSITIVE,
             -f64::MIN_POSITIVE,
-            f64::from_bits(1),
-            f64::from_bits(0x8000_0000_0000_0001),
             f64::MAX,
             f64::MIN,
             1.0,
             -1.0,
             1.0 + f64::EPSILON,
         ];
+        let specials: Vec<f64> = ODD_FLOATS.iter().chain(&more).copied().collect();
         for &a in &specials {
             assert_eq!(from_order_key(order_key(a)).to_bits(), a.to_bits(), "{a:?}");
             for &b in &specials {
@@ -2278,7 +2269,6 @@ mod tests {
         // (more overwritten than it records; more pushed than the ring
         // holds): the copy is sorted afresh then, and merged otherwise.
         let v: Vec<f64> = noise(12_000, 5).iter().map(|x| (x * 4.0).round() / 4.0).collect();
-        let special = [-0.0, 0.0, f64::INFINITY, f64::NEG_INFINITY, f64::NAN, -f64::NAN, f64::from_bits(3), f64::from_bits(0x8000_0000_0000_0005)];
         let mut ring = NullRing::reserved();
         let mut shadow: std::collections::VecDeque<f64> = Default::default();
         let mut at = 0;
@@ -2291,7 +2281,7 @@ mod tests {
         for (round, (burst, merge)) in bursts.into_iter().zip(merges).enumerate() {
             for _ in 0..burst {
                 let x = match at % 97 {
-                    k @ 5..=12 => special[k - 5],
+                    k @ 5..=12 => ODD_FLOATS[k - 5],
                     _ => v[at % v.len()],
                 };
                 at += 1;
@@ -2311,7 +2301,7 @@ mod tests {
             assert_eq!(ring.sorted.iter().map(|&k| from_order_key(k).to_bits()).collect::<Vec<_>>(), sorted.iter().map(|x| x.to_bits()).collect::<Vec<_>>(), "round {round}");
             // A refit with nothing new keeps the copy (neither merged nor sorted).
             assert_eq!(ring.merges - before, usize::from(merge && burst > 0), "round {round}: merged?");
-            assert!(!ring.fresh_at_least(1));
+            assert_eq!(ring.fresh, 0);
         }
     }
 

@@ -160,7 +160,8 @@ pub async fn connect(url: &str, opts: &ClientOptions) -> Result<Clients, ClientE
     let url = url.as_str();
     let mut ep = Endpoint::from_shared(url.to_string())
         .map_err(|e| ClientError::Config(format!("URL {url:?}: {e}")))?
-        .tcp_nodelay(true);
+        .tcp_nodelay(true)
+        .max_frame_size(super::MAX_H2_FRAME);
     if url.starts_with("https://") {
         let mut tls = ClientTlsConfig::new();
         if let Some(ca) = &opts.ca_cert_pem {

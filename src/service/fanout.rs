@@ -87,6 +87,24 @@ struct HubInner {
     history_cap: usize,
 }
 
+impl HubInner {
+    /// Retains `p` for its sensor and sends it to the live subscribers.
+    fn push(&mut self, p: Arc<Published>) {
+        let cap = self.history_cap;
+        if cap > 0 {
+            let h = self.history.entry(p.report.sensor.clone()).or_default();
+            if h.len() == cap {
+                h.pop_front();
+            }
+            h.push_back(p.clone());
+        }
+        if let Some(tx) = &self.tx {
+            // No receivers is fine: reports are still retained.
+            let _ = tx.send(p);
+        }
+    }
+}
+
 /// A new subscription: live receiver plus the retained reports to send first.
 pub struct Subscription {
     /// Live reports published after the backlog.
@@ -111,30 +129,34 @@ impl Hub {
 
     /// Publishes a report to live subscribers and the history.
     pub fn publish(&self, report: Report) {
-        let json = report_json(&report);
-        self.publish_published(Arc::new(Published {
-            report,
-            json,
-            published_unix_ms: super::session::unix_ms(),
-            wire: None,
-        }));
+        self.publish_all(std::iter::once(report));
+    }
+
+    /// Publishes reports in order, every one rendered before the first is
+    /// sent: a subscriber's stream then finds them together and gRPC sends
+    /// them in one write, not one write per report as each is rendered.
+    pub fn publish_all(&self, reports: impl IntoIterator<Item = Report>) {
+        let rendered: Vec<Arc<Published>> = reports
+            .into_iter()
+            .map(|report| {
+                let json = report_json(&report);
+                Arc::new(Published {
+                    report,
+                    json,
+                    published_unix_ms: super::session::unix_ms(),
+                    wire: None,
+                })
+            })
+            .collect();
+        let mut g = lock(&self.inner);
+        for p in rendered {
+            g.push(p);
+        }
     }
 
     /// Publishes a report already rendered (a cluster node's report read from NATS).
     pub fn publish_published(&self, p: Arc<Published>) {
-        let mut g = lock(&self.inner);
-        let cap = g.history_cap;
-        if cap > 0 {
-            let h = g.history.entry(p.report.sensor.clone()).or_default();
-            if h.len() == cap {
-                h.pop_front();
-            }
-            h.push_back(p.clone());
-        }
-        if let Some(tx) = &g.tx {
-            // No receivers is fine: reports are still retained.
-            let _ = tx.send(p);
-        }
+        lock(&self.inner).push(p);
     }
 
     /// Subscribes; with `resume_from`, retained reports whose `seq_first` is at

@@ -147,6 +147,12 @@ impl Default for ServerConfig {
 /// Default message limit: 16 MiB holds ~1600 frames of two 2500-sample i16 channels.
 pub const DEFAULT_MAX_MESSAGE_BYTES: usize = 16 * 1024 * 1024;
 
+/// Largest HTTP/2 DATA frame a peer may send us, bytes (h2's default is
+/// 16 KiB). A batch of 32 reference frames is about 330 kB: in 16 KiB frames
+/// that is 20 writes by the client and as many reads here, each a syscall
+/// and a trip through the TCP stack; in 1 MiB frames, one or two.
+pub(crate) const MAX_H2_FRAME: u32 = 1024 * 1024;
+
 /// Errors that stop the server (bad set-up); data-path errors never do.
 #[derive(Debug, thiserror::Error)]
 pub enum ServiceError {
@@ -377,7 +383,8 @@ pub async fn run(
         // round trip per 64 KiB. 2 MiB per stream still bounds what a client
         // can push ahead of the pipeline (backpressure).
         .initial_stream_window_size(2 * 1024 * 1024)
-        .initial_connection_window_size(4 * 1024 * 1024);
+        .initial_connection_window_size(4 * 1024 * 1024)
+        .max_frame_size(MAX_H2_FRAME);
     if let Some(tls) = &config.tls {
         builder = builder.tls_config(
             ServerTlsConfig::new().identity(Identity::from_pem(&tls.cert_pem, &tls.key_pem)),

@@ -926,7 +926,7 @@ impl Worker {
     /// Publishes the held reports (and the sensor's noise model with them).
     fn publish_held(&mut self) {
         self.share_noise();
-        for r in self.held.drain(..) {
+        for r in &self.held {
             let st = &self.session.stats;
             st.reports.fetch_add(1, Ordering::Relaxed);
             st.returns
@@ -935,8 +935,8 @@ impl Worker {
             self.session
                 .metrics
                 .false_alarm(r.false_alarm.rate, r.false_alarm.ci95, r.detector.pfa_cell);
-            self.hub.publish(r);
         }
+        self.hub.publish_all(self.held.drain(..));
     }
 }
 

@@ -1,18 +1,16 @@
 //! `Reports.Subscribe`: a filtered view of the fan-out per subscriber.
 
-use super::fanout::{Hub, Published};
+use super::fanout::Hub;
 use super::{Shared, grpc};
 use crate::telemetry;
 use crate::wire::proto;
 use std::collections::HashSet;
 use std::sync::Arc;
-use tokio::sync::{broadcast, mpsc};
-use tokio_stream::wrappers::ReceiverStream;
-use tokio_util::task::TaskTracker;
+use std::pin::Pin;
+use tokio_stream::wrappers::BroadcastStream;
+use tokio_stream::wrappers::errors::BroadcastStreamRecvError;
+use tokio_stream::{Stream, StreamExt};
 use tonic::{Request, Response, Status};
-
-/// Events buffered per subscriber between its forwarding task and gRPC.
-const FORWARD_BUFFER: usize = 16;
 
 /// The Reports service.
 pub struct ReportsService {
@@ -25,8 +23,9 @@ impl ReportsService {
     }
 }
 
-/// Stream of events for one subscriber.
-pub type EventStream = ReceiverStream<Result<proto::ReportEvent, Status>>;
+/// Stream of events for one subscriber: gRPC polls the fan-out's receiver
+/// itself, so the reports waiting there when it polls go out in one write.
+pub type EventStream = Pin<Box<dyn Stream<Item = Result<proto::ReportEvent, Status>> + Send>>;
 
 #[tonic::async_trait]
 impl grpc::reports_server::Reports for ReportsService {
@@ -46,70 +45,54 @@ impl grpc::reports_server::Reports for ReportsService {
         }
         tracing::info!(sensors = ?req.sensor_ids, min_snr_db = ?req.min_snr_db,
             resume = ?req.resume_from_sequence, "subscriber joined");
-        subscription_stream(&self.shared.hub, &req, &self.shared.tasks)
+        subscription_stream(&self.shared.hub, &req)
             .map(Response::new)
             .ok_or_else(|| Status::unavailable("server is shutting down"))
     }
 }
 
-/// Starts the forwarding task of one subscription on `tasks` (so `run` waits
-/// for it). The stream ends (cleanly) when the hub closes at shutdown, after
-/// the last reports; `None` when the hub is already closed.
-pub(crate) fn subscription_stream(
-    hub: &Hub,
-    req: &proto::SubscribeRequest,
-    tasks: &TaskTracker,
-) -> Option<EventStream> {
+/// One subscription's events: the retained reports asked for, then the live
+/// ones `req` wants, each filtered by SNR; a lag marker where the subscriber
+/// fell more than the fan-out's buffer behind. The stream ends (cleanly)
+/// when the hub closes at shutdown, after the last reports, and is dropped
+/// when the client goes away; `None` when the hub is already closed.
+pub(crate) fn subscription_stream(hub: &Hub, req: &proto::SubscribeRequest) -> Option<EventStream> {
     let sensors: HashSet<String> = req.sensor_ids.iter().cloned().collect();
     let wanted = move |s: &str| sensors.is_empty() || sensors.contains(s);
     let sub = hub.subscribe(req.resume_from_sequence, &wanted)?;
     let min_snr_db = req.min_snr_db;
-    let (tx, rx) = mpsc::channel(FORWARD_BUFFER);
-    // The hub closing ends this task.
-    tasks.spawn(async move {
-        telemetry::subscribers_changed(1.0);
-        forward(sub.backlog, sub.live, &wanted, min_snr_db, &tx).await;
-        telemetry::subscribers_changed(-1.0);
-        tracing::info!("subscriber left");
-    });
-    Some(ReceiverStream::new(rx))
-}
-
-async fn forward(
-    backlog: Vec<Arc<Published>>,
-    mut live: broadcast::Receiver<Arc<Published>>,
-    wanted: &impl Fn(&str) -> bool,
-    min_snr_db: Option<f64>,
-    tx: &mpsc::Sender<Result<proto::ReportEvent, Status>>,
-) {
-    for p in backlog {
-        if tx.send(Ok(p.event(min_snr_db))).await.is_err() {
-            return;
-        }
-    }
-    loop {
-        let event = tokio::select! {
-            r = live.recv() => r,
-            // The client went away: stop at once rather than at the next report.
-            _ = tx.closed() => return,
-        };
-        let event = match event {
-            Ok(p) if wanted(&p.report.sensor) => p.event(min_snr_db),
-            Ok(_) => continue,
-            Err(broadcast::error::RecvError::Lagged(skipped)) => {
+    let joined = Joined::new();
+    let live = BroadcastStream::new(sub.live).filter_map(move |event| {
+        let _counted = &joined;
+        match event {
+            Ok(p) => wanted(&p.report.sensor).then(|| p.event(min_snr_db)),
+            Err(BroadcastStreamRecvError::Lagged(skipped)) => {
                 telemetry::subscriber_lagged(skipped);
                 tracing::warn!(skipped, "subscriber lagged");
-                proto::ReportEvent {
-                    event: Some(proto::report_event::Event::Lagged(proto::Lagged {
-                        skipped,
-                    })),
-                }
+                Some(proto::ReportEvent {
+                    event: Some(proto::report_event::Event::Lagged(proto::Lagged { skipped })),
+                })
             }
-            Err(broadcast::error::RecvError::Closed) => return,
-        };
-        if tx.send(Ok(event)).await.is_err() {
-            return;
         }
+    });
+    let backlog = tokio_stream::iter(sub.backlog).map(move |p| p.event(min_snr_db));
+    Some(Box::pin(backlog.chain(live).map(Ok)))
+}
+
+/// Counts a subscriber while its stream lives.
+struct Joined;
+
+impl Joined {
+    fn new() -> Joined {
+        telemetry::subscribers_changed(1.0);
+        Joined
+    }
+}
+
+impl Drop for Joined {
+    fn drop(&mut self) {
+        telemetry::subscribers_changed(-1.0);
+        tracing::info!("subscriber left");
     }
 }
 
@@ -117,7 +100,6 @@ async fn forward(
 mod tests {
     use super::*;
     use crate::frame::{Report, Return};
-    use tokio_stream::StreamExt;
 
     fn report(sensor: &str, seq: u64, snrs: &[f64]) -> Report {
         Report {
@@ -166,10 +148,8 @@ mod tests {
     #[tokio::test]
     async fn slow_subscriber_gets_lag_marker_then_continues() {
         let hub = Hub::new(4, 0);
-        let tasks = TaskTracker::new();
-        let stream = subscription_stream(&hub, &req(&[], None, None), &tasks).unwrap();
-        // The forwarder parks on a full 16-event buffer; the broadcast keeps 4.
-        // 100 reports overflow both, whatever the task interleaving.
+        let stream = subscription_stream(&hub, &req(&[], None, None)).unwrap();
+        // The broadcast keeps 4 and nothing reads it while 100 are published.
         for i in 0..100 {
             hub.publish(report("a", i, &[]));
             tokio::task::yield_now().await;
@@ -198,8 +178,7 @@ mod tests {
     #[tokio::test]
     async fn filters_by_sensor_and_snr() {
         let hub = Hub::new(64, 0);
-        let tasks = TaskTracker::new();
-        let stream = subscription_stream(&hub, &req(&["b"], Some(10.0), None), &tasks).unwrap();
+        let stream = subscription_stream(&hub, &req(&["b"], Some(10.0), None)).unwrap();
         hub.publish(report("a", 0, &[20.0]));
         hub.publish(report("b", 1, &[5.0, 12.0]));
         hub.close();
@@ -225,8 +204,7 @@ mod tests {
         for i in 0..5 {
             hub.publish(report("a", i, &[]));
         }
-        let tasks = TaskTracker::new();
-        let stream = subscription_stream(&hub, &req(&[], None, Some(3)), &tasks).unwrap();
+        let stream = subscription_stream(&hub, &req(&[], None, Some(3))).unwrap();
         hub.publish(report("a", 5, &[]));
         hub.close();
         let got: Vec<u64> = seqs(&collect(stream).await)

@@ -204,12 +204,31 @@ fn level_indices_body(x: &[f64], lo: f64, inv_step: f64, top: i64, index: &mut [
     }
 }
 
+/// Counters per level [`cumulative_counts`] uses for samples `n` over
+/// `levels` levels: four where the samples crowd onto few levels (neighbours
+/// on one level would otherwise wait on one another's store), one where they
+/// spread (then neighbours rarely share a level, and four counters would
+/// only cost four times the zeroing and the summing).
+fn ways(n: usize, levels: usize) -> usize {
+    if 16 * levels <= n { 4 } else { 1 }
+}
+
 /// Counts the samples at each level (`index`: each sample's level, below
-/// `counts.len() / 4`; `counts`: zeros, four counters per level) and
-/// leaves in `counts[k]` the count on levels 0..=k. Four samples at a time
-/// go to their level's four counters: neighbours on one level (most
-/// samples of a narrow spread) do not wait on one another's store.
-fn cumulative_counts(index: &[u32], counts: &mut [u32]) {
+/// `counts.len() / W`; `counts`: zeros, `W` counters per level, `W` 1 or 4)
+/// and leaves in `counts[k]` the count on levels 0..=k. With four, four
+/// samples at a time go to their level's four counters.
+fn cumulative_counts<const W: usize>(index: &[u32], counts: &mut [u32]) {
+    if W == 1 {
+        for &k in index {
+            counts[k as usize] += 1;
+        }
+        let mut run = 0u32;
+        for c in counts.iter_mut() {
+            run += *c;
+            *c = run;
+        }
+        return;
+    }
     let quads = index.chunks_exact(4);
     for &k in quads.remainder() {
         counts[4 * k as usize] += 1;
@@ -254,24 +273,27 @@ pub fn quantised_sigma_within(x: &[f64], lo: f64, hi: f64, step: f64, counts: &m
         return None;
     }
     let levels = levels as usize;
-    // `counts` holds four counters per level and, after them, each sample's
-    // level (scratch): the levels are found in one pass the compiler
-    // vectorises (no store between samples), then counted, four samples at
-    // a time into the level's four counters (neighbours on one level, most
-    // samples of a narrow spread, do not wait on one another's store).
-    // Only the counters need zeros: every sample's level is written.
-    let need = 4 * levels + x.len();
+    // `counts` holds the counters (one or four per level, see `ways`) and,
+    // after them, each sample's level (scratch): the levels are found in
+    // one pass the compiler vectorises (no store between samples), then
+    // counted. Only the counters need zeros: every sample's level is written.
+    let ways = ways(x.len(), levels);
+    let need = ways * levels + x.len();
     if counts.len() < need {
         counts.resize(need, 0);
     }
-    counts[..4 * levels].fill(0);
-    let (counts, index) = counts[..need].split_at_mut(4 * levels);
+    counts[..ways * levels].fill(0);
+    let (counts, index) = counts[..need].split_at_mut(ways * levels);
     // Samples on the grid (as `grid_step` found it) sit next to an integer
     // number of steps from the lowest: the nearest integer is the same
     // whether (v − lo) is divided by the step or multiplied by its inverse.
     let inv_step = 1.0 / step;
     level_indices(x, lo, inv_step, levels as i64 - 1, index);
-    cumulative_counts(index, counts);
+    if ways == 4 {
+        cumulative_counts::<4>(index, counts);
+    } else {
+        cumulative_counts::<1>(index, counts);
+    }
     let cum = &counts[..levels - 1];
     let n = x.len() as f64;
     // Boundary k lies between level k and k + 1, at lo + (k + ½)·step; F is
@@ -345,10 +367,13 @@ mod tests {
         for n in 0..40 {
             for levels in [1usize, 2, 3, 7, 40] {
                 let index: Vec<u32> = (0..n).map(|_| rand::Rng::random_range(&mut rng, 0..levels as u32)).collect();
-                let mut counts = vec![0u32; 4 * levels];
-                cumulative_counts(&index, &mut counts);
                 let want: Vec<u32> = (0..levels as u32).map(|k| index.iter().filter(|&&i| i <= k).count() as u32).collect();
-                assert_eq!(&counts[..levels], &want[..], "{n} samples on {levels} levels");
+                let mut four = vec![0u32; 4 * levels];
+                cumulative_counts::<4>(&index, &mut four);
+                assert_eq!(&four[..levels], &want[..], "{n} samples on {levels} levels, four counters each");
+                let mut one = vec![0u32; levels];
+                cumulative_counts::<1>(&index, &mut one);
+                assert_eq!(one, want, "{n} samples on {levels} levels, one counter each");
             }
         }
     }

@@ -722,9 +722,9 @@ fn read_inputs(c: &SceneInput) -> Result<Vec<tofwave::frame::Frame>> {
 }
 
 /// Runs the pipeline over the inputs on `threads` threads (None: the
-/// machine's cores for 1000 frames or more, else 1); returns the reports and
-/// the number of refused frames.
-fn run(scene: &Scene, c: &SceneInput, threads: Option<u32>) -> Result<(Vec<Report>, usize)> {
+/// machine's cores for 1000 frames or more, else 1), handing `each` every
+/// report in order as its frame finishes; returns the number of refused frames.
+fn run(scene: &Scene, c: &SceneInput, threads: Option<u32>, mut each: impl FnMut(Report)) -> Result<usize> {
     let frames = read_inputs(c)?;
     if frames.is_empty() {
         bail!("no frames in {}", c.input.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(", "));
@@ -742,10 +742,9 @@ fn run(scene: &Scene, c: &SceneInput, threads: Option<u32>) -> Result<(Vec<Repor
         || if frames.len() >= 1000 { std::thread::available_parallelism().map_or(1, |n| n.get()) } else { 1 },
         |n| n as usize,
     );
-    let mut reports = Vec::new();
     let mut refused = 0;
     tofwave::pipeline::threaded::run(scene, &c.sensor, threads, frames, |o| {
-        reports.extend(o.reports);
+        o.reports.into_iter().for_each(&mut each);
         if let Err(e) = o.result {
             refused += 1;
             bar.suspend(|| eprintln!("refused: {e}"));
@@ -757,7 +756,7 @@ fn run(scene: &Scene, c: &SceneInput, threads: Option<u32>) -> Result<(Vec<Repor
     });
     drop(plain);
     bar.finish_and_clear();
-    Ok((reports, refused))
+    Ok(refused)
 }
 
 fn process(a: ProcessArgs) -> Result<i32> {
@@ -765,25 +764,47 @@ fn process(a: ProcessArgs) -> Result<i32> {
     if let Some(p) = &a.calibration {
         CalibrationFile::load(p)?.apply(&mut scene, &p.display().to_string())?;
     }
-    let (reports, refused) = run(&scene, &a.common, a.threads)?;
-    let mut out: Box<dyn Write> = if a.output.as_os_str() == "-" {
-        Box::new(std::io::BufWriter::new(std::io::stdout().lock()))
-    } else {
-        let f = std::fs::File::create(&a.output).with_context(|| format!("cannot create {}", a.output.display()))?;
-        Box::new(std::io::BufWriter::new(f))
+    // The output is created when the first report is ready (after the
+    // inputs are read, so a bad input leaves no file behind), and each
+    // report's line is written as its frame finishes; after a failed write
+    // the rest are not tried, and the error is the command's.
+    let open = || -> Result<Box<dyn Write>> {
+        Ok(if a.output.as_os_str() == "-" {
+            Box::new(std::io::BufWriter::new(std::io::stdout().lock()))
+        } else {
+            let f = std::fs::File::create(&a.output).with_context(|| format!("cannot create {}", a.output.display()))?;
+            Box::new(std::io::BufWriter::new(f))
+        })
     };
-    let mut returns = 0;
-    for r in &reports {
+    let cannot_write = |e: std::io::Error| anyhow::Error::new(e).context(format!("cannot write the reports to {}", a.output.display()));
+    let (mut reports, mut returns) = (0usize, 0usize);
+    let (mut out, mut failed): (Option<Box<dyn Write>>, Option<anyhow::Error>) = (None, None);
+    let refused = run(&scene, &a.common, a.threads, |r| {
+        reports += 1;
         returns += r.returns.len();
-        writeln!(out, "{}", report_json(r))?;
+        if failed.is_some() {
+            return;
+        }
+        let w = match &mut out {
+            Some(w) => w,
+            None => match open() {
+                Ok(w) => out.insert(w),
+                Err(e) => return failed = Some(e),
+            },
+        };
+        if let Err(e) = writeln!(w, "{}", report_json(&r)) {
+            failed = Some(cannot_write(e));
+        }
+    })?;
+    if let Some(e) = failed {
+        return Err(e);
     }
-    out.flush()?;
-    eprintln!(
-        "tofwave process: {} reports, {} returns, {} frames refused",
-        reports.len(),
-        returns,
-        refused
-    );
+    let mut out = match out {
+        Some(w) => w,
+        None => open()?,
+    };
+    out.flush().map_err(cannot_write)?;
+    eprintln!("tofwave process: {reports} reports, {returns} returns, {refused} frames refused");
     Ok(if refused > 0 { 1 } else { 0 })
 }
 
@@ -800,7 +821,8 @@ fn calibrate(a: CalibrateArgs) -> Result<i32> {
         );
     }
     scene.calibration = tofwave::scene::CalibrationConfig::default();
-    let (reports, refused) = run(&scene, &a.common, None)?;
+    let mut reports = Vec::new();
+    let refused = run(&scene, &a.common, None, |r| reports.push(r))?;
     let no_start = reports
         .iter()
         .filter(|r| r.flags.iter().any(|f| f.name() == "no_start_channel"))

@@ -8,6 +8,12 @@
 //! pipeline runs on one thread to choose its cut, and those in which any
 //! pipeline pays its start-up. (With fewer than 800 frames per trial the
 //! clock starts at the first.)
+//!
+//! Every arm renders each report's JSON line: the offline arms as `process`
+//! does (on its calling thread, as the frames finish), the service for its
+//! subscribers (every report carries its line). Left out of the offline
+//! arms, that work (a few µs per report) would count against the service
+//! alone.
 
 use std::time::Instant;
 
@@ -15,7 +21,7 @@ use super::BenchError;
 use super::cluster::trial;
 use super::service::median;
 use crate::frame::Frame;
-use crate::pipeline::threaded;
+use crate::pipeline::{report_json, threaded};
 use crate::scene::Scene;
 use crate::wire::{frame_to_proto, proto};
 
@@ -67,7 +73,8 @@ impl ThreadsCost {
             "; each rate from the first outcome to the last".to_string()
         };
         let mut md = format!(
-            "One sensor, {} frames of {} samples per channel per trial, {} trials per arm (alternating){clock}\n\n\
+            "One sensor, {} frames of {} samples per channel per trial, {} trials per arm (alternating){clock}. \
+             Every arm renders each report's JSON line (offline as `process` writes it, the service for its subscribers).\n\n\
              | arm | frames/s per trial | median |\n|---|---|---|\n",
             self.frames,
             self.samples_per_frame,
@@ -166,6 +173,9 @@ fn offline(scene: &Scene, frames: &[Frame], threads: usize) -> (f64, threaded::C
     let cut = threaded::run(scene, "bench", threads, frames.iter().cloned(), |o| {
         if o.reports.is_empty() && seen == frames.len() {
             return; // the final flush's outcome
+        }
+        for r in &o.reports {
+            std::hint::black_box(report_json(r));
         }
         seen += 1;
         if seen <= skip {

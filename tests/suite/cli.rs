@@ -159,6 +159,33 @@ fn malformed_files_get_a_clear_error_and_exit_2() {
 }
 
 #[test]
+fn process_writes_its_output_once_a_report_is_ready_and_a_failed_write_is_an_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("reports.jsonl");
+    let out_s = out.to_str().unwrap();
+    // The inputs are read first: a bad one leaves no output file behind.
+    let missing = dir.path().join("missing.trc");
+    let (code, _, err) = tofwave(&["process", "--input", missing.to_str().unwrap(), "--output", out_s]);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("missing.trc") && !out.exists(), "{err}");
+    // Every report, in order, one line each, as on stdout.
+    let (code, _, err) = tofwave(&["process", "--input", &data("lecroy_3.trc"), "--output", out_s]);
+    assert_eq!(code, 0, "{err}");
+    let (_, on_stdout, _) = tofwave(&["process", "--input", &data("lecroy_3.trc")]);
+    let written: Vec<serde_json::Value> =
+        std::fs::read_to_string(&out).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert_eq!(written.len(), 20);
+    assert_eq!(written, on_stdout);
+    assert!(err.contains("20 reports"), "{err}");
+    // A device that takes no bytes: the write's error is the command's.
+    if Path::new("/dev/full").exists() {
+        let (code, _, err) = tofwave(&["process", "--input", &data("lecroy_3.trc"), "--output", "/dev/full"]);
+        assert_eq!(code, 2, "{err}");
+        assert!(err.contains("cannot write the reports to /dev/full"), "{err}");
+    }
+}
+
+#[test]
 fn every_subcommand_explains_its_flags() {
     for sub in ["process", "calibrate", "scene", "template", "simulate", "serve", "replay", "subscribe"] {
         let out = Command::new(env!("CARGO_BIN_EXE_tofwave")).args([sub, "--help"]).output().unwrap();

@@ -723,8 +723,9 @@ fn read_inputs(c: &SceneInput) -> Result<Vec<tofwave::frame::Frame>> {
 
 /// Runs the pipeline over the inputs on `threads` threads (None: the
 /// machine's cores for 1000 frames or more, else 1), handing `each` every
-/// report in order as its frame finishes; returns the number of refused frames.
-fn run(scene: &Scene, c: &SceneInput, threads: Option<u32>, mut each: impl FnMut(Report)) -> Result<usize> {
+/// report in order as its frame finishes; returns the number of refused
+/// frames. `progress`: a progress bar (on stderr) for long runs.
+fn run(scene: &Scene, c: &SceneInput, threads: Option<u32>, progress: bool, mut each: impl FnMut(Report)) -> Result<usize> {
     let frames = read_inputs(c)?;
     if frames.is_empty() {
         bail!("no frames in {}", c.input.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(", "));
@@ -733,10 +734,11 @@ fn run(scene: &Scene, c: &SceneInput, threads: Option<u32>, mut each: impl FnMut
         indicatif::ProgressStyle::with_template("{bar:40} {pos}/{len} frames {per_sec} eta {eta}")
             .expect("static template"),
     );
-    if frames.len() < 2000 {
+    let progress = progress && frames.len() >= 2000;
+    if !progress {
         bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
     }
-    let plain = (frames.len() >= 2000)
+    let plain = progress
         .then(|| tofwave::service::cli::plain_progress(&bar, "process", std::time::Duration::from_secs(10)));
     let threads = threads.map_or_else(
         || if frames.len() >= 1000 { std::thread::available_parallelism().map_or(1, |n| n.get()) } else { 1 },
@@ -766,8 +768,9 @@ fn process(a: ProcessArgs) -> Result<i32> {
     }
     // The output is created when the first report is ready (after the
     // inputs are read, so a bad input leaves no file behind), and each
-    // report's line is written as its frame finishes; after a failed write
-    // the rest are not tried, and the error is the command's.
+    // report's line is written as its frame finishes; after a failed create
+    // or write no more lines are tried (the frames still run), and the error
+    // is the command's.
     let open = || -> Result<Box<dyn Write>> {
         Ok(if a.output.as_os_str() == "-" {
             Box::new(std::io::BufWriter::new(std::io::stdout().lock()))
@@ -779,7 +782,9 @@ fn process(a: ProcessArgs) -> Result<i32> {
     let cannot_write = |e: std::io::Error| anyhow::Error::new(e).context(format!("cannot write the reports to {}", a.output.display()));
     let (mut reports, mut returns) = (0usize, 0usize);
     let (mut out, mut failed): (Option<Box<dyn Write>>, Option<anyhow::Error>) = (None, None);
-    let refused = run(&scene, &a.common, a.threads, |r| {
+    // Lines on the terminal the bar would draw on are progress enough.
+    let progress = !(a.output.as_os_str() == "-" && std::io::IsTerminal::is_terminal(&std::io::stdout()));
+    let refused = run(&scene, &a.common, a.threads, progress, |r| {
         reports += 1;
         returns += r.returns.len();
         if failed.is_some() {
@@ -822,7 +827,7 @@ fn calibrate(a: CalibrateArgs) -> Result<i32> {
     }
     scene.calibration = tofwave::scene::CalibrationConfig::default();
     let mut reports = Vec::new();
-    let refused = run(&scene, &a.common, None, |r| reports.push(r))?;
+    let refused = run(&scene, &a.common, None, true, |r| reports.push(r))?;
     let no_start = reports
         .iter()
         .filter(|r| r.flags.iter().any(|f| f.name() == "no_start_channel"))

@@ -74,7 +74,7 @@ impl ThreadsCost {
         };
         let mut md = format!(
             "One sensor, {} frames of {} samples per channel per trial, {} trials per arm (alternating){clock}. \
-             Every arm renders each report's JSON line (offline as `process` writes it, the service for its subscribers).\n\n\
+             Every arm renders each report's JSON line (offline as `process` does for its output, the service for its subscribers).\n\n\
              | arm | frames/s per trial | median |\n|---|---|---|\n",
             self.frames,
             self.samples_per_frame,

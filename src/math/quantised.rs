@@ -250,7 +250,7 @@ fn cumulative_counts<const W: usize>(index: &[u32], counts: &mut [u32]) {
 
 /// Robust standard deviation of samples on a grid of step `step` (from
 /// [`grid_step`]): the probit fit described in the module documentation.
-/// `counts` is scratch (four counters per level, then each sample's level), kept between calls.
+/// `counts` is scratch (one or four counters per level, then each sample's level), kept between calls.
 ///
 /// The boundaries used are those whose cumulative fraction F lies in
 /// [0.1, 0.9] when at least three do; else [0.05, 0.95], [0.02, 0.98] (three

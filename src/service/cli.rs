@@ -96,6 +96,8 @@ pub struct ServeArgs {
     #[arg(long, value_name = "SECONDS", default_value_t = 20.0)]
     pub drain_timeout_s: f64,
     /// Reports a subscriber may fall behind before it is told it lagged, reports.
+    /// Reports go out in groups of up to 32: a buffer smaller than that can
+    /// tell a subscriber that keeps up that it lagged.
     #[arg(long, value_name = "REPORTS", default_value_t = 1024)]
     pub subscriber_buffer: usize,
     /// Reports retained per sensor for subscribers resuming from a sequence number, reports.

@@ -73,6 +73,11 @@ fn filter_json_returns(json: &str, min: f64) -> String {
     serde_json::to_string(&v).unwrap_or_else(|_| json.to_string())
 }
 
+/// Reports [`Hub::publish_all`] renders and then sends together: a
+/// subscriber whose buffer holds fewer may be told it lagged though it
+/// keeps up.
+pub const PUBLISH_GROUP: usize = 32;
+
 /// Fan-out and history.
 pub struct Hub {
     inner: Mutex<HubInner>,
@@ -132,13 +137,15 @@ impl Hub {
         self.publish_all(std::iter::once(report));
     }
 
-    /// Publishes reports in order, every one rendered before the first is
-    /// sent: a subscriber's stream then finds them together and gRPC sends
-    /// them in one write, not one write per report as each is rendered.
+    /// Publishes reports in order, [`PUBLISH_GROUP`] at a time: each group
+    /// rendered before the first of it is sent, so a subscriber's stream
+    /// finds them together and gRPC sends them in one write, not one write
+    /// per report as each is rendered. Nothing to publish takes no lock.
     pub fn publish_all(&self, reports: impl IntoIterator<Item = Report>) {
-        let rendered: Vec<Arc<Published>> = reports
-            .into_iter()
-            .map(|report| {
+        let mut reports = reports.into_iter().peekable();
+        let mut rendered = Vec::new();
+        while reports.peek().is_some() {
+            rendered.extend(reports.by_ref().take(PUBLISH_GROUP).map(|report| {
                 let json = report_json(&report);
                 Arc::new(Published {
                     report,
@@ -146,11 +153,11 @@ impl Hub {
                     published_unix_ms: super::session::unix_ms(),
                     wire: None,
                 })
-            })
-            .collect();
-        let mut g = lock(&self.inner);
-        for p in rendered {
-            g.push(p);
+            }));
+            let mut g = lock(&self.inner);
+            for p in rendered.drain(..) {
+                g.push(p);
+            }
         }
     }
 

@@ -206,8 +206,10 @@ pub(crate) struct Shared {
     pub(crate) hub: Arc<fanout::Hub>,
     /// Cancelled once, when shutdown begins: streams stop taking new work.
     pub(crate) shutdown: CancellationToken,
-    /// Long-lived tasks (ingest streams, subscriptions, the metrics
-    /// endpoint): after the drain, `run` waits until every one has ended.
+    /// Long-lived tasks (ingest streams, the metrics endpoint): after the
+    /// drain, `run` waits until every one has ended. (A subscription is a
+    /// stream gRPC polls; it ends when the hub closes, within tonic's own
+    /// graceful shutdown.)
     pub(crate) tasks: TaskTracker,
     /// The cluster this server is a node of (`serve --cluster`): ingest
     /// publishes frames to JetStream instead of queueing them locally.

@@ -176,6 +176,20 @@ mod tests {
     }
 
     #[tokio::test]
+    async fn reports_published_together_arrive_in_order_and_are_retained() {
+        let hub = Hub::new(256, 40);
+        let live = subscription_stream(&hub, &req(&[], None, None)).unwrap();
+        // Three groups' worth (32 at a time), then nothing.
+        hub.publish_all((0..70).map(|i| report("a", i, &[])));
+        hub.publish_all(std::iter::empty());
+        let resumed = subscription_stream(&hub, &req(&[], None, Some(0))).unwrap();
+        hub.close();
+        let seq = |events: Vec<proto::report_event::Event>| seqs(&events).into_iter().map(|x| x.1).collect::<Vec<u64>>();
+        assert_eq!(seq(collect(live).await), (0..70).collect::<Vec<u64>>());
+        assert_eq!(seq(collect(resumed).await), (30..70).collect::<Vec<u64>>(), "the history keeps the last 40");
+    }
+
+    #[tokio::test]
     async fn filters_by_sensor_and_snr() {
         let hub = Hub::new(64, 0);
         let stream = subscription_stream(&hub, &req(&["b"], Some(10.0), None)).unwrap();

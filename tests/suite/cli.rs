@@ -159,7 +159,7 @@ fn malformed_files_get_a_clear_error_and_exit_2() {
 }
 
 #[test]
-fn process_writes_its_output_once_a_report_is_ready_and_a_failed_write_is_an_error() {
+fn process_output_holds_every_report_a_bad_input_leaves_none_and_a_failed_write_is_an_error() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("reports.jsonl");
     let out_s = out.to_str().unwrap();
@@ -177,6 +177,19 @@ fn process_writes_its_output_once_a_report_is_ready_and_a_failed_write_is_an_err
     assert_eq!(written.len(), 20);
     assert_eq!(written, on_stdout);
     assert!(err.contains("20 reports"), "{err}");
+    // Every frame refused (exit 1): no reports, and an empty output.
+    let csv = dir.path().join("two.csv");
+    let rows: String = (0..200).map(|k| format!("{:e},0.01,0.02\n", k as f64 * 1e-9)).collect();
+    std::fs::write(&csv, format!("time,CH1,CH2\n{rows}")).unwrap();
+    let mut doc: toml::Table = toml::from_str(&Scene::default_scene().to_toml()).unwrap();
+    doc["channels"]["stop"] = toml::Value::String("CH3".into());
+    let scene = dir.path().join("ch3.toml");
+    std::fs::write(&scene, toml::to_string(&doc).unwrap()).unwrap();
+    let none = dir.path().join("none.jsonl");
+    let args = ["process", "--input", csv.to_str().unwrap(), "--scene", scene.to_str().unwrap(), "--output", none.to_str().unwrap()];
+    let (code, _, err) = tofwave(&args);
+    assert_eq!(code, 1, "{err}");
+    assert_eq!(std::fs::read_to_string(&none).unwrap(), "", "{err}");
     // A device that takes no bytes: the write's error is the command's.
     if Path::new("/dev/full").exists() {
         let (code, _, err) = tofwave(&["process", "--input", &data("lecroy_3.trc"), "--output", "/dev/full"]);

@@ -74,8 +74,9 @@ impl FitOptions {
     /// at 4 σ and 6 σ (peak over noise), none of 10 000 fits per level gives
     /// other bits than the scanned fit (`tests/suite/dsp.rs`); at 2 σ about
     /// one in a thousand does. The start stage, which times only pulses of
-    /// 6 σ and more, uses it; the resolver, which fits down to its
-    /// threshold and beside overlapping pulses, keeps the scan.
+    /// 6 σ and more, uses it; so does the resolver for pulses of 6 σ and
+    /// more, alone or beside a second pulse down to 0.6 FWHM apart (tested
+    /// in `detect::resolve`), and it keeps the scan for weaker ones.
     pub fn from_matched_peak() -> FitOptions {
         FitOptions { search_half_width: 0.0, ..FitOptions::default() }
     }

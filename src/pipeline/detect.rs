@@ -935,6 +935,7 @@ impl Stage for Detect {
                 &w.buffers.stop_v,
                 w.noise.summary.mean_v,
                 w.noise.sigma_v,
+                w.noise.sigma_v * out_gain,
                 &raw.shape,
                 &mut raw.plan,
                 w.noise.gates.range.clone(),

@@ -850,7 +850,7 @@ proptest::proptest! {
 /// 6 σ and more). None in 10 000 trials per level and pulse: a rate below
 /// 3e-4 at 95 % confidence (fixed seed). Below 4 σ the scan does matter now
 /// and then, which is why the resolver, which fits down to its threshold,
-/// keeps it.
+/// keeps it for pulses below 6 σ of its filter's noise (`detect::resolve`).
 #[test]
 fn ml_from_a_matched_peak_needs_no_scan_well_above_the_noise() {
     const TRIALS: usize = 10_000;

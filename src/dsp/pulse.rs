@@ -184,6 +184,61 @@ pub struct TablePulse {
     /// measured at 4 points per sample is): multiplying by it is then the
     /// very division, and costs a fraction of one.
     inv_step: Option<f64>,
+    /// The spline's cells by phase, where a whole sample is a whole number
+    /// of steps (see [`Phased`]).
+    phased: Option<Phased>,
+}
+
+/// A table's cells regrouped for a grid of whole samples: with `per` steps
+/// to a sample, the points t0, t0 + 1, … fall in cells i, i + per, i + 2·per,
+/// …, one phase r = i mod per. Phase r's cells are stored in order (cell
+/// per·q + r at q), each of the spline's four inputs (the values at the
+/// cell's ends and the slopes there times the step) as its own run, so that
+/// eight points read eight neighbours from each run (no gather). Each run
+/// has [`PAD`](Phased::PAD) zeros before and after it: eight points partly
+/// off the table read them in the lanes they then set to zero.
+#[derive(Debug, Clone, PartialEq)]
+struct Phased {
+    /// Steps per sample, 2^shift.
+    shift: u32,
+    /// Cells per phase (the last ones of a phase past the table are zeros,
+    /// read only by points off the table).
+    cells: usize,
+    /// Phase r's input k (0: value at the cell's start, 1: at its end, 2, 3:
+    /// slope × step at start and end) at cell q: `data[(4r + k)·stride + PAD + q]`,
+    /// stride = cells + 2·PAD.
+    data: Vec<f64>,
+}
+
+impl Phased {
+    /// Zeros on either side of a run: eight points, one of them on the
+    /// table, read at most seven cells beyond it.
+    const PAD: usize = 8;
+
+    /// For `values` and `slopes` with `per` (a power of two) steps to a sample and step `step`.
+    fn new(values: &[f64], slopes: &[f64], step: f64, per: usize) -> Phased {
+        // Cells i = 0 ..= n − 2 (cell i spans values i and i + 1).
+        let last = values.len() - 2;
+        let cells = last / per + 1;
+        let stride = cells + 2 * Self::PAD;
+        let mut data = vec![0.0; 4 * per * stride];
+        for i in 0..=last {
+            let (r, q) = (i % per, i / per);
+            let inputs = [values[i], values[i + 1], slopes[i] * step, slopes[i + 1] * step];
+            for (k, v) in inputs.into_iter().enumerate() {
+                data[(4 * r + k) * stride + Self::PAD + q] = v;
+            }
+        }
+        Phased { shift: per.trailing_zeros(), cells, data }
+    }
+
+    /// Input `k` of phase `r`, eight cells from `q` (−PAD ≤ q ≤ cells + PAD − 8).
+    #[inline(always)]
+    fn eight(&self, r: usize, k: usize, q: i64) -> &[f64] {
+        let stride = self.cells + 2 * Self::PAD;
+        let at = (4 * r + k) * stride + (Self::PAD as i64 + q) as usize;
+        &self.data[at..at + 8]
+    }
 }
 
 impl TablePulse {
@@ -191,7 +246,7 @@ impl TablePulse {
     /// Needs at least 4 values.
     pub fn new(values: Vec<f64>, step: f64, first: f64) -> TablePulse {
         let n = values.len();
-        let slopes = (0..n)
+        let slopes: Vec<f64> = (0..n)
             .map(|i| {
                 let (a, b) = (i.saturating_sub(1), (i + 1).min(n - 1));
                 (values[b] - values[a]) / ((b - a).max(1) as f64 * step)
@@ -199,7 +254,11 @@ impl TablePulse {
             .collect();
         let inv = 1.0 / step;
         let power_of_two = step.is_normal() && inv.is_normal() && step.to_bits() & ((1u64 << 52) - 1) == 0;
-        TablePulse { step, first, values, slopes, inv_step: power_of_two.then_some(inv) }
+        // A whole sample a whole number of steps, and a table no coarser than
+        // a sample (at most 64 phases: the finest tables are learned at 8).
+        let per = (power_of_two && (1.0..=64.0).contains(&inv)).then_some(inv as usize);
+        let phased = per.map(|per| Phased::new(&values, &slopes, step, per));
+        TablePulse { step, first, values, slopes, inv_step: power_of_two.then_some(inv), phased }
     }
 
     /// The values on the grid.
@@ -274,44 +333,120 @@ impl TablePulse {
     /// operations in the same order on each point, so bit for bit the same
     /// values. The cell index is floor(u) (u in [0, n − 1) where used: the
     /// truncation `eval` takes), read off the bits of floor(u) + 2⁵².
+    ///
+    /// Where the table has its cells by phase and the eight points fall in
+    /// cells i, i + per, …, i + 7·per (the usual case: a whole sample is
+    /// `per` steps, and only rounding of t0 + k could make it otherwise),
+    /// the spline's inputs are read as eight neighbours of the phase's runs
+    /// instead of gathered from eight places: the same numbers. Returns how
+    /// many eights were read so (for tests).
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2,fma")]
-    fn fill_grid_avx512(&self, t0: f64, inv: f64, out: &mut [(f64, f64)]) {
-        const L: usize = 8;
-        const TWO_52: f64 = 4_503_599_627_370_496.0;
-        let (values, slopes, step, first) = (&self.values[..], &self.slopes[..], self.step, self.first);
-        let n = values.len();
-        let top = (n - 1) as f64;
-        let mut chunks = out.chunks_exact_mut(L);
+    fn fill_grid_avx512(&self, t0: f64, inv: f64, out: &mut [(f64, f64)]) -> usize {
+        let mut phased_eights = 0;
+        let mut chunks = out.chunks_exact_mut(8);
         let mut k0 = 0usize;
         for chunk in &mut chunks {
-            let mut ok = [false; L];
-            let mut s = [0.0f64; L];
-            let (mut p0, mut p1, mut m0, mut m1) = ([0.0f64; L], [0.0f64; L], [0.0f64; L], [0.0f64; L]);
-            for l in 0..L {
-                let u = (t0 + (k0 + l) as f64 - first) * inv;
-                ok[l] = u >= 0.0 && u < top;
-                let fl = if ok[l] { u.floor() } else { 0.0 };
-                s[l] = u - fl;
-                // fl is an integer in [0, n − 2]: its low bits after adding 2⁵².
-                let i = ((fl + TWO_52).to_bits() as u32 as usize).min(n - 2);
-                p0[l] = values[i];
-                p1[l] = values[i + 1];
-                m0[l] = slopes[i] * step;
-                m1[l] = slopes[i + 1] * step;
-            }
-            for l in 0..L {
-                let s = s[l];
-                let (s2, s3) = (s * s, s * s * s);
-                let v = (2.0 * s3 - 3.0 * s2 + 1.0) * p0[l] + (s3 - 2.0 * s2 + s) * m0[l] + (-2.0 * s3 + 3.0 * s2) * p1[l] + (s3 - s2) * m1[l];
-                let dv = (6.0 * s2 - 6.0 * s) * p0[l] + (3.0 * s2 - 4.0 * s + 1.0) * m0[l] + (-6.0 * s2 + 6.0 * s) * p1[l] + (3.0 * s2 - 2.0 * s) * m1[l];
-                chunk[l] = if ok[l] { (v, dv * inv) } else { (0.0, 0.0) };
-            }
-            k0 += L;
+            phased_eights += usize::from(self.eight(t0, k0, inv, chunk.try_into().expect("eight")));
+            k0 += 8;
         }
-        for (i, o) in chunks.into_remainder().iter_mut().enumerate() {
-            *o = self.eval(t0 + (k0 + i) as f64);
+        // The last few points as a whole eight (the same bits per point): a
+        // fit's window is seldom a multiple of eight.
+        let rest = chunks.into_remainder();
+        if !rest.is_empty() {
+            let mut eight = [(0.0, 0.0); 8];
+            phased_eights += usize::from(self.eight(t0, k0, inv, &mut eight));
+            rest.copy_from_slice(&eight[..rest.len()]);
         }
+        phased_eights
+    }
+
+    /// Points t0 + k0 … t0 + k0 + 7 for [`fill_grid_avx512`](Self::fill_grid_avx512)
+    /// (inlined there), [`eval`](Self::eval)'s operations in its order on
+    /// eight lanes; true where the spline's inputs were read by phase.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2,fma")]
+    #[inline]
+    fn eight(&self, t0: f64, k0: usize, inv: f64, chunk: &mut [(f64, f64); 8]) -> bool {
+        use std::arch::x86_64::*;
+        let (values, slopes) = (&self.values[..], &self.slopes[..]);
+        let n = values.len();
+        let set = _mm512_set1_pd;
+        let lane = _mm512_set_pd(7.0, 6.0, 5.0, 4.0, 3.0, 2.0, 1.0, 0.0);
+        // t0 + (k0 + l): k0 + l is exact in f64 (k0 < 2⁵²), and so is k0 + l as a sum.
+        let t = _mm512_add_pd(set(t0), _mm512_add_pd(set(k0 as f64), lane));
+        let u = _mm512_mul_pd(_mm512_sub_pd(t, set(self.first)), set(inv));
+        // 0 ≤ u < n − 1 (false for NaN): the points on the table.
+        let ok = _mm512_cmp_pd_mask::<_CMP_GE_OQ>(u, _mm512_setzero_pd()) & _mm512_cmp_pd_mask::<_CMP_LT_OQ>(u, set((n - 1) as f64));
+        if ok == 0 {
+            *chunk = [(0.0, 0.0); 8];
+            return false;
+        }
+        let fl = _mm512_roundscale_pd::<{ _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC }>(u);
+        let s = _mm512_sub_pd(u, fl);
+        // Every lane's cell, off the table too (there outside [0, n − 2];
+        // beyond the i64 range and NaN: i64::MIN).
+        let cell = _mm512_cvttpd_epi64(fl);
+        let cell0 = _mm_cvtsi128_si64(_mm512_castsi512_si128(cell));
+        // Eight cells one phase apart, within the phase's run and its zeros:
+        // the inputs are eight neighbours there.
+        let phased = self.phased.as_ref().and_then(|ph| {
+            let steps = _mm512_sllv_epi64(_mm512_set_epi64(7, 6, 5, 4, 3, 2, 1, 0), _mm512_set1_epi64(i64::from(ph.shift)));
+            let want = _mm512_add_epi64(_mm512_set1_epi64(cell0), steps);
+            let (r, q) = ((cell0 & ((1 << ph.shift) - 1)) as usize, cell0 >> ph.shift);
+            let inside = q >= -(Phased::PAD as i64) && q <= (ph.cells + Phased::PAD - 8) as i64;
+            (inside && _mm512_cmpeq_epi64_mask(cell, want) == 0xff).then_some((ph, r, q))
+        });
+        let (p0, p1, m0, m1) = match phased {
+            Some((ph, r, q)) => {
+                let load = |k: usize| {
+                    let run = ph.eight(r, k, q);
+                    // SAFETY: `run` holds eight f64 (`Phased::eight`'s slice).
+                    unsafe { _mm512_loadu_pd(run.as_ptr()) }
+                };
+                (load(0), load(1), load(2), load(3))
+            }
+            None => {
+                // Lanes off the table read cell 0 (their values are not used).
+                let cell = _mm512_maskz_mov_epi64(ok, cell);
+                let next = _mm512_add_epi64(cell, _mm512_set1_epi64(1));
+                // SAFETY: every lane's cell is in [0, n − 2], so it and the
+                // next are inside `values` and `slopes`.
+                unsafe {
+                    (
+                        _mm512_i64gather_pd::<8>(cell, values.as_ptr()),
+                        _mm512_i64gather_pd::<8>(next, values.as_ptr()),
+                        _mm512_mul_pd(_mm512_i64gather_pd::<8>(cell, slopes.as_ptr()), set(self.step)),
+                        _mm512_mul_pd(_mm512_i64gather_pd::<8>(next, slopes.as_ptr()), set(self.step)),
+                    )
+                }
+            }
+        };
+        let (mul, add, sub) = (_mm512_mul_pd, _mm512_add_pd, _mm512_sub_pd);
+        let s2 = mul(s, s);
+        let s3 = mul(s2, s);
+        // v = (2s³ − 3s² + 1)·p0 + (s³ − 2s² + s)·m0 + (−2s³ + 3s²)·p1 + (s³ − s²)·m1, left to right.
+        let a = add(sub(mul(set(2.0), s3), mul(set(3.0), s2)), set(1.0));
+        let b = add(sub(s3, mul(set(2.0), s2)), s);
+        let c = add(mul(set(-2.0), s3), mul(set(3.0), s2));
+        let d = sub(s3, s2);
+        let v = add(add(add(mul(a, p0), mul(b, m0)), mul(c, p1)), mul(d, m1));
+        // dv = (6s² − 6s)·p0 + (3s² − 4s + 1)·m0 + (−6s² + 6s)·p1 + (3s² − 2s)·m1.
+        let da = sub(mul(set(6.0), s2), mul(set(6.0), s));
+        let db = add(sub(mul(set(3.0), s2), mul(set(4.0), s)), set(1.0));
+        let dc = add(mul(set(-6.0), s2), mul(set(6.0), s));
+        let dd = sub(mul(set(3.0), s2), mul(set(2.0), s));
+        let dv = add(add(add(mul(da, p0), mul(db, m0)), mul(dc, p1)), mul(dd, m1));
+        let (mut vs, mut slopes_out) = ([0.0; 8], [0.0; 8]);
+        // SAFETY: each array holds eight f64.
+        unsafe {
+            _mm512_storeu_pd(vs.as_mut_ptr(), _mm512_maskz_mov_pd(ok, v));
+            _mm512_storeu_pd(slopes_out.as_mut_ptr(), _mm512_maskz_mov_pd(ok, mul(dv, set(inv))));
+        }
+        for (o, (&v, &dv)) in chunk.iter_mut().zip(vs.iter().zip(&slopes_out)) {
+            *o = (v, dv);
+        }
+        phased.is_some()
     }
 }
 
@@ -519,17 +654,49 @@ mod tests {
     #[test]
     fn a_table_on_the_grid_is_its_spline_bit_for_bit() {
         let values: Vec<f64> = (0..333).map(|i| (-(i as f64 - 100.0).powi(2) / 900.0).exp() * (1.0 + 0.01 * (i as f64 * 0.7).sin())).collect();
-        for step in [0.125, 0.25, 0.3] {
+        let mut rng = 0x2545_f491_4f6c_dd1du64;
+        let mut uniform = move || {
+            rng ^= rng << 13;
+            rng ^= rng >> 7;
+            rng ^= rng << 17;
+            (rng >> 11) as f64 / (1u64 << 53) as f64
+        };
+        // Steps of 1/64 … 2 samples (by phase from 1/64 to 1, gathered
+        // beyond), and one not a power of two.
+        for step in [0.015625, 0.125, 0.25, 0.5, 1.0, 2.0, 0.3] {
             let t = TablePulse::new(values.clone(), step, -12.5);
-            for t0 in [-80.37, -13.0, -12.5, -12.51, -3.5, -0.25, 0.0, 2.9, 1e-17, 28.9, 40.0, f64::NAN] {
-                for count in [0, 3, 8, 61, 150] {
+            let span = 332.0 * step;
+            // Fixed starts (on and off the table, at its edges, tiny, NaN)
+            // and random ones over the table and a window either side.
+            let mut starts = vec![-80.37, -13.0, -12.5, -12.51, -3.5, -0.25, 0.0, 2.9, 1e-17, 28.9, 40.0, 1e300, -1e300, f64::NAN];
+            starts.extend((0..300).map(|_| -12.5 - 70.0 + (span + 140.0) * uniform()));
+            let mut phased = 0;
+            for &t0 in &starts {
+                for count in [0, 3, 8, 13, 61, 150] {
                     let mut out = vec![(7.0, 7.0); count];
                     t.fill_grid(t0, &mut out);
                     for (i, &(v, dv)) in out.iter().enumerate() {
                         let (ve, dve) = t.eval(t0 + i as f64);
                         assert_eq!((v.to_bits(), dv.to_bits()), (ve.to_bits(), dve.to_bits()), "step {step} t0 {t0} point {i}");
                     }
+                    #[cfg(target_arch = "x86_64")]
+                    if let Some(inv) = t.inv_step
+                        && std::arch::is_x86_feature_detected!("avx512f")
+                        && std::arch::is_x86_feature_detected!("avx512dq")
+                        && std::arch::is_x86_feature_detected!("avx512vl")
+                        && std::arch::is_x86_feature_detected!("avx2")
+                        && std::arch::is_x86_feature_detected!("fma")
+                    {
+                        // SAFETY: the CPU has the features (checked just above).
+                        phased += unsafe { t.fill_grid_avx512(t0, inv, &mut out) };
+                    }
                 }
+            }
+            // Where the CPU has AVX-512, the runs by phase were read where
+            // the table has them, and only there.
+            #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("avx512f") && std::arch::is_x86_feature_detected!("avx512dq") {
+                assert_eq!(phased > 100, t.phased.is_some(), "step {step}: {phased} eights read by phase");
             }
         }
     }

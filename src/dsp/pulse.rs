@@ -184,59 +184,71 @@ pub struct TablePulse {
     /// measured at 4 points per sample is): multiplying by it is then the
     /// very division, and costs a fraction of one.
     inv_step: Option<f64>,
-    /// The spline's cells by phase, where a whole sample is a whole number
-    /// of steps (see [`Phased`]).
+    /// The table by phase, where a whole sample is a whole number of steps
+    /// (see [`Phased`]; derived from `values` and `slopes`).
     phased: Option<Phased>,
 }
 
-/// A table's cells regrouped for a grid of whole samples: with `per` steps
-/// to a sample, the points t0, t0 + 1, … fall in cells i, i + per, i + 2·per,
-/// …, one phase r = i mod per. Phase r's cells are stored in order (cell
-/// per·q + r at q), each of the spline's four inputs (the values at the
-/// cell's ends and the slopes there times the step) as its own run, so that
-/// eight points read eight neighbours from each run (no gather). Each run
-/// has [`PAD`](Phased::PAD) zeros before and after it: eight points partly
-/// off the table read them in the lanes they then set to zero.
-#[derive(Debug, Clone, PartialEq)]
+/// A table regrouped for a grid of whole samples: with `per` steps to a
+/// sample, the points t0, t0 + 1, … fall in cells i, i + per, i + 2·per, …,
+/// one phase r = i mod per. Phase r's table points (per·q + r at q) are
+/// stored in order, their values and their slopes times the step each as
+/// its own run, so that eight points read eight neighbours of a run (no
+/// gather): a cell's start from its phase's runs, its end (point i + 1)
+/// from the next phase's (phase 0 one further on after the last phase).
+/// Each run has [`PAD`](Phased::PAD) zeros before and after it: eight
+/// points partly off the table read them in the lanes they then set to zero.
+#[derive(Clone)]
 struct Phased {
     /// Steps per sample, 2^shift.
     shift: u32,
-    /// Cells per phase (the last ones of a phase past the table are zeros,
-    /// read only by points off the table).
-    cells: usize,
-    /// Phase r's input k (0: value at the cell's start, 1: at its end, 2, 3:
-    /// slope × step at start and end) at cell q: `data[(4r + k)·stride + PAD + q]`,
-    /// stride = cells + 2·PAD.
+    /// Points per phase (a phase's last ones past the table are zeros, read
+    /// only by points off the table).
+    points: usize,
+    /// Phase r's values (k = 0) and slopes × step (k = 1) at point q:
+    /// `data[(2r + k)·stride + PAD + q]`, stride = points + 2·PAD.
     data: Vec<f64>,
+}
+
+/// Derived from the table's values: equal where they are.
+impl PartialEq for Phased {
+    fn eq(&self, _: &Phased) -> bool {
+        true
+    }
+}
+
+/// The layout only (the numbers are the table's).
+impl std::fmt::Debug for Phased {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Phased").field("per", &(1usize << self.shift)).field("points", &self.points).finish()
+    }
 }
 
 impl Phased {
     /// Zeros on either side of a run: eight points, one of them on the
-    /// table, read at most seven cells beyond it.
+    /// table, read at most eight points beyond it (seven, and the cell's end).
     const PAD: usize = 8;
 
-    /// For `values` and `slopes` with `per` (a power of two) steps to a sample and step `step`.
+    /// For `values` and `slopes` (at least two) with `per` (a power of two)
+    /// steps to a sample and step `step`.
     fn new(values: &[f64], slopes: &[f64], step: f64, per: usize) -> Phased {
-        // Cells i = 0 ..= n − 2 (cell i spans values i and i + 1).
-        let last = values.len() - 2;
-        let cells = last / per + 1;
-        let stride = cells + 2 * Self::PAD;
-        let mut data = vec![0.0; 4 * per * stride];
-        for i in 0..=last {
-            let (r, q) = (i % per, i / per);
-            let inputs = [values[i], values[i + 1], slopes[i] * step, slopes[i + 1] * step];
-            for (k, v) in inputs.into_iter().enumerate() {
-                data[(4 * r + k) * stride + Self::PAD + q] = v;
-            }
+        let points = values.len().div_ceil(per);
+        let stride = points + 2 * Self::PAD;
+        let mut data = vec![0.0; 2 * per * stride];
+        for (j, (&v, &m)) in values.iter().zip(slopes).enumerate() {
+            let (r, q) = (j % per, j / per);
+            data[2 * r * stride + Self::PAD + q] = v;
+            // The very product `eval` takes.
+            data[(2 * r + 1) * stride + Self::PAD + q] = m * step;
         }
-        Phased { shift: per.trailing_zeros(), cells, data }
+        Phased { shift: per.trailing_zeros(), points, data }
     }
 
-    /// Input `k` of phase `r`, eight cells from `q` (−PAD ≤ q ≤ cells + PAD − 8).
+    /// Run `k` of phase `r`, eight points from `q` (−PAD ≤ q ≤ points + PAD − 8).
     #[inline(always)]
-    fn eight(&self, r: usize, k: usize, q: i64) -> &[f64] {
-        let stride = self.cells + 2 * Self::PAD;
-        let at = (4 * r + k) * stride + (Self::PAD as i64 + q) as usize;
+    fn run8(&self, r: usize, k: usize, q: i64) -> &[f64] {
+        let stride = self.points + 2 * Self::PAD;
+        let at = (2 * r + k) * stride + (Self::PAD as i64 + q) as usize;
         &self.data[at..at + 8]
     }
 }
@@ -256,7 +268,7 @@ impl TablePulse {
         let power_of_two = step.is_normal() && inv.is_normal() && step.to_bits() & ((1u64 << 52) - 1) == 0;
         // A whole sample a whole number of steps, and a table no coarser than
         // a sample (at most 64 phases: the finest tables are learned at 8).
-        let per = (power_of_two && (1.0..=64.0).contains(&inv)).then_some(inv as usize);
+        let per = (power_of_two && (1.0..=64.0).contains(&inv) && n >= 2).then_some(inv as usize);
         let phased = per.map(|per| Phased::new(&values, &slopes, step, per));
         TablePulse { step, first, values, slopes, inv_step: power_of_two.then_some(inv), phased }
     }
@@ -332,43 +344,55 @@ impl TablePulse {
     /// `inv`), eight points at a time in vector registers: the same
     /// operations in the same order on each point, so bit for bit the same
     /// values. The cell index is floor(u) (u in [0, n − 1) where used: the
-    /// truncation `eval` takes), read off the bits of floor(u) + 2⁵².
+    /// truncation `eval` takes).
     ///
-    /// Where the table has its cells by phase and the eight points fall in
-    /// cells i, i + per, …, i + 7·per (the usual case: a whole sample is
-    /// `per` steps, and only rounding of t0 + k could make it otherwise),
-    /// the spline's inputs are read as eight neighbours of the phase's runs
-    /// instead of gathered from eight places: the same numbers. Returns how
-    /// many eights were read so (for tests).
+    /// Where the table is kept by phase and the eight points fall in cells
+    /// i, i + per, …, i + 7·per (the usual case: a whole sample is `per`
+    /// steps, and only rounding of t0 + k could make it otherwise), the
+    /// spline's inputs are read as eight neighbours of the phases' runs
+    /// instead of gathered from eight places: the same numbers. Returns the
+    /// eights read so and the eights gathered (the tests count both; an
+    /// eight wholly off the table is neither).
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2,fma")]
-    fn fill_grid_avx512(&self, t0: f64, inv: f64, out: &mut [(f64, f64)]) -> usize {
-        let mut phased_eights = 0;
+    fn fill_grid_avx512(&self, t0: f64, inv: f64, out: &mut [(f64, f64)]) -> (usize, usize) {
+        let mut count = (0, 0);
+        let mut tally = |read: Read| match read {
+            Read::Phased => count.0 += 1,
+            Read::Gathered => count.1 += 1,
+            Read::Off => {}
+        };
         let mut chunks = out.chunks_exact_mut(8);
         let mut k0 = 0usize;
         for chunk in &mut chunks {
-            phased_eights += usize::from(self.eight(t0, k0, inv, chunk.try_into().expect("eight")));
+            tally(self.grid_eight(t0, k0, inv, chunk.try_into().expect("eight points")));
             k0 += 8;
         }
         // The last few points as a whole eight (the same bits per point): a
         // fit's window is seldom a multiple of eight.
         let rest = chunks.into_remainder();
         if !rest.is_empty() {
-            let mut eight = [(0.0, 0.0); 8];
-            phased_eights += usize::from(self.eight(t0, k0, inv, &mut eight));
-            rest.copy_from_slice(&eight[..rest.len()]);
+            let mut last = [(0.0, 0.0); 8];
+            tally(self.grid_eight(t0, k0, inv, &mut last));
+            rest.copy_from_slice(&last[..rest.len()]);
         }
-        phased_eights
+        count
     }
 
     /// Points t0 + k0 … t0 + k0 + 7 for [`fill_grid_avx512`](Self::fill_grid_avx512)
-    /// (inlined there), [`eval`](Self::eval)'s operations in its order on
-    /// eight lanes; true where the spline's inputs were read by phase.
+    /// (called there for each eight), [`eval`](Self::eval)'s operations in
+    /// its order on eight lanes; says how the spline's inputs were read.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2,fma")]
     #[inline]
-    fn eight(&self, t0: f64, k0: usize, inv: f64, chunk: &mut [(f64, f64); 8]) -> bool {
-        use std::arch::x86_64::*;
+    fn grid_eight(&self, t0: f64, k0: usize, inv: f64, chunk: &mut [(f64, f64); 8]) -> Read {
+        use std::arch::x86_64::{
+            _CMP_GE_OQ, _CMP_LT_OQ, _MM_FROUND_NO_EXC, _MM_FROUND_TO_NEG_INF, _mm_cvtsi128_si64, _mm512_add_epi64,
+            _mm512_add_pd, _mm512_castsi512_si128, _mm512_cmp_pd_mask, _mm512_cmpeq_epi64_mask, _mm512_cvttpd_epi64,
+            _mm512_i64gather_pd, _mm512_loadu_pd, _mm512_maskz_mov_epi64, _mm512_maskz_mov_pd, _mm512_mul_pd,
+            _mm512_roundscale_pd, _mm512_set_epi64, _mm512_set_pd, _mm512_set1_epi64, _mm512_set1_pd, _mm512_setzero_pd,
+            _mm512_sllv_epi64, _mm512_storeu_pd, _mm512_sub_pd,
+        };
         let (values, slopes) = (&self.values[..], &self.slopes[..]);
         let n = values.len();
         let set = _mm512_set1_pd;
@@ -380,31 +404,37 @@ impl TablePulse {
         let ok = _mm512_cmp_pd_mask::<_CMP_GE_OQ>(u, _mm512_setzero_pd()) & _mm512_cmp_pd_mask::<_CMP_LT_OQ>(u, set((n - 1) as f64));
         if ok == 0 {
             *chunk = [(0.0, 0.0); 8];
-            return false;
+            return Read::Off;
         }
-        let fl = _mm512_roundscale_pd::<{ _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC }>(u);
+        // floor(u) + 0: eval's `u as usize` back in f64 is +0 where u is −0.
+        let fl = _mm512_add_pd(_mm512_roundscale_pd::<{ _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC }>(u), _mm512_setzero_pd());
         let s = _mm512_sub_pd(u, fl);
         // Every lane's cell, off the table too (there outside [0, n − 2];
         // beyond the i64 range and NaN: i64::MIN).
         let cell = _mm512_cvttpd_epi64(fl);
         let cell0 = _mm_cvtsi128_si64(_mm512_castsi512_si128(cell));
-        // Eight cells one phase apart, within the phase's run and its zeros:
-        // the inputs are eight neighbours there.
+        // Eight cells one phase apart, their starts and ends within the
+        // phases' runs and zeros: the inputs are eight neighbours there.
         let phased = self.phased.as_ref().and_then(|ph| {
             let steps = _mm512_sllv_epi64(_mm512_set_epi64(7, 6, 5, 4, 3, 2, 1, 0), _mm512_set1_epi64(i64::from(ph.shift)));
             let want = _mm512_add_epi64(_mm512_set1_epi64(cell0), steps);
-            let (r, q) = ((cell0 & ((1 << ph.shift) - 1)) as usize, cell0 >> ph.shift);
-            let inside = q >= -(Phased::PAD as i64) && q <= (ph.cells + Phased::PAD - 8) as i64;
-            (inside && _mm512_cmpeq_epi64_mask(cell, want) == 0xff).then_some((ph, r, q))
+            let per = 1usize << ph.shift;
+            // Floor division and remainder, for negative cells too.
+            let (r, q) = ((cell0 & (per as i64 - 1)) as usize, cell0 >> ph.shift);
+            // The cell's end, point per·q + r + 1.
+            let (r1, q1) = if r + 1 == per { (0, q + 1) } else { (r + 1, q) };
+            let pad = Phased::PAD as i64;
+            let inside = q >= -pad && q1 + 8 <= ph.points as i64 + pad;
+            (inside && _mm512_cmpeq_epi64_mask(cell, want) == 0xff).then_some((ph, (r, q), (r1, q1)))
         });
-        let (p0, p1, m0, m1) = match phased {
-            Some((ph, r, q)) => {
-                let load = |k: usize| {
-                    let run = ph.eight(r, k, q);
-                    // SAFETY: `run` holds eight f64 (`Phased::eight`'s slice).
+        let (p0, p1, m0, m1, read) = match phased {
+            Some((ph, (r, q), (r1, q1))) => {
+                let load = |r: usize, k: usize, q: i64| {
+                    let run = ph.run8(r, k, q);
+                    // SAFETY: `run` holds eight f64 (`Phased::run8`'s slice).
                     unsafe { _mm512_loadu_pd(run.as_ptr()) }
                 };
-                (load(0), load(1), load(2), load(3))
+                (load(r, 0, q), load(r1, 0, q1), load(r, 1, q), load(r1, 1, q1), Read::Phased)
             }
             None => {
                 // Lanes off the table read cell 0 (their values are not used).
@@ -418,6 +448,7 @@ impl TablePulse {
                         _mm512_i64gather_pd::<8>(next, values.as_ptr()),
                         _mm512_mul_pd(_mm512_i64gather_pd::<8>(cell, slopes.as_ptr()), set(self.step)),
                         _mm512_mul_pd(_mm512_i64gather_pd::<8>(next, slopes.as_ptr()), set(self.step)),
+                        Read::Gathered,
                     )
                 }
             }
@@ -446,8 +477,20 @@ impl TablePulse {
         for (o, (&v, &dv)) in chunk.iter_mut().zip(vs.iter().zip(&slopes_out)) {
             *o = (v, dv);
         }
-        phased.is_some()
+        read
     }
+}
+
+/// How [`TablePulse::grid_eight`] read the spline's inputs for its eight points.
+#[cfg(target_arch = "x86_64")]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Read {
+    /// As neighbours in the table's runs by phase.
+    Phased,
+    /// Gathered cell by cell.
+    Gathered,
+    /// Not at all: every point off the table.
+    Off,
 }
 
 impl TablePulse {
@@ -651,53 +694,112 @@ mod tests {
         }
     }
 
+    /// `fill_grid` of `t` from `t0` is `eval` at t0, t0 + 1, … bit for bit
+    /// (and so is the AVX-512 path called directly, where the CPU has it);
+    /// returns that path's (eights read by phase, eights gathered).
+    fn check_grid(t: &TablePulse, t0: f64, count: usize) -> (usize, usize) {
+        let same = |out: &[(f64, f64)], path: &str| {
+            for (i, &(v, dv)) in out.iter().enumerate() {
+                let (ve, dve) = t.eval(t0 + i as f64);
+                assert_eq!(
+                    (v.to_bits(), dv.to_bits()),
+                    (ve.to_bits(), dve.to_bits()),
+                    "{path}: n {} step {} first {} t0 {t0:e} point {i}",
+                    t.values.len(),
+                    t.step,
+                    t.first
+                );
+            }
+        };
+        let mut out = vec![(7.0, 7.0); count];
+        t.fill_grid(t0, &mut out);
+        same(&out, "fill_grid");
+        #[cfg(target_arch = "x86_64")]
+        if let Some(inv) = t.inv_step
+            && std::arch::is_x86_feature_detected!("avx512f")
+            && std::arch::is_x86_feature_detected!("avx512dq")
+            && std::arch::is_x86_feature_detected!("avx512vl")
+            && std::arch::is_x86_feature_detected!("avx2")
+            && std::arch::is_x86_feature_detected!("fma")
+        {
+            let mut out = vec![(7.0, 7.0); count];
+            // SAFETY: the CPU has the features (checked just above).
+            let reads = unsafe { t.fill_grid_avx512(t0, inv, &mut out) };
+            same(&out, "fill_grid_avx512");
+            return reads;
+        }
+        (0, 0)
+    }
+
     #[test]
     fn a_table_on_the_grid_is_its_spline_bit_for_bit() {
-        let values: Vec<f64> = (0..333).map(|i| (-(i as f64 - 100.0).powi(2) / 900.0).exp() * (1.0 + 0.01 * (i as f64 * 0.7).sin())).collect();
-        let mut rng = 0x2545_f491_4f6c_dd1du64;
-        let mut uniform = move || {
-            rng ^= rng << 13;
-            rng ^= rng >> 7;
-            rng ^= rng << 17;
-            (rng >> 11) as f64 / (1u64 << 53) as f64
-        };
-        // Steps of 1/64 … 2 samples (by phase from 1/64 to 1, gathered
-        // beyond), and one not a power of two.
-        for step in [0.015625, 0.125, 0.25, 0.5, 1.0, 2.0, 0.3] {
-            let t = TablePulse::new(values.clone(), step, -12.5);
-            let span = 332.0 * step;
-            // Fixed starts (on and off the table, at its edges, tiny, NaN)
-            // and random ones over the table and a window either side.
-            let mut starts = vec![-80.37, -13.0, -12.5, -12.51, -3.5, -0.25, 0.0, 2.9, 1e-17, 28.9, 40.0, 1e300, -1e300, f64::NAN];
-            starts.extend((0..300).map(|_| -12.5 - 70.0 + (span + 140.0) * uniform()));
-            let mut phased = 0;
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0x7ab1e);
+        // Steps of 1/128 … 4 samples: by phase from 1/64 to 1, gathered
+        // beyond, and 0.3 (no power of two: the scalar spline).
+        let steps = [0.0078125, 0.015625, 0.03125, 0.0625, 0.125, 0.25, 0.5, 1.0, 2.0, 4.0, 0.3];
+        let (mut by_phase, mut gathered_on_phased, mut phased_tables) = (0, 0, 0);
+        for table in 0..440 {
+            let step = steps[table % steps.len()];
+            let n = if table % 7 == 0 { rng.random_range(4..8usize) } else { rng.random_range(4..=400usize) };
+            let kind = rng.random_range(0..3);
+            let values: Vec<f64> = (0..n)
+                .map(|i| match kind {
+                    0 => rng.random_range(-1.0..1.0),
+                    // Zero tails, negative zeros in the leading one.
+                    1 if i < n / 4 => -0.0,
+                    1 if i > 3 * n / 4 => 0.0,
+                    1 => (i as f64 * 0.37).sin(),
+                    _ => (-(i as f64 - n as f64 / 2.0).powi(2) / n as f64).exp() + 1e-3 * rng.random_range(-1.0..1.0),
+                })
+                .collect();
+            // Whole, fractional, non-dyadic near 1000 and near 2⁴⁰ (where
+            // t0 + k rounds), and far out.
+            let first = match rng.random_range(0..5) {
+                0 => -(rng.random_range(0..50) as f64),
+                1 => rng.random_range(-50.0..0.0),
+                2 => 1000.0 + rng.random_range(-3.0..3.0f64).round() * 0.1,
+                3 => (1u64 << 40) as f64 + rng.random_range(0..8) as f64 * 0.0625,
+                _ => rng.random_range(-1e6..1e6),
+            };
+            let t = TablePulse::new(values, step, first);
+            let span = (n - 1) as f64 * step;
+            let mut starts = vec![f64::NAN, f64::INFINITY, f64::NEG_INFINITY, 1e300, -1e300, 0.0, first, first - 8.0, first + span, first + span - 8.0];
+            for _ in 0..40 {
+                let base = match rng.random_range(0..4) {
+                    0 => first - 110.0 + (span + 120.0) * rng.random::<f64>(),
+                    1 => first - rng.random_range(0..110) as f64,
+                    2 => first + span - rng.random_range(0..110) as f64 + rng.random_range(-4.0..4.0f64).round() * step,
+                    // On a cell boundary.
+                    _ => first + rng.random_range(0..n) as f64 * step - rng.random_range(0..100) as f64,
+                };
+                // An ulp or two either side.
+                let nudge = rng.random_range(-2..=2i64);
+                starts.push((0..nudge.abs()).fold(base, |x, _| if nudge > 0 { x.next_up() } else { x.next_down() }));
+            }
             for &t0 in &starts {
-                for count in [0, 3, 8, 13, 61, 150] {
-                    let mut out = vec![(7.0, 7.0); count];
-                    t.fill_grid(t0, &mut out);
-                    for (i, &(v, dv)) in out.iter().enumerate() {
-                        let (ve, dve) = t.eval(t0 + i as f64);
-                        assert_eq!((v.to_bits(), dv.to_bits()), (ve.to_bits(), dve.to_bits()), "step {step} t0 {t0} point {i}");
-                    }
-                    #[cfg(target_arch = "x86_64")]
-                    if let Some(inv) = t.inv_step
-                        && std::arch::is_x86_feature_detected!("avx512f")
-                        && std::arch::is_x86_feature_detected!("avx512dq")
-                        && std::arch::is_x86_feature_detected!("avx512vl")
-                        && std::arch::is_x86_feature_detected!("avx2")
-                        && std::arch::is_x86_feature_detected!("fma")
-                    {
-                        // SAFETY: the CPU has the features (checked just above).
-                        phased += unsafe { t.fill_grid_avx512(t0, inv, &mut out) };
-                    }
+                let (phase, gather) = check_grid(&t, t0, rng.random_range(0..=100));
+                if t.phased.is_some() {
+                    by_phase += phase;
+                    gathered_on_phased += gather;
+                } else {
+                    assert_eq!(phase, 0, "step {step}: no table by phase, none read by phase");
                 }
             }
-            // Where the CPU has AVX-512, the runs by phase were read where
-            // the table has them, and only there.
-            #[cfg(target_arch = "x86_64")]
-            if std::arch::is_x86_feature_detected!("avx512f") && std::arch::is_x86_feature_detected!("avx512dq") {
-                assert_eq!(phased > 100, t.phased.is_some(), "step {step}: {phased} eights read by phase");
-            }
+            phased_tables += usize::from(t.phased.is_some());
+        }
+        // t0 + k rounding across a cell boundary at 1000 (one step a sample):
+        // the cells are not one phase apart, and the inputs are gathered.
+        let t = TablePulse::new((0..64).map(|i| (i as f64 * 0.2).cos()).collect(), 1.0, 1000.0);
+        let (_, gather) = check_grid(&t, 1000f64.next_down(), 48);
+        // The sign of zero where u is −0 (t just below a subnormal `first`).
+        check_grid(&TablePulse::new(vec![-0.0, -0.0, 0.0, 0.0, 0.0], 2.0, 5e-324), 0.0, 3);
+        check_grid(&TablePulse::new(vec![-0.0, -0.0, 0.0, 0.0, 0.0], 0.5, 5e-324), 0.0, 9);
+        // Where the CPU has AVX-512, both ways were taken (none elsewhere).
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx512f") && std::arch::is_x86_feature_detected!("avx512dq") && std::arch::is_x86_feature_detected!("avx512vl") && std::arch::is_x86_feature_detected!("fma") {
+            assert!(phased_tables > 100 && by_phase > 10_000, "{phased_tables} tables by phase, {by_phase} eights read so");
+            assert!(gathered_on_phased > 0 && gather > 0, "the gather where the cells are not one phase apart: {gathered_on_phased}, {gather}");
         }
     }
 

@@ -15,9 +15,14 @@
 //! cloned before the clock starts), the same after the first 256 frames of
 //! each pass (start-up off the clock) where there are more than 512, and,
 //! with `PROFILE_STAGES=1`, each stage's µs/frame from the threaded
-//! engine's pilot (frames 200-400, one thread).
+//! engine's pilot (frames 200-400, one thread). With `PROFILE_THREADS=N`
+//! it instead runs the frames once through the threaded engine on N threads,
+//! as `tofwave bench --threads` runs its offline arms, and prints wall
+//! µs/frame and allocations/frame (whole process) after the pilot.
 
 
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use tofwave::bench::{reference_frames, reference_scene};
 use tofwave::frame::Frame;
 use tofwave::physics::Simulator;
@@ -82,6 +87,10 @@ fn main() {
         "scene" => scene.timing.method,
         other => panic!("unknown method {other}"),
     };
+    if let Some(n) = std::env::var_os("PROFILE_THREADS") {
+        threads_probe(&scene, &frames, n.to_str().and_then(|n| n.parse().ok()).expect("PROFILE_THREADS=N"));
+        return;
+    }
     // Start-up (error tables, cached per process) is not a frame's cost.
     let mut warm = Pipeline::new(&scene, "bench");
     let mut out = Vec::new();
@@ -191,4 +200,57 @@ fn fma_rate() -> f64 {
         best = best.max((ITER * 64) as f64 / s);
     }
     best
+}
+
+/// Counts every allocation of this process (all threads), for
+/// `PROFILE_THREADS`' allocations per frame.
+struct Counting;
+
+static ALLOCATIONS: AtomicU64 = AtomicU64::new(0);
+
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        ALLOCATIONS.fetch_add(1, Relaxed);
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        unsafe { System.dealloc(ptr, layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        ALLOCATIONS.fetch_add(1, Relaxed);
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+/// `threaded::run` on `threads` threads as `tofwave bench --threads` runs
+/// its offline arms (frames cloned as they go in, each report's JSON
+/// rendered): wall µs/frame from the outcome of frame
+/// `threaded::PILOT_FRAMES` on, and the allocations per frame over the same
+/// span, whole process (the frame's clone and the JSON included).
+fn threads_probe(scene: &Scene, frames: &[Frame], threads: usize) {
+    let skip = tofwave::pipeline::threaded::PILOT_FRAMES;
+    assert!(frames.len() > 2 * skip, "PROFILE_THREADS wants more than {} frames", 2 * skip);
+    let (mut first, mut last, mut seen) = (None, None, 0usize);
+    let cut = tofwave::pipeline::threaded::run(scene, "bench", threads, frames.iter().cloned(), |o| {
+        for r in &o.reports {
+            std::hint::black_box(tofwave::pipeline::report_json(r));
+        }
+        seen += 1;
+        if seen == skip {
+            first = Some(std::time::Instant::now());
+            ALLOCATIONS.store(0, Relaxed);
+        }
+        last = Some(std::time::Instant::now());
+    });
+    let allocations = ALLOCATIONS.load(Relaxed) as f64;
+    let (Some(a), Some(b)) = (first, last) else { return };
+    let counted = (seen - skip) as f64;
+    println!(
+        "{threads} threads: {:.1} us/frame wall after the first {skip}, {:.2} allocations/frame; cut {cut}",
+        b.duration_since(a).as_secs_f64() / counted * 1e6,
+        allocations / counted
+    );
 }

@@ -725,7 +725,7 @@ fn read_inputs(c: &SceneInput) -> Result<Vec<tofwave::frame::Frame>> {
 /// machine's cores for 1000 frames or more, else 1), handing `each` every
 /// report in order as its frame finishes; returns the number of refused
 /// frames. `progress`: a progress bar (on stderr) for long runs.
-fn run(scene: &Scene, c: &SceneInput, threads: Option<u32>, progress: bool, mut each: impl FnMut(Report)) -> Result<usize> {
+fn run(scene: &Scene, c: &SceneInput, threads: Option<u32>, progress: bool, mut each: impl FnMut(&Report)) -> Result<usize> {
     let frames = read_inputs(c)?;
     if frames.is_empty() {
         bail!("no frames in {}", c.input.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(", "));
@@ -746,8 +746,8 @@ fn run(scene: &Scene, c: &SceneInput, threads: Option<u32>, progress: bool, mut 
     );
     let mut refused = 0;
     tofwave::pipeline::threaded::run(scene, &c.sensor, threads, frames, |o| {
-        o.reports.into_iter().for_each(&mut each);
-        if let Err(e) = o.result {
+        o.reports.iter().for_each(&mut each);
+        if let Err(e) = &o.result {
             refused += 1;
             bar.suspend(|| eprintln!("refused: {e}"));
         } else if let Some(m) = &o.panic {
@@ -797,7 +797,7 @@ fn process(a: ProcessArgs) -> Result<i32> {
                 Err(e) => return failed = Some(e),
             },
         };
-        if let Err(e) = writeln!(w, "{}", report_json(&r)) {
+        if let Err(e) = writeln!(w, "{}", report_json(r)) {
             failed = Some(cannot_write(e));
         }
     })?;
@@ -827,7 +827,7 @@ fn calibrate(a: CalibrateArgs) -> Result<i32> {
     }
     scene.calibration = tofwave::scene::CalibrationConfig::default();
     let mut reports = Vec::new();
-    let refused = run(&scene, &a.common, None, true, |r| reports.push(r))?;
+    let refused = run(&scene, &a.common, None, true, |r| reports.push(r.clone()))?;
     let no_start = reports
         .iter()
         .filter(|r| r.flags.iter().any(|f| f.name() == "no_start_channel"))

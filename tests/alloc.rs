@@ -15,6 +15,7 @@ use std::path::PathBuf;
 use tofwave::capture::{read_paths, ReadOptions};
 use tofwave::frame::Frame;
 use tofwave::physics::Simulator;
+use tofwave::pipeline::threaded::{Outcome, Staged};
 use tofwave::pipeline::{Observer, Pipeline};
 use tofwave::scene::Scene;
 
@@ -188,6 +189,41 @@ fn default_scene_on_its_simulated_frames_allocates_nothing_per_frame() {
     let scene = Scene::default_scene();
     let frames = simulated(&scene, 200);
     assert_counts(&[("default scene", steady_state_allocations(&scene, &frames), 0)]);
+}
+
+/// `process --threads 1`'s engine: the staged pipeline on the calling
+/// thread, each outcome's reports handed back with `Staged::recycle`.
+#[test]
+fn staged_pipeline_on_one_thread_with_outcomes_recycled_allocates_nothing_per_frame() {
+    let scene = Scene::default_scene();
+    let frames = simulated(&scene, 64);
+    let mut staged = Staged::new(&scene, "alloc", 1);
+    let mut out: Vec<Outcome> = Vec::with_capacity(8);
+    let mut reports = 0;
+    // Frames are the caller's: made before counting.
+    let batch: Vec<Frame> = (0..WARM + COUNTED)
+        .map(|i| {
+            let mut f = frames[i % frames.len()].clone();
+            f.sequence = i as u64;
+            f
+        })
+        .collect();
+    for (i, f) in batch.into_iter().enumerate() {
+        if i == WARM {
+            COUNT.with(|c| c.set(0));
+            ON.with(|on| on.set(true));
+        }
+        staged.push(f, &mut out);
+        for o in out.drain(..) {
+            assert!(o.result.is_ok() && o.panic.is_none(), "frame {i} accepted");
+            reports += o.reports.len();
+            staged.recycle(o.reports);
+        }
+    }
+    ON.with(|on| on.set(false));
+    assert!(reports > 0, "the frames gave reports");
+    let count = COUNT.with(|c| c.get());
+    assert_counts(&[("staged, one thread", count, 0)]);
 }
 
 /// Maximum-likelihood timing resolves the lab scene's five returns jointly

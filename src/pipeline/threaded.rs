@@ -115,21 +115,25 @@ impl std::fmt::Display for Cut {
 /// calls `each` with every frame's outcome, in frame order, then once more
 /// with the reports the final flush completes. The reports are those of
 /// [`Pipeline::push`] + [`Pipeline::flush`], bit for bit. `threads` ≤ 1 runs
-/// on the calling thread.
+/// on the calling thread. Each outcome's reports are lent to `each`, then
+/// reused ([`Staged::recycle`]): a report to keep is cloned.
 pub fn run<I, F>(scene: &Scene, sensor: &str, threads: usize, frames: I, mut each: F) -> Cut
 where
     I: IntoIterator<Item = Frame>,
-    F: FnMut(Outcome),
+    F: FnMut(&Outcome),
 {
     let mut staged = Staged::new(scene, sensor, threads);
     let mut out = Vec::new();
     for frame in frames {
         staged.push(frame, &mut out);
-        out.drain(..).for_each(&mut each);
+        for o in out.drain(..) {
+            each(&o);
+            staged.recycle(o.reports);
+        }
     }
     let flushed = staged.finish(&mut out);
-    out.drain(..).for_each(&mut each);
-    each(flushed);
+    out.iter().for_each(&mut each);
+    each(&flushed);
     staged.cut()
 }
 
@@ -168,8 +172,9 @@ impl std::fmt::Debug for Staged {
 }
 
 enum Mode {
-    /// On the calling thread: `seen` frames so far, the pilot's step times.
-    Local { pipeline: Box<Pipeline>, seen: usize, costs: Vec<f64> },
+    /// On the calling thread: `seen` frames so far, the pilot's step times,
+    /// and emptied report lists handed back by [`Staged::recycle`].
+    Local { pipeline: Box<Pipeline>, seen: usize, costs: Vec<f64>, lists: Vec<Vec<Report>> },
     /// The segments on their threads.
     Split(Pool),
     /// Finished.
@@ -193,8 +198,16 @@ struct Pool {
     in_flight: usize,
     /// What the stages' final flushes completed.
     flushed: Vec<Report>,
+    /// Reports and emptied report lists handed back by [`Staged::recycle`]:
+    /// the next outcomes' lists, and their reports' storage (a report goes
+    /// back to the head in its unit and is filled again there).
+    spare_reports: Vec<Report>,
+    lists: Vec<Vec<Report>>,
     handles: Vec<std::thread::JoinHandle<()>>,
 }
+
+/// Most reports, and most report lists, [`Staged::recycle`] keeps.
+const RECYCLED: usize = 2 * RING_IN_FLIGHT;
 
 impl Staged {
     /// A pipeline for `scene` on up to `threads` threads (≤ 1: the calling thread only).
@@ -206,7 +219,7 @@ impl Staged {
             scene: scene.clone(),
             sensor: sensor.to_string(),
             threads: threads.clamp(1, costs.len()),
-            mode: Mode::Local { pipeline, seen: 0, costs },
+            mode: Mode::Local { pipeline, seen: 0, costs, lists: Vec::new() },
             observer: None,
             last_noise: None,
             names,
@@ -259,17 +272,39 @@ impl Staged {
         }
     }
 
+    /// Takes back an outcome's reports (its list and the reports in it,
+    /// once read) so that later outcomes reuse their storage instead of
+    /// allocating, as [`Pipeline::recycle`] does for a pipeline.
+    pub fn recycle(&mut self, mut reports: Vec<Report>) {
+        let lists = match &mut self.mode {
+            Mode::Local { pipeline, lists, .. } => {
+                pipeline.recycle(&mut reports);
+                lists
+            }
+            Mode::Split(pool) => {
+                let room = RECYCLED.saturating_sub(pool.spare_reports.len());
+                pool.spare_reports.extend(reports.drain(..).take(room));
+                reports.clear();
+                &mut pool.lists
+            }
+            Mode::Done => return,
+        };
+        if lists.len() < RECYCLED {
+            lists.push(reports);
+        }
+    }
+
     /// Processes `frame`; appends the outcomes that are ready (this frame's
     /// and earlier ones', in order) to `out`.
     pub fn push(&mut self, frame: Frame, out: &mut Vec<Outcome>) {
         match &mut self.mode {
-            Mode::Local { pipeline, seen, costs } => {
+            Mode::Local { pipeline, seen, costs, lists } => {
                 let timed = self.threads > 1 && *seen >= PILOT_WARMUP;
                 let run = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
                     if self.threads > 1 {
                         push_timed(pipeline, frame, timed.then_some(costs.as_mut_slice()))
                     } else {
-                        let mut reports = Vec::new();
+                        let mut reports = lists.pop().unwrap_or_default();
                         let result = pipeline.push(frame, &mut reports);
                         (reports, result)
                     }
@@ -366,7 +401,7 @@ impl Staged {
 
     /// Cuts the stages by the pilot's times and starts their threads.
     fn split(&mut self) {
-        let Mode::Local { pipeline, costs, .. } = std::mem::replace(&mut self.mode, Mode::Done) else {
+        let Mode::Local { pipeline, costs, lists, .. } = std::mem::replace(&mut self.mode, Mode::Done) else {
             return;
         };
         let mut pipeline = *pipeline;
@@ -429,6 +464,8 @@ impl Staged {
                 back: Vec::new(),
                 in_flight: 0,
                 flushed: Vec::new(),
+                spare_reports: std::mem::take(&mut pipeline.spare_reports),
+                lists,
                 handles: vec![head.expect("spawning a pipeline thread"), mid.expect("spawning a pipeline thread")],
             });
             return;
@@ -473,6 +510,8 @@ impl Staged {
             back: Vec::new(),
             in_flight: 0,
             flushed: Vec::new(),
+            spare_reports: std::mem::take(&mut pipeline.spare_reports),
+            lists,
             handles,
         });
     }
@@ -577,13 +616,14 @@ impl Pool {
     fn take(&mut self, msgs: Vec<Msg>, observer: &mut Option<Observer>, noise: &mut Option<NoiseSummary>, out: &mut Vec<Outcome>) {
         for msg in msgs {
             let Msg::Push(inflight) = msg else { continue };
-            let mut reports = Vec::with_capacity(inflight.units.len());
-            for w in inflight.units {
+            let mut reports = self.lists.pop().unwrap_or_default();
+            for mut w in inflight.units {
                 if let Some(f) = observer {
                     f(&w);
                 }
                 *noise = Some(w.report.noise);
-                reports.push(finish(w, &mut self.back));
+                reports.push(std::mem::replace(&mut w.report, self.spare_reports.pop().unwrap_or_default()));
+                retire(&mut self.back, w);
             }
             self.back.drain(..).for_each(|w| drop(self.spare_tx.send(w)));
             if inflight.flush {
@@ -884,13 +924,6 @@ pub fn panic_message(panic: &(dyn std::any::Any + Send)) -> String {
     } else {
         "panic with a non-text payload".to_string()
     }
-}
-
-/// A finished unit's report; the unit goes to `spare` for reuse.
-fn finish(mut w: Unit, spare: &mut Vec<Unit>) -> Report {
-    let report = std::mem::take(&mut w.report);
-    retire(spare, w);
-    report
 }
 
 /// The ring on two threads is chosen only where its pace (its busier

@@ -23,7 +23,7 @@ fn run(scene: &Scene, frames: &[Frame], threads: usize) -> (Vec<String>, threade
     let mut lines = Vec::new();
     let cut = threaded::run(scene, "t", threads, frames.to_vec(), |o| {
         lines.extend(o.reports.iter().map(report_json));
-        if let Err(e) = o.result {
+        if let Err(e) = &o.result {
             lines.push(format!("refused: {e}"));
         }
         lines.push("--".into());

@@ -307,18 +307,47 @@ pub struct Timing {
 /// model; then each with all the others' models taken off, samples and
 /// detector output alike. Pulses alone in their supports are timed on the
 /// samples as they are.
+///
+/// The models are taken off the unit's own samples and detector output, in
+/// place; what they touch is kept first (`orig_x`, `orig_y`, valid over
+/// `kept_x`, `kept_y`) and put back when the frame's pulses are timed, so
+/// only the span the pulses cover is copied, not the whole record.
 #[derive(Debug, Default)]
 struct Neighbours {
-    /// The samples less the models of the pulses taken off.
-    x: Vec<f64>,
-    /// The detector output, refreshed near a peak with the same models off.
-    y: Vec<f64>,
+    /// The samples as they came, over `kept_x` (indices into the record).
+    orig_x: Vec<f64>,
+    kept_x: std::ops::Range<usize>,
+    /// The detector output as it came, over `kept_y`.
+    orig_y: Vec<f64>,
+    kept_y: std::ops::Range<usize>,
     /// Detections (their positions in the detection list) in time order.
     order: Vec<usize>,
     /// Each detection's model: (peak index, amplitude), in detection order.
     models: Vec<(f64, f64)>,
-    /// Scratch of `refresh`: x − self.x around a peak, for every tap.
+    /// Scratch of `refresh`: the models' share of the samples around a peak, for every tap.
     share: Vec<f64>,
+}
+
+/// Keeps `buf[r]` in `orig` before it is changed: `kept` grows to cover `r`
+/// (and any gap between), copying what it newly covers, which nothing has
+/// changed yet.
+fn keep(orig: &mut [f64], kept: &mut std::ops::Range<usize>, buf: &[f64], r: std::ops::Range<usize>) {
+    if r.start >= r.end {
+        return;
+    }
+    if kept.start >= kept.end {
+        orig[r.clone()].copy_from_slice(&buf[r.clone()]);
+        *kept = r;
+        return;
+    }
+    if r.start < kept.start {
+        orig[r.start..kept.start].copy_from_slice(&buf[r.start..kept.start]);
+        kept.start = r.start;
+    }
+    if r.end > kept.end {
+        orig[kept.end..r.end].copy_from_slice(&buf[kept.end..r.end]);
+        kept.end = r.end;
+    }
 }
 
 /// Samples each side of a peak whose detector output is refreshed: the
@@ -327,24 +356,44 @@ struct Neighbours {
 const REFRESH: usize = 3;
 
 impl Neighbours {
-    /// Adds `sign` × the model (peak index, amplitude) to the samples.
-    fn add(&mut self, pulse: &Shape, (peak_index, amplitude_v): (f64, f64), sign: f64) {
-        let (lo, hi) = pulse.support();
-        let n = self.x.len();
-        let first = (peak_index + lo).ceil().max(0.0) as usize;
-        let last = ((peak_index + hi).floor().max(-1.0) + 1.0).min(n as f64) as usize;
-        pulse.add_scaled(peak_index, first..last.max(first), sign * amplitude_v, &mut self.x);
+    /// Starts a frame of `n` samples: nothing kept yet (the storage for a
+    /// whole record is grown once, never per frame).
+    fn begin(&mut self, n: usize) {
+        for orig in [&mut self.orig_x, &mut self.orig_y] {
+            if orig.len() < n {
+                orig.resize(n, 0.0);
+            }
+        }
+        (self.kept_x, self.kept_y) = (0..0, 0..0);
     }
 
-    /// Refreshes the detector output near `p` from the samples as they now
-    /// are (`x` the original samples, `y` the original output, `taps` the
+    /// Puts back the samples and detector output the models changed.
+    fn restore(&self, x: &mut [f64], y: &mut [f64]) {
+        x[self.kept_x.clone()].copy_from_slice(&self.orig_x[self.kept_x.clone()]);
+        y[self.kept_y.clone()].copy_from_slice(&self.orig_y[self.kept_y.clone()]);
+    }
+
+    /// Adds `sign` × the model (peak index, amplitude) to the samples `x`.
+    fn add(&mut self, pulse: &Shape, (peak_index, amplitude_v): (f64, f64), sign: f64, x: &mut [f64]) {
+        let (lo, hi) = pulse.support();
+        let n = x.len();
+        let first = (peak_index + lo).ceil().max(0.0) as usize;
+        let last = ((peak_index + hi).floor().max(-1.0) + 1.0).min(n as f64) as usize;
+        // What `add_scaled` writes: the range, clipped to the record.
+        let end = last.max(first).min(n);
+        keep(&mut self.orig_x, &mut self.kept_x, x, first.min(end)..end);
+        pulse.add_scaled(peak_index, first..last.max(first), sign * amplitude_v, x);
+    }
+
+    /// Refreshes the detector output `y` near `p` from the samples `x` as
+    /// they now are (the models taken off since `begin`; `taps` the
     /// detector's unit-energy taps and peak tap); returns the output's local
     /// maximum within two samples of `p`.
-    fn refresh(&mut self, x: &[f64], y: &[f64], (taps, peak_tap): (&[f64], usize), p: usize) -> usize {
-        let n = self.x.len();
+    fn refresh(&mut self, x: &[f64], y: &mut [f64], (taps, peak_tap): (&[f64], usize), p: usize) -> usize {
+        let n = x.len();
         let (a, b) = (p.saturating_sub(REFRESH), (p + REFRESH + 1).min(n));
         // Output k is Σ_t taps[t]·(x[k − peak_tap + t] − mean): the models
-        // taken off change it by their share, x − self.x, summed over t in
+        // taken off change it by their share, original x − x, summed over t in
         // order. The outputs' sums run side by side (lanes), on the share
         // with zeros where k − peak_tap + t falls off the record (with the
         // taps finite, a zero term leaves a sum as it is: each starts at +0,
@@ -352,8 +401,18 @@ impl Neighbours {
         const LANES: usize = 2 * REFRESH + 1;
         let lo = a as isize - peak_tap as isize;
         let hi = lo + (LANES + taps.len()) as isize;
+        // In the record: [r0, r1); of it, what the models touched: [k0, k1).
+        let (r0, r1) = (lo.clamp(0, n as isize) as usize, hi.clamp(0, n as isize) as usize);
+        let (k0, k1) = (self.kept_x.start.clamp(r0, r1), self.kept_x.end.clamp(r0, r1));
+        let orig = &self.orig_x;
         self.share.clear();
-        self.share.extend((lo..hi).map(|j| if j >= 0 && (j as usize) < n { x[j as usize] - self.x[j as usize] } else { 0.0 }));
+        self.share.resize((r0 as isize - lo).clamp(0, hi - lo) as usize, 0.0);
+        // Untouched samples have no share (x − x, as the copy this replaces
+        // gave: +0, or NaN where a sample is not finite).
+        self.share.extend(x[r0..k0].iter().map(|v| v - v));
+        self.share.extend(orig[k0..k1].iter().zip(&x[k0..k1]).map(|(o, v)| o - v));
+        self.share.extend(x[k1..r1].iter().map(|v| v - v));
+        self.share.resize((hi - lo) as usize, 0.0);
         let mut d = [0.0f64; LANES];
         for (t, &h) in taps.iter().enumerate() {
             let share: &[f64; LANES] = self.share[t..t + LANES].try_into().expect("share covers every lane");
@@ -362,11 +421,12 @@ impl Neighbours {
             }
         }
         // (Lanes past b, at the record's end, are not outputs.)
+        keep(&mut self.orig_y, &mut self.kept_y, y, a..b);
         for (l, k) in (a..b).enumerate() {
-            self.y[k] = y[k] - d[l];
+            y[k] = self.orig_y[k] - d[l];
         }
         let (a, b) = (p.saturating_sub(REFRESH - 1), (p + REFRESH).min(n));
-        (a..b).fold(p, |best, k| if self.y[k] > self.y[best] { k } else { best })
+        (a..b).fold(p, |best, k| if y[k] > y[best] { k } else { best })
     }
 }
 
@@ -452,8 +512,7 @@ impl Stage for Timing {
         }
         let (_, pulse, norm) = self.pulse.as_ref().expect("set above");
         let (pulse, norm) = (pulse, *norm);
-        let x = &w.buffers.stop_v;
-        let n = x.len();
+        let n = w.buffers.stop_v.len();
         let (lo, hi) = pulse.support();
         let fwhm = pulse.fwhm();
         // The shape's error as learned before this frame: a frame's pulses
@@ -503,10 +562,12 @@ impl Stage for Timing {
             let (errors, fallback_errors) =
                 self.errors.get_or_insert_with(|| ErrorTable::get_with_fallback(self.method, pulse, self.fraction, self.matched));
             let dets = &w.buffers.detections[..w.buffers.detections.len().min(MAX_RETURNS)];
-            let y = &w.buffers.detector_output;
+            // The samples and detector output: crowded pulses' models are
+            // taken off them in place, and put back after.
+            let (x, y) = (&mut w.buffers.stop_v, &mut w.buffers.detector_output);
             let (method, fraction, leading_edge_v) = (self.method, self.fraction, self.leading_edge_v);
             let (mean_v, sigma_v) = (w.noise.summary.mean_v, w.noise.raw_sigma_v);
-            let base = TimingInput { x, mean_v, sigma_v, y, norm, pulse, peak: 0, fraction, leading_edge_v };
+            let base = TimingInput { x: &[], mean_v, sigma_v, y: &[], norm, pulse, peak: 0, fraction, leading_edge_v };
             // The method, then its measured bias and width at the SNR it
             // measured (a failed crossing falls back to the parabolic peak's table).
             let time = |input: &TimingInput| {
@@ -535,31 +596,28 @@ impl Stage for Timing {
                 }
             };
             if crowded {
-                nb.x.clear();
-                nb.x.extend_from_slice(x);
-                nb.y.clear();
-                nb.y.extend_from_slice(y);
+                nb.begin(n);
                 nb.models.clear();
                 nb.models.resize(dets.len(), (0.0, 0.0));
                 // Time order, the earlier pulses' models off: every pulse's model.
                 for k in 0..nb.order.len() {
                     let i = nb.order[k];
                     let peak = nb.refresh(x, y, taps, dets[i]);
-                    let model = model_of(&time(&TimingInput { x: &nb.x, y: &nb.y, peak, ..base }));
+                    let model = model_of(&time(&TimingInput { x: &x[..], y: &y[..], peak, ..base }));
                     nb.models[i] = model;
-                    nb.add(pulse, model, -1.0);
+                    nb.add(pulse, model, -1.0, x);
                 }
             }
             for (i, &p) in dets.iter().enumerate() {
                 // With neighbours: every other pulse's model off.
-                let (xs, ys, peak) = if crowded {
+                let peak = if crowded {
                     let model = nb.models[i];
-                    nb.add(pulse, model, 1.0);
-                    let peak = nb.refresh(x, y, taps, p);
-                    (&nb.x[..], &nb.y[..], peak)
+                    nb.add(pulse, model, 1.0, x);
+                    nb.refresh(x, y, taps, p)
                 } else {
-                    (&x[..], &y[..], p)
+                    p
                 };
+                let (xs, ys) = (&x[..], &y[..]);
                 let input = TimingInput { x: xs, y: ys, peak, ..base };
                 let mut t = time(&input);
                 // Two detector maxima on one pulse (a noisy double top) time
@@ -568,7 +626,7 @@ impl Stage for Timing {
                 if timed.iter().any(|o| (o.1.index - t.index).abs() < SAME_PULSE_SAMPLES) {
                     if crowded {
                         let model = nb.models[i];
-                        nb.add(pulse, model, -1.0);
+                        nb.add(pulse, model, -1.0, x);
                     }
                     continue;
                 }
@@ -608,10 +666,13 @@ impl Stage for Timing {
                 self.floor.update(fit.chi2, fit.dof(), sigma_v, t.amplitude_v, mismatched);
                 if crowded {
                     let model = nb.models[i];
-                    nb.add(pulse, model, -1.0);
+                    nb.add(pulse, model, -1.0, x);
                 }
                 let misfit = if mismatched { f64::INFINITY } else { 0.0 };
                 timed.push((p, t, misfit));
+            }
+            if crowded {
+                nb.restore(x, y);
             }
         }
         // The report's list keeps its capacity when the report is recycled.
@@ -643,7 +704,7 @@ impl Stage for Timing {
             if rails.is_some() {
                 let a = first.clamp(0.0, (n - 1) as f64) as usize;
                 let b = last.clamp(0.0, (n - 1) as f64) as usize;
-                if x[a..=b].iter().any(|&v| at_rail(rails, v)) {
+                if w.buffers.stop_v[a..=b].iter().any(|&v| at_rail(rails, v)) {
                     flags.insert(ReturnFlag::Saturated);
                 }
             }
@@ -701,9 +762,12 @@ mod tests {
         let shape = Shape::Parametric(Pulse { sigma_rise: 0.25, sigma_fall: 1.0 });
         let (mut slope, mut acf) = (Vec::new(), Vec::new());
         assert_eq!(super::slope_colour_gain(&shape, 100, 102.0, &[1.0, 0.1], &mut slope, &mut acf), 1.0);
-        let mut nb = super::Neighbours { x: vec![0.0; 100], ..Default::default() };
-        nb.add(&shape, (102.0, 1.0), -1.0);
-        assert!(nb.x.iter().all(|&v| v == 0.0));
+        let mut nb = super::Neighbours::default();
+        nb.begin(100);
+        let mut x = vec![0.0; 100];
+        nb.add(&shape, (102.0, 1.0), -1.0, &mut x);
+        assert!(x.iter().all(|&v| v == 0.0));
+        assert!(nb.kept_x.is_empty());
     }
 
     #[test]
@@ -715,9 +779,17 @@ mod tests {
         let y: Vec<f64> = (0..n).map(|_| rng.random_range(-3.0..3.0)).collect();
         for (taps_len, peak_tap) in [(64usize, 20usize), (9, 0), (9, 8), (1, 0), (120, 119)] {
             let taps: Vec<f64> = (0..taps_len).map(|_| rng.random_range(-0.5..0.5)).collect();
-            let mut nb = super::Neighbours { x: x.iter().map(|v| v - rng.random_range(-0.1..0.1)).collect(), y: vec![f64::NAN; n], ..Default::default() };
-            for p in [0usize, 1, 2, 3, 4, 150, n - 4, n - 3, n - 1] {
-                let peak = nb.refresh(&x, &y, (&taps, peak_tap), p);
+            // The models have changed the samples over `kept` (kept first);
+            // the output is refreshed in place, each time from its original.
+            let kept = 40..260;
+            let mut nb = super::Neighbours::default();
+            nb.begin(n);
+            nb.orig_x[kept.clone()].copy_from_slice(&x[kept.clone()]);
+            nb.kept_x = kept.clone();
+            let xm: Vec<f64> = (0..n).map(|j| if kept.contains(&j) { x[j] - rng.random_range(-0.1..0.1) } else { x[j] }).collect();
+            let mut yw = y.clone();
+            for p in [0usize, 1, 2, 3, 4, 150, 151, 149, n - 4, n - 3, n - 1] {
+                let peak = nb.refresh(&xm, &mut yw, (&taps, peak_tap), p);
                 // The outputs one by one, each a serial sum over the taps in
                 // the record (what the lanes must give).
                 for k in p.saturating_sub(super::REFRESH)..(p + super::REFRESH + 1).min(n) {
@@ -727,13 +799,58 @@ mod tests {
                         if j >= n {
                             break;
                         }
-                        d += h * (x[j] - nb.x[j]);
+                        d += h * (x[j] - xm[j]);
                     }
-                    assert_eq!(nb.y[k].to_bits(), (y[k] - d).to_bits(), "taps {taps_len} peak tap {peak_tap} p {p} k {k}");
+                    assert_eq!(yw[k].to_bits(), (y[k] - d).to_bits(), "taps {taps_len} peak tap {peak_tap} p {p} k {k}");
                 }
                 let (a, b) = (p.saturating_sub(super::REFRESH - 1), (p + super::REFRESH).min(n));
-                assert_eq!(peak, (a..b).fold(p, |best, k| if nb.y[k] > nb.y[best] { k } else { best }));
+                assert_eq!(peak, (a..b).fold(p, |best, k| if yw[k] > yw[best] { k } else { best }));
             }
+            // Put back: the output as it came, bit for bit.
+            let mut xr = xm.clone();
+            nb.restore(&mut xr, &mut yw);
+            assert!(yw.iter().zip(&y).all(|(a, b)| a.to_bits() == b.to_bits()));
+            assert!(xr.iter().zip(&x).all(|(a, b)| a.to_bits() == b.to_bits()));
+        }
+    }
+
+    /// Models taken off and put on in place, then restored, are the same
+    /// operations on the same numbers as on a copy of the record (what the
+    /// timing stage did before): the samples match the copy's bit for bit
+    /// after every step, and the record is as it came once restored, over
+    /// random models on, across and off the record's ends, several frames
+    /// in turn on the same scratch.
+    #[test]
+    fn models_off_in_place_match_a_copy_and_restore_the_record() {
+        use crate::dsp::pulse::{Pulse, Shape};
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let shape = Shape::Parametric(Pulse { sigma_rise: 1.2, sigma_fall: 2.5 });
+        let mut nb = super::Neighbours::default();
+        for frame in 0..40 {
+            let n = [300usize, 64, 300, 1000][frame % 4];
+            nb.begin(n);
+            let x: Vec<f64> = (0..n).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let y: Vec<f64> = (0..n).map(|_| rng.random_range(-3.0..3.0)).collect();
+            let (mut xw, mut yw) = (x.clone(), y.clone());
+            let mut copy = x.clone();
+            let taps: Vec<f64> = (0..9).map(|_| rng.random_range(-0.5..0.5)).collect();
+            for _ in 0..rng.random_range(1..12) {
+                let model = (rng.random_range(-20.0..n as f64 + 20.0), rng.random_range(0.1..2.0));
+                let sign = if rng.random_bool(0.5) { 1.0 } else { -1.0 };
+                nb.add(&shape, model, sign, &mut xw);
+                // The copy as the stage had it: the same clipped range.
+                let (lo, hi) = shape.support();
+                let first = (model.0 + lo).ceil().max(0.0) as usize;
+                let last = ((model.0 + hi).floor().max(-1.0) + 1.0).min(n as f64) as usize;
+                shape.add_scaled(model.0, first..last.max(first), sign * model.1, &mut copy);
+                assert!(xw.iter().zip(&copy).all(|(a, b)| a.to_bits() == b.to_bits()), "frame {frame}");
+                let p = rng.random_range(0..n);
+                nb.refresh(&xw, &mut yw, (&taps, 4), p);
+            }
+            nb.restore(&mut xw, &mut yw);
+            assert!(xw.iter().zip(&x).all(|(a, b)| a.to_bits() == b.to_bits()), "frame {frame}: samples restored");
+            assert!(yw.iter().zip(&y).all(|(a, b)| a.to_bits() == b.to_bits()), "frame {frame}: output restored");
         }
     }
 

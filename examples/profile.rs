@@ -233,8 +233,11 @@ static GLOBAL: Counting = Counting;
 fn threads_probe(scene: &Scene, frames: &[Frame], threads: usize) {
     let skip = tofwave::pipeline::threaded::PILOT_FRAMES;
     assert!(frames.len() > 2 * skip, "PROFILE_THREADS wants more than {} frames", 2 * skip);
-    let (mut first, mut last, mut seen) = (None, None, 0usize);
+    let (mut first, mut last, mut seen, mut allocations) = (None, None, 0usize, 0u64);
     let cut = tofwave::pipeline::threaded::run(scene, "bench", threads, frames.iter().cloned(), |o| {
+        if o.reports.is_empty() && seen == frames.len() {
+            return; // the final flush's outcome
+        }
         for r in &o.reports {
             std::hint::black_box(tofwave::pipeline::report_json(r));
         }
@@ -244,10 +247,10 @@ fn threads_probe(scene: &Scene, frames: &[Frame], threads: usize) {
             ALLOCATIONS.store(0, Relaxed);
         }
         last = Some(std::time::Instant::now());
+        allocations = ALLOCATIONS.load(Relaxed);
     });
-    let allocations = ALLOCATIONS.load(Relaxed) as f64;
     let (Some(a), Some(b)) = (first, last) else { return };
-    let counted = (seen - skip) as f64;
+    let (counted, allocations) = ((seen - skip) as f64, allocations as f64);
     println!(
         "{threads} threads: {:.1} us/frame wall after the first {skip}, {:.2} allocations/frame; cut {cut}",
         b.duration_since(a).as_secs_f64() / counted * 1e6,

@@ -206,7 +206,10 @@ struct Pool {
     handles: Vec<std::thread::JoinHandle<()>>,
 }
 
-/// Most reports, and most report lists, [`Staged::recycle`] keeps.
+/// Most reports, and most report lists, [`Staged::recycle`] keeps once the
+/// stages are on threads: twice the most frames the ring holds in flight
+/// (the chain's bounded queues hold fewer), so that a caller recycling
+/// every outcome is always given back as many as are in flight.
 const RECYCLED: usize = 2 * RING_IN_FLIGHT;
 
 impl Staged {
@@ -302,7 +305,7 @@ impl Staged {
                 let timed = self.threads > 1 && *seen >= PILOT_WARMUP;
                 let run = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
                     if self.threads > 1 {
-                        push_timed(pipeline, frame, timed.then_some(costs.as_mut_slice()))
+                        push_timed(pipeline, frame, timed.then_some(costs.as_mut_slice()), lists.pop().unwrap_or_default())
                     } else {
                         let mut reports = lists.pop().unwrap_or_default();
                         let result = pipeline.push(frame, &mut reports);
@@ -541,15 +544,22 @@ pub fn stage_times(scene: &Scene, frames: &[Frame], warmup: usize) -> Vec<(&'sta
     let mut timed = 0usize;
     for (i, f) in frames.iter().enumerate() {
         let on = i >= warmup;
-        let _ = push_timed(&mut pipeline, f.clone(), on.then_some(costs.as_mut_slice()));
+        let _ = push_timed(&mut pipeline, f.clone(), on.then_some(costs.as_mut_slice()), Vec::new());
         timed += on as usize;
     }
     names.into_iter().zip(costs).map(|(n, c)| (n, c / timed.max(1) as f64)).collect()
 }
 
 /// One frame through `pipeline` stage by stage, each stage's time added to
-/// `costs` (index 0 validate) when given.
-fn push_timed(pipeline: &mut Pipeline, frame: Frame, mut costs: Option<&mut [f64]>) -> (Vec<Report>, Result<(), FrameError>) {
+/// `costs` (index 0 validate) when given; its reports go to `reports` (a
+/// recycled list), each leaving a recycled report in its unit, as
+/// [`Pipeline::push`] does.
+fn push_timed(
+    pipeline: &mut Pipeline,
+    frame: Frame,
+    mut costs: Option<&mut [f64]>,
+    mut reports: Vec<Report>,
+) -> (Vec<Report>, Result<(), FrameError>) {
     let (mut units, mut leaving, mut retired) = (Vec::new(), Vec::new(), Vec::new());
     let t0 = Instant::now();
     let mut result = pipeline.validate.process(frame, &mut pipeline.spare, &mut units);
@@ -566,13 +576,12 @@ fn push_timed(pipeline: &mut Pipeline, frame: Frame, mut costs: Option<&mut [f64
         }
     }
     pipeline.spare.append(&mut retired);
-    let mut reports = Vec::with_capacity(units.len());
     for mut w in units.drain(..) {
         if let Some(f) = &mut pipeline.observer {
             f(&w);
         }
         pipeline.last_noise = Some(w.report.noise);
-        reports.push(std::mem::take(&mut w.report));
+        reports.push(std::mem::replace(&mut w.report, pipeline.spare_reports.pop().unwrap_or_default()));
         retire(&mut pipeline.spare, w);
     }
     (reports, result)
@@ -616,7 +625,7 @@ impl Pool {
     fn take(&mut self, msgs: Vec<Msg>, observer: &mut Option<Observer>, noise: &mut Option<NoiseSummary>, out: &mut Vec<Outcome>) {
         for msg in msgs {
             let Msg::Push(inflight) = msg else { continue };
-            let mut reports = self.lists.pop().unwrap_or_default();
+            let mut reports = self.lists.pop().unwrap_or_else(|| Vec::with_capacity(inflight.units.len()));
             for mut w in inflight.units {
                 if let Some(f) = observer {
                     f(&w);

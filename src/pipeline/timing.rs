@@ -389,6 +389,8 @@ impl Neighbours {
     /// they now are (the models taken off since `begin`; `taps` the
     /// detector's unit-energy taps and peak tap); returns the output's local
     /// maximum within two samples of `p`.
+    // `v - v` below is meant: an untouched sample's share, +0 (NaN where the sample is not finite).
+    #[allow(clippy::eq_op)]
     fn refresh(&mut self, x: &[f64], y: &mut [f64], (taps, peak_tap): (&[f64], usize), p: usize) -> usize {
         let n = x.len();
         let (a, b) = (p.saturating_sub(REFRESH), (p + REFRESH + 1).min(n));

@@ -230,12 +230,13 @@ impl Resolver {
             // started at the filter's interpolated peak, is inside its basin:
             // its fit needs no coarse scan (see `FitOptions::from_matched_peak`).
             let strong = y[p] >= strong_output;
+            // Tests: the scan forced on or off, and the fits without it counted.
             #[cfg(test)]
-            let strong = self.scan.map_or(strong, |scan| !scan);
-            #[cfg(test)]
-            {
+            let strong = {
+                let strong = self.scan.map_or(strong, |scan| !scan);
                 self.unscanned += usize::from(strong);
-            }
+                strong
+            };
             let mut c = self.fit(shape, start, p, sigma_v, &window, strong);
             if !(c.amplitude_v > 0.0) {
                 // Nothing fits here; take the detector's own estimate and move on.

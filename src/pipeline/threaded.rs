@@ -286,8 +286,8 @@ impl Staged {
             }
             Mode::Split(pool) => {
                 let room = RECYCLED.saturating_sub(pool.spare_reports.len());
+                // (What `take` leaves, the drain drops.)
                 pool.spare_reports.extend(reports.drain(..).take(room));
-                reports.clear();
                 &mut pool.lists
             }
             Mode::Done => return,

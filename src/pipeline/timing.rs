@@ -309,17 +309,15 @@ pub struct Timing {
 /// samples as they are.
 ///
 /// The models are taken off the unit's own samples and detector output, in
-/// place; what they touch is kept first (`orig_x`, `orig_y`, valid over
-/// `kept_x`, `kept_y`) and put back when the frame's pulses are timed, so
-/// only the span the pulses cover is copied, not the whole record.
+/// place; what they touch is kept first ([`Kept`]) and put back when the
+/// frame's pulses are timed, so only the span the pulses cover is copied,
+/// not the whole record.
 #[derive(Debug, Default)]
 struct Neighbours {
-    /// The samples as they came, over `kept_x` (indices into the record).
-    orig_x: Vec<f64>,
-    kept_x: std::ops::Range<usize>,
-    /// The detector output as it came, over `kept_y`.
-    orig_y: Vec<f64>,
-    kept_y: std::ops::Range<usize>,
+    /// The samples as they came, where the models changed them.
+    x: Kept,
+    /// The detector output as it came, where it was refreshed.
+    y: Kept,
     /// Detections (their positions in the detection list) in time order.
     order: Vec<usize>,
     /// Each detection's model: (peak index, amplitude), in detection order.
@@ -328,25 +326,51 @@ struct Neighbours {
     share: Vec<f64>,
 }
 
-/// Keeps `buf[r]` in `orig` before it is changed: `kept` grows to cover `r`
-/// (and any gap between), copying what it newly covers, which nothing has
-/// changed yet.
-fn keep(orig: &mut [f64], kept: &mut std::ops::Range<usize>, buf: &[f64], r: std::ops::Range<usize>) {
-    if r.start >= r.end {
-        return;
+/// A record's values as they came, over the one span (`span`, indices into
+/// the record) where they have been changed in place since [`Kept::begin`].
+#[derive(Debug, Default)]
+struct Kept {
+    /// As long as the record; valid over `span`.
+    orig: Vec<f64>,
+    span: std::ops::Range<usize>,
+}
+
+impl Kept {
+    /// Starts a record of `n` values: nothing kept yet (the storage is grown
+    /// once, never per frame).
+    fn begin(&mut self, n: usize) {
+        if self.orig.len() < n {
+            self.orig.resize(n, 0.0);
+        }
+        self.span = 0..0;
     }
-    if kept.start >= kept.end {
-        orig[r.clone()].copy_from_slice(&buf[r.clone()]);
-        *kept = r;
-        return;
+
+    /// Keeps `buf[r]` before it is changed: the span grows to cover `r`
+    /// (and any gap between), copying what it newly covers, which nothing
+    /// has changed yet.
+    fn keep(&mut self, buf: &[f64], r: std::ops::Range<usize>) {
+        let (orig, span) = (&mut self.orig, &mut self.span);
+        if r.start >= r.end {
+            return;
+        }
+        if span.start >= span.end {
+            orig[r.clone()].copy_from_slice(&buf[r.clone()]);
+            *span = r;
+            return;
+        }
+        if r.start < span.start {
+            orig[r.start..span.start].copy_from_slice(&buf[r.start..span.start]);
+            span.start = r.start;
+        }
+        if r.end > span.end {
+            orig[span.end..r.end].copy_from_slice(&buf[span.end..r.end]);
+            span.end = r.end;
+        }
     }
-    if r.start < kept.start {
-        orig[r.start..kept.start].copy_from_slice(&buf[r.start..kept.start]);
-        kept.start = r.start;
-    }
-    if r.end > kept.end {
-        orig[kept.end..r.end].copy_from_slice(&buf[kept.end..r.end]);
-        kept.end = r.end;
+
+    /// Puts the kept values back into `buf`.
+    fn restore(&self, buf: &mut [f64]) {
+        buf[self.span.clone()].copy_from_slice(&self.orig[self.span.clone()]);
     }
 }
 
@@ -359,18 +383,14 @@ impl Neighbours {
     /// Starts a frame of `n` samples: nothing kept yet (the storage for a
     /// whole record is grown once, never per frame).
     fn begin(&mut self, n: usize) {
-        for orig in [&mut self.orig_x, &mut self.orig_y] {
-            if orig.len() < n {
-                orig.resize(n, 0.0);
-            }
-        }
-        (self.kept_x, self.kept_y) = (0..0, 0..0);
+        self.x.begin(n);
+        self.y.begin(n);
     }
 
     /// Puts back the samples and detector output the models changed.
     fn restore(&self, x: &mut [f64], y: &mut [f64]) {
-        x[self.kept_x.clone()].copy_from_slice(&self.orig_x[self.kept_x.clone()]);
-        y[self.kept_y.clone()].copy_from_slice(&self.orig_y[self.kept_y.clone()]);
+        self.x.restore(x);
+        self.y.restore(y);
     }
 
     /// Adds `sign` × the model (peak index, amplitude) to the samples `x`.
@@ -381,7 +401,7 @@ impl Neighbours {
         let last = ((peak_index + hi).floor().max(-1.0) + 1.0).min(n as f64) as usize;
         // What `add_scaled` writes: the range, clipped to the record.
         let end = last.max(first).min(n);
-        keep(&mut self.orig_x, &mut self.kept_x, x, first.min(end)..end);
+        self.x.keep(x, first.min(end)..end);
         pulse.add_scaled(peak_index, first..last.max(first), sign * amplitude_v, x);
     }
 
@@ -405,8 +425,8 @@ impl Neighbours {
         let hi = lo + (LANES + taps.len()) as isize;
         // In the record: [r0, r1); of it, what the models touched: [k0, k1).
         let (r0, r1) = (lo.clamp(0, n as isize) as usize, hi.clamp(0, n as isize) as usize);
-        let (k0, k1) = (self.kept_x.start.clamp(r0, r1), self.kept_x.end.clamp(r0, r1));
-        let orig = &self.orig_x;
+        let (k0, k1) = (self.x.span.start.clamp(r0, r1), self.x.span.end.clamp(r0, r1));
+        let orig = &self.x.orig;
         self.share.clear();
         self.share.resize((r0 as isize - lo).clamp(0, hi - lo) as usize, 0.0);
         // Untouched samples have no share (x − x, as the copy this replaces
@@ -423,9 +443,9 @@ impl Neighbours {
             }
         }
         // (Lanes past b, at the record's end, are not outputs.)
-        keep(&mut self.orig_y, &mut self.kept_y, y, a..b);
+        self.y.keep(y, a..b);
         for (l, k) in (a..b).enumerate() {
-            y[k] = self.orig_y[k] - d[l];
+            y[k] = self.y.orig[k] - d[l];
         }
         let (a, b) = (p.saturating_sub(REFRESH - 1), (p + REFRESH).min(n));
         (a..b).fold(p, |best, k| if y[k] > y[best] { k } else { best })
@@ -769,7 +789,7 @@ mod tests {
         let mut x = vec![0.0; 100];
         nb.add(&shape, (102.0, 1.0), -1.0, &mut x);
         assert!(x.iter().all(|&v| v == 0.0));
-        assert!(nb.kept_x.is_empty());
+        assert!(nb.x.span.is_empty());
     }
 
     #[test]
@@ -786,8 +806,8 @@ mod tests {
             let kept = 40..260;
             let mut nb = super::Neighbours::default();
             nb.begin(n);
-            nb.orig_x[kept.clone()].copy_from_slice(&x[kept.clone()]);
-            nb.kept_x = kept.clone();
+            nb.x.orig[kept.clone()].copy_from_slice(&x[kept.clone()]);
+            nb.x.span = kept.clone();
             let xm: Vec<f64> = (0..n).map(|j| if kept.contains(&j) { x[j] - rng.random_range(-0.1..0.1) } else { x[j] }).collect();
             let mut yw = y.clone();
             for p in [0usize, 1, 2, 3, 4, 150, 151, 149, n - 4, n - 3, n - 1] {

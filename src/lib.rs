@@ -12,7 +12,7 @@
 
 /// Domain types: frames in, reports out. No wire types.
 pub mod frame;
-/// Numerics with no domain knowledge: special functions, an inlined exponential, statistics, dense solver, autocovariance, selection, robust sigma of quantised samples. Depends on std only.
+/// Numerics with no domain knowledge: special functions, an inlined exponential, statistics, dense solver, autocovariance, selection, robust sigma of quantised samples, exact statistics of integer codes. Depends on std only.
 pub mod math;
 /// Metric names and recording functions; tracing set-up.
 pub mod telemetry;

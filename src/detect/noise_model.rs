@@ -8,7 +8,8 @@
 
 use crate::frame::NoiseSummary;
 use crate::math::autocov::lag_product_sum;
-use crate::math::quantised::{grid_step_within, quantised_sigma_within};
+use crate::math::code_stats::{code_grid, code_min_max, code_power_sums, MAX_DISTANCE};
+use crate::math::quantised::{grid_step_within, quantised_sigma_codes, quantised_sigma_within};
 use crate::math::select::mad_sigma;
 use crate::math::sum;
 
@@ -65,6 +66,55 @@ impl Moments {
         let mean = sum::shifted_sum(x, shift) / n as f64;
         let (m2, m3, m4) = sum::central_power_sums(x, shift, mean);
         Moments { n: n as u64, shift, mean, m2, m3, m4 }
+    }
+
+    /// The moments of integer codes `parts` (`lo`, `hi` their least and
+    /// greatest) decoded as `c·g + o` volts, from their power sums about
+    /// the code midway between `lo` and `hi`, summed exactly in integers:
+    /// the central sums are formed exactly (times powers of n) and rounded
+    /// once, so each moment is within a few ulp of the exact moment of the
+    /// decoded values (the f64 passes of [`Moments::of`] round every
+    /// sample's deviation and power). `None` where that does not hold: a
+    /// span of more than 2·[`MAX_DISTANCE`] codes, sums beyond `i128`, a
+    /// scale `g` outside [1e-60, 1e60] (its fourth power must stay normal)
+    /// or an offset that is not finite; the caller decodes and uses
+    /// [`Moments::of`].
+    pub fn of_codes(parts: &[&[i16]], lo: i16, hi: i16, g: f64, o: f64) -> Option<Moments> {
+        let n: usize = parts.iter().map(|p| p.len()).sum();
+        if n == 0 || hi < lo || i32::from(hi) - i32::from(lo) > 2 * MAX_DISTANCE || !(g.abs() >= 1e-60 && g.abs() <= 1e60) || !o.is_finite() {
+            return None;
+        }
+        let centre = ((i32::from(lo) + i32::from(hi)) >> 1) as i16;
+        let [s1, s2, s3, s4] = code_power_sums(parts, centre);
+        let ni = n as i128;
+        // n·M2, n²·M3 and n³·M4 about the mean, in codes, exactly.
+        let exact = || -> Option<(i128, i128, i128)> {
+            let (n2, n3) = (ni.checked_mul(ni)?, ni.checked_mul(ni)?.checked_mul(ni)?);
+            let s1_2 = s1.checked_mul(s1)?;
+            let c2 = ni.checked_mul(s2)?.checked_sub(s1_2)?;
+            let c3 = n2
+                .checked_mul(s3)?
+                .checked_sub(ni.checked_mul(s1)?.checked_mul(s2)?.checked_mul(3)?)?
+                .checked_add(s1_2.checked_mul(s1)?.checked_mul(2)?)?;
+            let c4 = n3
+                .checked_mul(s4)?
+                .checked_sub(n2.checked_mul(s1)?.checked_mul(s3)?.checked_mul(4)?)?
+                .checked_add(ni.checked_mul(s1_2)?.checked_mul(s2)?.checked_mul(6)?)?
+                .checked_sub(s1_2.checked_mul(s1_2)?.checked_mul(3)?)?;
+            Some((c2, c3, c4))
+        };
+        let (c2, c3, c4) = exact()?;
+        let nf = n as f64;
+        let g2 = g * g;
+        Some(Moments {
+            n: n as u64,
+            // The centre code's volts, decoded as the channel decodes.
+            shift: f64::from(centre) * g + o,
+            mean: g * (s1 as f64 / nf),
+            m2: c2 as f64 / nf * g2,
+            m3: c3 as f64 / (nf * nf) * (g2 * g),
+            m4: c4 as f64 / (nf * nf * nf) * (g2 * g2),
+        })
     }
 
     /// Combines the moments of two disjoint sample sets (Chan et al. 1979 for
@@ -364,60 +414,44 @@ impl NoiseFitter {
         }
         let m = Moments::of(&self.scratch);
         self.moments = m;
-        let n = m.count();
-        if n == 0 {
-            return NoiseSummary {
-                mean_v: 0.0,
-                sigma_v: 0.0,
-                skewness: 0.0,
-                excess_kurtosis: 0.0,
-                gaussian: false,
-                normality_p_value: 0.0,
-                robust_sigma_v: 0.0,
-                samples: 0,
-                contaminated: false,
-            };
+        let robust = if m.count() == 0 { 0.0 } else { self.robust_sigma(m.variance().sqrt()) };
+        summary(&m, robust, normality_alpha)
+    }
+
+    /// [`NoiseFitter::fit`] on the volts of integer codes `parts` decoded as
+    /// `c·g + o` (`g > 0`), read as codes: the moments from exact integer
+    /// sums ([`Moments::of_codes`]) and, on a grid coarser than
+    /// σ/[`GRID_FRACTION`], the quantised robust sigma from the codes'
+    /// levels ([`quantised_sigma_codes`]). The same model as `fit` on the
+    /// decoded volts, to a few ulp: the moments are rounded once instead of
+    /// per sample, and the grid step is `g` times the codes' grid exactly
+    /// instead of a floating-point Euclid's. `None` (nothing fitted) where
+    /// `Moments::of_codes` declines or `g` is not positive: call `fit`.
+    pub fn fit_codes(&mut self, parts: &[&[i16]], g: f64, o: f64, normality_alpha: f64) -> Option<NoiseSummary> {
+        if !(g > 0.0) {
+            return None;
         }
+        let (lo, hi) = code_min_max(parts)?;
+        let m = Moments::of_codes(parts, lo, hi, g, o)?;
+        self.skipped_nonfinite = 0;
+        self.moments = m;
         let sigma = m.variance().sqrt();
-        let (skew, kurt) = (m.skewness(), m.excess_kurtosis());
-        let p = if sigma > 0.0 {
-            crate::math::stats::jarque_bera(n, skew, kurt).1
-        } else if n >= 2 {
-            0.0
-        } else {
-            1.0
-        };
-        let robust = self.robust_sigma(sigma);
-        let enough = n >= MIN_VERDICT_SAMPLES;
-        let alpha = if normality_alpha.is_nan() {
-            0.0
-        } else {
-            normality_alpha.clamp(0.0, 1.0)
-        };
-        let contaminated = enough && sigma > 0.0 && {
-            if robust <= 0.0 {
-                true
-            } else {
-                let nf = n as f64;
-                let c4 = 1.0 - 1.0 / (4.0 * nf) - 7.0 / (32.0 * nf * nf);
-                let diff = sigma / c4 - robust * nf / (nf - 0.8);
-                let z = crate::math::special::q_inv(0.5 * alpha);
-                let sd = SIGMA_MAD_DIFF_SD * (1.0 + SMALL_SAMPLE_INFLATION / nf).sqrt() * robust
-                    / nf.sqrt();
-                diff.abs() > z * sd
+        let grid = if sigma > 0.0 { code_grid(parts, lo) } else { 0 };
+        let step = g * f64::from(grid);
+        let quantised = (grid > 0 && step >= sigma / GRID_FRACTION)
+            .then(|| quantised_sigma_codes(parts, lo, hi, grid, step, &mut self.levels))
+            .flatten();
+        let robust = match quantised {
+            Some(r) => r,
+            None => {
+                // A grid finer than σ/256, or a fit the levels do not
+                // support: the MAD of the volts, as `fit` takes it.
+                self.scratch.clear();
+                self.scratch.extend(parts.iter().flat_map(|p| p.iter()).map(|&c| f64::from(c) * g + o));
+                mad_sigma(&mut self.scratch)
             }
         };
-        NoiseSummary {
-            mean_v: m.mean(),
-            sigma_v: sigma,
-            skewness: skew,
-            excess_kurtosis: kurt,
-            gaussian: enough && sigma > 0.0 && p >= alpha,
-            normality_p_value: p,
-            robust_sigma_v: robust,
-            samples: n,
-            contaminated,
-        }
+        Some(summary(&m, robust, normality_alpha))
     }
 
     /// Robust sigma of the samples in `scratch` (reorders them): 1.4826·MAD,
@@ -443,6 +477,65 @@ impl NoiseFitter {
     /// Moments of the finite samples of the last [`NoiseFitter::fit`].
     pub fn moments(&self) -> &Moments {
         &self.moments
+    }
+}
+
+/// The noise model of samples with moments `m` and robust sigma `robust`:
+/// σ, skewness, kurtosis, the Jarque–Bera p-value and the normality and
+/// contamination verdicts at `normality_alpha` (see [`NoiseFitter::fit`]).
+fn summary(m: &Moments, robust: f64, normality_alpha: f64) -> NoiseSummary {
+    let n = m.count();
+    if n == 0 {
+        return NoiseSummary {
+            mean_v: 0.0,
+            sigma_v: 0.0,
+            skewness: 0.0,
+            excess_kurtosis: 0.0,
+            gaussian: false,
+            normality_p_value: 0.0,
+            robust_sigma_v: 0.0,
+            samples: 0,
+            contaminated: false,
+        };
+    }
+    let sigma = m.variance().sqrt();
+    let (skew, kurt) = (m.skewness(), m.excess_kurtosis());
+    let p = if sigma > 0.0 {
+        crate::math::stats::jarque_bera(n, skew, kurt).1
+    } else if n >= 2 {
+        0.0
+    } else {
+        1.0
+    };
+    let enough = n >= MIN_VERDICT_SAMPLES;
+    let alpha = if normality_alpha.is_nan() {
+        0.0
+    } else {
+        normality_alpha.clamp(0.0, 1.0)
+    };
+    let contaminated = enough && sigma > 0.0 && {
+        if robust <= 0.0 {
+            true
+        } else {
+            let nf = n as f64;
+            let c4 = 1.0 - 1.0 / (4.0 * nf) - 7.0 / (32.0 * nf * nf);
+            let diff = sigma / c4 - robust * nf / (nf - 0.8);
+            let z = crate::math::special::q_inv(0.5 * alpha);
+            let sd = SIGMA_MAD_DIFF_SD * (1.0 + SMALL_SAMPLE_INFLATION / nf).sqrt() * robust
+                / nf.sqrt();
+            diff.abs() > z * sd
+        }
+    };
+    NoiseSummary {
+        mean_v: m.mean(),
+        sigma_v: sigma,
+        skewness: skew,
+        excess_kurtosis: kurt,
+        gaussian: enough && sigma > 0.0 && p >= alpha,
+        normality_p_value: p,
+        robust_sigma_v: robust,
+        samples: n,
+        contaminated,
     }
 }
 
@@ -529,4 +622,65 @@ pub fn autocorrelation(x: &[f64], max_lag: usize) -> Vec<f64> {
         out.push(lag_product_sum(x, k, mean) / c0);
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    /// Relative distance in units of the larger's ulp (2⁻⁵² of it).
+    fn ulps(a: f64, b: f64) -> f64 {
+        if a == b {
+            return 0.0;
+        }
+        (a - b).abs() / (a.abs().max(b.abs()) * f64::EPSILON)
+    }
+
+    #[test]
+    fn moments_of_codes_are_within_a_few_ulp_of_the_exact_moments() {
+        // The reference forms each central sum from the deviations, not
+        // the power sums: Σ(n·c − Σc)^k = n^k·M_k exactly in i128, then
+        // rounded and scaled (three roundings). Agreement within 8 ulp
+        // means both are within a few ulp of the exact moments.
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        for (n, centre, spread, g, o) in [
+            (2000usize, 0i32, 200i32, 1.0 / 4096.0, 0.0),
+            (1400, -3, 2, 0.013 * 1.28, -5e-4),
+            (300, 1000, 40, 3.1e-5, 1000.0),
+            (61, -20000, 4096, 7.7e-3, -0.25),
+            (9000, 5, 900, 1e-6, 2.5),
+        ] {
+            let codes: Vec<i16> = (0..n).map(|_| (centre + rng.random_range(-spread..=spread)) as i16).collect();
+            let (a, b) = codes.split_at(n / 3);
+            let (lo, hi) = crate::math::code_stats::code_min_max(&[a, b]).expect("codes");
+            let m = Moments::of_codes(&[a, b], lo, hi, g, o).expect("within reach");
+            let ni = n as i128;
+            let s: i128 = codes.iter().map(|&c| i128::from(c)).sum();
+            let x = |k: u32| codes.iter().map(|&c| (ni * i128::from(c) - s).pow(k)).sum::<i128>() as f64;
+            let nf = n as f64;
+            assert_eq!(m.count(), n as u64);
+            let mean = o + g * (s as f64 / nf);
+            assert!((m.mean() - mean).abs() <= 4.0 * f64::EPSILON * (o.abs() + g * f64::from(i32::from(lo).abs().max(i32::from(hi).abs()))), "{n}: mean {} vs {mean}", m.mean());
+            let m2 = x(2) / (nf * nf) * g * g;
+            let m3 = x(3) / (nf * nf * nf) * g * g * g;
+            let m4 = x(4) / (nf * nf * nf * nf) * (g * g) * (g * g);
+            // Exact integers rounded once each side: no cancellation even
+            // where M3 is near 0 (symmetric data).
+            assert!(ulps(m.m2, m2) <= 8.0, "{n}: M2 {} vs {m2}", m.m2);
+            assert!(ulps(m.m3, m3) <= 8.0, "{n}: M3 {} vs {m3}", m.m3);
+            assert!(ulps(m.m4, m4) <= 8.0, "{n}: M4 {} vs {m4}", m.m4);
+        }
+    }
+
+    #[test]
+    fn moments_of_codes_decline_what_they_cannot_sum_exactly() {
+        let wide: [i16; 3] = [-5000, 0, 5000];
+        assert!(Moments::of_codes(&[&wide], -5000, 5000, 1e-3, 0.0).is_none(), "a span beyond 2·MAX_DISTANCE");
+        assert!(Moments::of_codes(&[&[1, 2]], 1, 2, 1e300, 0.0).is_none(), "a scale whose fourth power overflows");
+        assert!(Moments::of_codes(&[&[1, 2]], 1, 2, 1e-3, f64::NAN).is_none(), "a NaN offset");
+        assert!(Moments::of_codes(&[&[]], 0, 0, 1e-3, 0.0).is_none(), "no codes");
+        let mut f = NoiseFitter::default();
+        assert!(f.fit_codes(&[&[1, 2, 3]], -1e-3, 0.0, 0.01).is_none(), "a negative scale");
+    }
 }

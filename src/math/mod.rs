@@ -21,3 +21,5 @@ pub mod roots;
 pub mod select;
 /// Robust sigma of samples on a quantisation grid (where the MAD is itself quantised).
 pub mod quantised;
+/// Integer ADC codes' extremes, grid and exact power sums.
+pub mod code_stats;

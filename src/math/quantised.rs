@@ -272,30 +272,58 @@ pub fn quantised_sigma_within(x: &[f64], lo: f64, hi: f64, step: f64, counts: &m
     if !(levels.is_finite() && levels <= MAX_LEVELS as f64) {
         return None;
     }
+    // Samples on the grid (as `grid_step` found it) sit next to an integer
+    // number of steps from the lowest: the nearest integer is the same
+    // whether (v − lo) is divided by the step or multiplied by its inverse.
+    let inv_step = 1.0 / step;
     let levels = levels as usize;
+    probit_sigma(x.len(), levels, step, counts, |index| level_indices(x, lo, inv_step, levels as i64 - 1, index))
+}
+
+/// [`quantised_sigma`] of integer codes (the concatenation of `parts`,
+/// `lo` and `hi` their least and greatest, `grid` the greatest common
+/// divisor of their distances from `lo`, from
+/// [`code_grid`](super::code_stats::code_grid)), one level per `grid`
+/// codes, `step` volts apart: each code's level is its distance from `lo`
+/// over `grid`, exactly (no rounding to find it), and the fit is the one
+/// [`quantised_sigma_within`] makes on the codes' volts.
+pub fn quantised_sigma_codes(parts: &[&[i16]], lo: i16, hi: i16, grid: u32, step: f64, counts: &mut Vec<u32>) -> Option<f64> {
+    let n: usize = parts.iter().map(|p| p.len()).sum();
+    if n < 2 || grid == 0 || !(step > 0.0) || hi < lo {
+        return None;
+    }
+    let levels = (i32::from(hi) - i32::from(lo)) as usize / grid as usize + 1;
+    if levels > MAX_LEVELS {
+        return None;
+    }
+    probit_sigma(n, levels, step, counts, |index| super::code_stats::code_levels(parts, lo, grid, index))
+}
+
+/// The probit fit of [`quantised_sigma`] on `n` samples over `levels`
+/// levels `step` apart, `levels_of` writing each sample's level (below
+/// `levels`) into the slice it is given. `counts` is scratch (one or four
+/// counters per level, then each sample's level), kept between calls.
+fn probit_sigma(n: usize, levels: usize, step: f64, counts: &mut Vec<u32>, levels_of: impl FnOnce(&mut [u32])) -> Option<f64> {
     // `counts` holds the counters (one or four per level, see `ways`) and,
     // after them, each sample's level (scratch): the levels are found in
     // one pass the compiler vectorises (no store between samples), then
     // counted. Only the counters need zeros: every sample's level is written.
-    let ways = ways(x.len(), levels);
-    let need = ways * levels + x.len();
+    let ways = ways(n, levels);
+    let need = ways * levels + n;
     if counts.len() < need {
         counts.resize(need, 0);
     }
     counts[..ways * levels].fill(0);
     let (counts, index) = counts[..need].split_at_mut(ways * levels);
-    // Samples on the grid (as `grid_step` found it) sit next to an integer
-    // number of steps from the lowest: the nearest integer is the same
-    // whether (v − lo) is divided by the step or multiplied by its inverse.
-    let inv_step = 1.0 / step;
-    level_indices(x, lo, inv_step, levels as i64 - 1, index);
+    levels_of(index);
     if ways == 4 {
         cumulative_counts::<4>(index, counts);
     } else {
         cumulative_counts::<1>(index, counts);
     }
     let cum = &counts[..levels - 1];
-    let n = x.len() as f64;
+    let total = n as u64;
+    let n = n as f64;
     // Boundary k lies between level k and k + 1, at lo + (k + ½)·step; F is
     // the fraction of samples on levels 0..=k. F = cum/n rounded rises with
     // the count, so a window [a, b] of F is a range of counts, found once
@@ -303,7 +331,6 @@ pub fn quantised_sigma_within(x: &[f64], lo: f64, hi: f64, step: f64, counts: &m
     // whose counts lie in it are one run of k (cum rises with k), found by
     // bisection.
     let counts_in = |(a, b): (f64, f64)| {
-        let total = x.len() as u64;
         let f = |c: u64| c as f64 / n;
         let mut first = ((a * n).floor() as u64).saturating_sub(2).min(total);
         while first < total && !(f(first) >= a) {

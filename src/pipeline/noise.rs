@@ -93,14 +93,33 @@ fn screen_for<'a>(slot: &'a mut Option<(f64, GateScreen)>, scene: &Scene, dt: f6
     slot.as_mut().map(|s| &mut s.1)
 }
 
-/// Fits the noise model to the runs `quiet` of `x`, as slices on the stack
-/// (a cleaned gate has a few dozen runs at most; any beyond [`MAX_RUNS`]
-/// are left out of the fit).
-fn fit_runs(fitter: &mut NoiseFitter, x: &[f64], quiet: &[std::ops::Range<usize>], normality_alpha: f64) -> NoiseSummary {
-    let mut parts: [&[f64]; MAX_RUNS] = [&[]; MAX_RUNS];
+/// The stop channel as the noise model is fitted on it: its volts, and
+/// its integer codes with their scale and offset where it has them (then
+/// the fit reads the codes: [`NoiseFitter::fit_codes`]).
+#[derive(Clone, Copy)]
+struct Gated<'a> {
+    volts: &'a [f64],
+    codes: Option<(&'a [i16], f64, f64)>,
+}
+
+/// Fits the noise model to the runs `quiet` of the channel, as slices on
+/// the stack (a cleaned gate has a few dozen runs at most; any beyond
+/// [`MAX_RUNS`] are left out of the fit): on its codes where it has them
+/// and `fit_codes` takes them, else on its volts.
+fn fit_runs(fitter: &mut NoiseFitter, x: Gated, quiet: &[std::ops::Range<usize>], normality_alpha: f64) -> NoiseSummary {
     let runs = quiet.len().min(MAX_RUNS);
+    if let Some((c, g, o)) = x.codes {
+        let mut parts: [&[i16]; MAX_RUNS] = [&[]; MAX_RUNS];
+        for (p, r) in parts.iter_mut().zip(quiet) {
+            *p = &c[r.clone()];
+        }
+        if let Some(fit) = fitter.fit_codes(&parts[..runs], g, o, normality_alpha) {
+            return fit;
+        }
+    }
+    let mut parts: [&[f64]; MAX_RUNS] = [&[]; MAX_RUNS];
     for (p, r) in parts.iter_mut().zip(quiet) {
-        *p = &x[r.clone()];
+        *p = &x.volts[r.clone()];
     }
     fitter.fit(&parts[..runs], normality_alpha)
 }
@@ -134,12 +153,16 @@ impl Stage for Noise {
             w.report.flags.push(FrameFlag::NonFiniteSamples(bad));
         }
         let g = &w.noise.gates;
-        let noise = self
-            .fitter
-            .fit(&[&stop_v[g.pre.clone()], &stop_v[g.beyond.clone()]], s.detector.normality_alpha);
+        // The codes as digitised (not an average or a float capture), once
+        // per frame: the fits read them, and the cleaner counts the gate's
+        // colour on them.
+        let ch = &w.frame.channels[w.source.stop];
+        let codes = stop_codes(&ch.samples, &mut self.wide_codes).filter(|_| finite_scale);
+        let gated = Gated { volts: &stop_v, codes: codes.map(|c| (c, ch.volts_per_code, ch.offset_v)) };
+        let raw = [g.pre.clone(), g.beyond.clone()];
+        let noise = fit_runs(&mut self.fitter, gated, &raw, s.detector.normality_alpha);
         // Scratch for a contaminated gate, grown on the first frame.
         self.cleaner.reserve(stop_v.len(), MAX_RUNS);
-        self.wide_codes.reserve(stop_v.len().saturating_sub(self.wide_codes.len()));
         self.sorted.reserve(stop_v.len().saturating_sub(self.sorted.len()));
         let quiet = &mut w.buffers.quiet;
         quiet.clear();
@@ -170,13 +193,7 @@ impl Stage for Noise {
                 _ => noise.robust_sigma_v,
             };
             let rails = w.source.rails();
-            // Codes as digitised (not an average or a float capture): the
-            // cleaner counts the gate's colour on them.
-            let ch = &w.frame.channels[w.source.stop];
-            let codes = match codes_keep_order(ch.volts_per_code, ch.offset_v) {
-                true => stop_codes(&ch.samples, &mut self.wide_codes).map(|c| (c, ch.volts_per_code)),
-                false => None,
-            };
+            let codes = codes.filter(|_| codes_keep_order(ch.volts_per_code, ch.offset_v)).map(|c| (c, ch.volts_per_code));
             let kept = self.cleaner.clean(&stop_v, codes, quiet, median, start, dilate, block, rails);
             // Too little left to rest a noise model on (coloured noise whose
             // quiet blocks read low can clip nearly everything): the raw gates.
@@ -185,7 +202,7 @@ impl Stage for Noise {
                 quiet.clear();
                 quiet.extend_from_slice(kept);
             }
-            let clean = fit_runs(&mut self.fitter, &stop_v, quiet, s.detector.normality_alpha);
+            let clean = fit_runs(&mut self.fitter, gated, quiet, s.detector.normality_alpha);
             // A cleaning that moves sigma by less than the raw gate's own
             // sampling spread (z at normality_alpha; widened by the gate's
             // colour) found nothing worth dropping (the flag's false alarms,
@@ -195,8 +212,8 @@ impl Stage for Noise {
                 * (self.cleaner.colour_gain() / (2.0 * (n - 1.0))).sqrt();
             if (clean.sigma_v - noise.sigma_v).abs() <= spread {
                 quiet.clear();
-                quiet.extend([g.pre.clone(), g.beyond.clone()].into_iter().filter(|r| !r.is_empty()));
-                self.fitter.fit(&[&stop_v[g.pre.clone()], &stop_v[g.beyond.clone()]], s.detector.normality_alpha)
+                quiet.extend(raw.iter().filter(|r| !r.is_empty()).cloned());
+                fit_runs(&mut self.fitter, gated, &raw, s.detector.normality_alpha)
             } else {
                 // The verdict stays the raw gate's; the model is the cleaned one's.
                 NoiseSummary { contaminated: true, robust_sigma_v: noise.robust_sigma_v, ..clean }
@@ -215,7 +232,7 @@ impl Stage for Noise {
                 Some(kept) if kept.iter().map(|r| r.len()).sum::<usize>() >= s.noise_gate.min_samples.max(MIN_KEPT) => {
                     quiet.clear();
                     quiet.extend_from_slice(kept);
-                    let clean = fit_runs(&mut self.fitter, &stop_v, quiet, s.detector.normality_alpha);
+                    let clean = fit_runs(&mut self.fitter, gated, quiet, s.detector.normality_alpha);
                     NoiseSummary { contaminated: true, robust_sigma_v: noise.robust_sigma_v, ..clean }
                 }
                 _ => noise,

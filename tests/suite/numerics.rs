@@ -926,6 +926,109 @@ fn noise_fit_contamination_on_quantised_noise_is_at_most_alpha() {
     }
 }
 
+/// Codes of Gaussian noise `sigma_codes` wide about `centre`, on a grid of
+/// `grid` codes, with a pulse of `pulse_codes` on every 25th sample when
+/// asked (a contaminated gate).
+fn noise_codes(rng: &mut ChaCha8Rng, n: usize, centre: f64, sigma_codes: f64, grid: i32, pulse_codes: f64) -> Vec<i16> {
+    let phase: f64 = rand::Rng::random(rng);
+    (0..n)
+        .map(|i| {
+            let z: f64 = StandardNormal.sample(rng);
+            let pulse = if i % 25 == 0 { pulse_codes } else { 0.0 };
+            let c = ((centre + sigma_codes * z + pulse) / f64::from(grid) + phase).round() as i32 * grid;
+            c.clamp(-32768, 32767) as i16
+        })
+        .collect()
+}
+
+#[test]
+fn noise_fit_on_codes_is_the_fit_on_their_volts() {
+    // `fit_codes` (what the noise stage runs on a digitiser's codes) against
+    // `fit` on the volts the channel decodes them to, on gates of every kind
+    // the stage sees: the verdicts and counts identical, the numbers within
+    // what the decode's rounding allows. Each decoded sample is off its
+    // exact value by at most δ = ½ ulp(max |v|), which moves the mean and
+    // σ by at most δ and a sigma-scaled statistic by δ/σ; beyond that
+    // both paths agree to 1e-10 (`fit_codes` rounds its moments once, `fit`
+    // every sample's deviation and power: see `Moments::of_codes`). The
+    // robust σ scales with the grid step, which `fit` finds by a
+    // floating-point Euclid over differences of rounded volts, each off by
+    // up to 2δ, and a remainder of a difference L levels wide by up to
+    // 2(L + 1)δ (4(L + 1)δ/step relative allowed), and `fit_codes` takes
+    // exactly as the scale times the codes' grid.
+    let mut rng = ChaCha8Rng::seed_from_u64(0xc0de);
+    let mut worst = [0.0f64; 5];
+    // (volts per code, offset V, samples, centre and σ in codes, grid in codes, pulse in codes, parts)
+    type Case = (f64, f64, usize, f64, f64, i32, f64, usize);
+    let cases: [Case; 9] = [
+        (1.0 / 4096.0, 0.0, 2000, 0.0, 82.0, 1, 0.0, 2),     // the reference frames' 12-bit digitiser
+        (1.0 / 4096.0, 0.0, 2000, 3.0, 82.0, 1, 600.0, 2),   // a pulse leaking into the gate
+        (0.013 * 1.28, -5e-4, 1400, 0.0, 0.78, 1, 0.0, 1),   // 8-bit at a sensitive range (step 1.28 σ)
+        (0.013 * 0.5, -5e-4, 300, 0.0, 2.0, 1, 0.0, 3),      // step 0.5 σ
+        (1.0 / 65536.0, 0.01, 1200, -200.0, 30.0, 16, 0.0, 2), // 12-bit codes shifted into 16 bits
+        (3.1e-5, 1000.0, 500, 100.0, 12.0, 1, 0.0, 2),       // a large offset (the decode rounds)
+        (2e-4, -0.3, 60, 0.0, 5.0, 3, 0.0, 1),               // a grid of three codes
+        (1e-3, 0.0, 800, 0.0, 400.0, 1, 0.0, 2),             // a grid finer than σ/256: the MAD
+        (1e-3, 0.0, 40, 7.0, 0.0, 1, 0.0, 1),                // one code: σ = 0
+    ];
+    for (case, &(g, o, n, centre, sigma, grid, pulse, parts)) in cases.iter().enumerate() {
+        for trial in 0..40 {
+            let codes = noise_codes(&mut rng, n, centre, sigma, grid, pulse);
+            let volts: Vec<f64> = codes.iter().map(|&c| f64::from(c) * g + o).collect();
+            let cut: Vec<usize> = (0..=parts).map(|k| k * n / parts).collect();
+            let code_parts: Vec<&[i16]> = cut.windows(2).map(|w| &codes[w[0]..w[1]]).collect();
+            let volt_parts: Vec<&[f64]> = cut.windows(2).map(|w| &volts[w[0]..w[1]]).collect();
+            for alpha in [0.001, 0.05] {
+                let a = NoiseFitter::default().fit_codes(&code_parts, g, o, alpha).expect("within reach");
+                let b = NoiseFitter::default().fit(&volt_parts, alpha);
+                let at = format!("case {case}, trial {trial}, α {alpha}: {a:?} vs {b:?}");
+                assert_eq!((a.samples, a.gaussian, a.contaminated), (b.samples, b.gaussian, b.contaminated), "{at}");
+                let delta = 0.5 * f64::EPSILON * volts.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+                let sd = b.sigma_v.max(f64::MIN_POSITIVE);
+                let levels = f64::from(codes.iter().max().unwrap() - codes.iter().min().unwrap()) / f64::from(grid);
+                let dev = [
+                    (a.mean_v - b.mean_v).abs() / (delta + 1e-10 * sd),
+                    (a.sigma_v - b.sigma_v).abs() / (delta + 1e-10 * sd),
+                    (a.robust_sigma_v - b.robust_sigma_v).abs() / ((4.0 * (levels + 1.0) * delta / (g * f64::from(grid)) + 1e-10) * a.robust_sigma_v.max(f64::MIN_POSITIVE)),
+                    (a.skewness - b.skewness).abs().max((a.excess_kurtosis - b.excess_kurtosis).abs()) / (16.0 * delta / sd + 1e-10),
+                    (a.normality_p_value - b.normality_p_value).abs() / (1e-6 * b.normality_p_value + 1e-300),
+                ];
+                for (w, d) in worst.iter_mut().zip(dev) {
+                    *w = w.max(d);
+                }
+                assert!(dev.iter().all(|&d| d <= 1.0), "{at}: deviations over their bounds {dev:?}");
+            }
+        }
+    }
+    println!("fit_codes against fit, deviation over its bound at worst (mean, σ, robust σ, moments, p): {worst:?}");
+}
+
+#[test]
+fn noise_fit_on_codes_flags_quantised_noise_as_the_fit_on_volts_does() {
+    // The Monte Carlo of `noise_fit_contamination_on_quantised_noise_is_at_most_alpha`
+    // through `fit_codes`: the same flags on every gate, so the same
+    // count and the same bound hold for the path the stage runs.
+    let alpha = 0.05;
+    for step in [0.5, 1.28, 2.0] {
+        let (g, o) = (0.013 * step, -5e-4);
+        for n in [1400usize, 300, 60] {
+            let mut rng = ChaCha8Rng::seed_from_u64(0xf1a9 + n as u64 + (step * 100.0) as u64);
+            let (mut by_codes, mut by_volts) = (0u64, 0u64);
+            let fits = trials(1000);
+            for _ in 0..fits {
+                let codes = noise_codes(&mut rng, n, 0.0, 1.0 / step, 1, 0.0);
+                let volts: Vec<f64> = codes.iter().map(|&c| f64::from(c) * g + o).collect();
+                by_codes += NoiseFitter::default().fit_codes(&[&codes], g, o, alpha).expect("within reach").contaminated as u64;
+                by_volts += NoiseFitter::default().fit(&[&volts], alpha).contaminated as u64;
+            }
+            let (_, hi) = binomial_acceptance_counts(fits, alpha, 0.99);
+            println!("quantised noise on codes, step {step} σ, n = {n}: flagged {by_codes}/{fits} (on volts {by_volts}, at most {hi})");
+            assert_eq!(by_codes, by_volts, "step {step}, n {n}");
+            assert!(by_codes <= hi, "step {step}, n {n}: {by_codes} > {hi}");
+        }
+    }
+}
+
 #[test]
 fn noise_fit_detects_a_pulse_in_quantised_noise() {
     // 4 % of a 1000-sample gate of 8-bit-like noise (step 1.28 sigma) is a

@@ -1,0 +1,209 @@
+//! Statistics of integer ADC codes in integer arithmetic: a gate's least and
+//! greatest code, its grid (the greatest common divisor of the codes'
+//! distances from the least) and its power sums about an integer centre.
+//!
+//! Integer sums are exact, so they need no fixed order: they vectorise
+//! freely and give the same numbers on every CPU, and moments formed from
+//! them are rounded once at the end instead of once per sample. A gate of
+//! codes is read as codes (2 bytes a sample), not as the volts they decode
+//! to (8 bytes a sample).
+
+/// Largest distance |c − centre| [`code_power_sums`] accepts: d⁴ ≤ 2⁴⁸, so
+/// [`BLOCK`] of them add up in an `i64` without overflow.
+pub const MAX_DISTANCE: i32 = 1 << 12;
+
+/// Samples summed in `i64` lanes before the block's sums join the `i128`
+/// totals (4096 · 2⁴⁸ = 2⁶⁰ < 2⁶³).
+const BLOCK: usize = 4096;
+
+/// Least and greatest code of `parts` together; `None` when they hold none.
+pub fn code_min_max(parts: &[&[i16]]) -> Option<(i16, i16)> {
+    let mut span = None;
+    for p in parts.iter().filter(|p| !p.is_empty()) {
+        let (lo, hi) = min_max(p);
+        span = Some(match span {
+            None => (lo, hi),
+            Some((a, b)) => (lo.min(a), hi.max(b)),
+        });
+    }
+    span
+}
+
+fn min_max(c: &[i16]) -> (i16, i16) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx512bw") {
+        // SAFETY: AVX-512BW checked just above.
+        return unsafe { min_max_avx512(c) };
+    }
+    min_max_body(c)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bw,avx2")]
+fn min_max_avx512(c: &[i16]) -> (i16, i16) {
+    min_max_body(c)
+}
+
+#[inline(always)]
+fn min_max_body(c: &[i16]) -> (i16, i16) {
+    c.iter().fold((i16::MAX, i16::MIN), |(lo, hi), &v| (lo.min(v), hi.max(v)))
+}
+
+/// Greatest common divisor of `c − lo` over every code of `parts` (`lo`
+/// their least code): the grid the codes lie on, in codes (1 for a
+/// digitiser's own codes, 16 for 12-bit codes shifted into 16 bits). 0 when
+/// every code is `lo`.
+pub fn code_grid(parts: &[&[i16]], lo: i16) -> u32 {
+    let lo = i32::from(lo);
+    let dist = |c: i16| (i32::from(c) - lo) as u32;
+    // The powers of two all distances share are the trailing zeros of their
+    // bitwise OR (one pass that vectorises); the odd part is Euclid's over
+    // the distances until it reaches 1, which for a digitiser's codes it
+    // does within the first few.
+    let or = parts.iter().fold(0u32, |acc, p| p.iter().fold(acc, |a, &c| a | dist(c)));
+    if or == 0 {
+        return 0;
+    }
+    let two = or.trailing_zeros();
+    let mut odd = 0u32;
+    'parts: for p in parts {
+        for &c in p.iter() {
+            let d = dist(c) >> two;
+            if d != 0 {
+                odd = gcd(odd, d);
+                if odd == 1 {
+                    break 'parts;
+                }
+            }
+        }
+    }
+    odd << two
+}
+
+fn gcd(mut a: u32, mut b: u32) -> u32 {
+    while b != 0 {
+        (a, b) = (b, a % b);
+    }
+    a
+}
+
+/// Each code's level on the grid of `grid` codes from `lo` ((c − lo)/grid,
+/// exact; `grid` from [`code_grid`], so every distance divides) into
+/// `index`, the codes of `parts` in order (`index.len()` is their count).
+pub fn code_levels(parts: &[&[i16]], lo: i16, grid: u32, index: &mut [u32]) {
+    let lo = i32::from(lo);
+    let mut at = 0;
+    for p in parts {
+        let out = &mut index[at..at + p.len()];
+        if grid.is_power_of_two() {
+            let shift = grid.trailing_zeros();
+            for (k, &c) in out.iter_mut().zip(p.iter()) {
+                *k = ((i32::from(c) - lo) as u32) >> shift;
+            }
+        } else {
+            for (k, &c) in out.iter_mut().zip(p.iter()) {
+                *k = (i32::from(c) - lo) as u32 / grid;
+            }
+        }
+        at += p.len();
+    }
+}
+
+/// Σd, Σd², Σd³ and Σd⁴ of d = c − `centre` over every code of `parts`,
+/// exactly. The caller bounds |d| by [`MAX_DISTANCE`] (debug-asserted).
+pub fn code_power_sums(parts: &[&[i16]], centre: i16) -> [i128; 4] {
+    let mut total = [0i128; 4];
+    for p in parts {
+        for block in p.chunks(BLOCK) {
+            let s = block_sums(block, i64::from(centre));
+            for (t, v) in total.iter_mut().zip(s) {
+                *t += i128::from(v);
+            }
+        }
+    }
+    total
+}
+
+fn block_sums(c: &[i16], centre: i64) -> [i64; 4] {
+    debug_assert!(c.iter().all(|&v| (i64::from(v) - centre).abs() <= i64::from(MAX_DISTANCE)));
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx512dq") && std::arch::is_x86_feature_detected!("avx512bw") {
+        // SAFETY: AVX-512F, DQ and BW checked just above.
+        return unsafe { block_sums_avx512(c, centre) };
+    }
+    block_sums_body(c, centre)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512dq,avx512bw,avx2")]
+fn block_sums_avx512(c: &[i16], centre: i64) -> [i64; 4] {
+    block_sums_body(c, centre)
+}
+
+#[inline(always)]
+fn block_sums_body(c: &[i16], centre: i64) -> [i64; 4] {
+    // |d| ≤ 2¹²: d² fits an i32 (the cheap multiply), d³ and d⁴ an i64.
+    let (mut s1, mut s2, mut s3, mut s4) = (0i64, 0i64, 0i64, 0i64);
+    for &v in c {
+        let d = (i64::from(v) - centre) as i32;
+        let d2 = d * d;
+        s1 += i64::from(d);
+        s2 += i64::from(d2);
+        s3 += i64::from(d2) * i64::from(d);
+        s4 += i64::from(d2) * i64::from(d2);
+    }
+    [s1, s2, s3, s4]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    fn codes(n: usize, centre: i32, spread: i32, grid: i32, seed: u64) -> Vec<i16> {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        (0..n).map(|_| (centre + grid * rng.random_range(-spread..=spread)) as i16).collect()
+    }
+
+    #[test]
+    fn power_sums_are_the_naive_sums() {
+        // Blocks of every size around BLOCK, centres off the data, the
+        // widest distances allowed, parts of any length (empty among them).
+        for (n, centre, spread, seed) in [(0usize, 0i32, 3i32, 1u64), (1, 5, 0, 2), (7, -300, 40, 3), (4095, 2000, 1000, 4), (4097, 0, 4096, 5), (9000, -20000, 2048, 6)] {
+            let c = codes(n, centre, spread, 1, seed);
+            let k = (n / 3).min(c.len());
+            let parts: [&[i16]; 3] = [&c[..k], &[], &c[k..]];
+            let at = centre.clamp(-32768, 32767) as i16;
+            let want = c.iter().fold([0i128; 4], |mut s, &v| {
+                let d = i128::from(v) - i128::from(at);
+                s[0] += d;
+                s[1] += d * d;
+                s[2] += d * d * d;
+                s[3] += d * d * d * d;
+                s
+            });
+            assert_eq!(code_power_sums(&parts, at), want, "{n} codes about {centre}");
+            assert_eq!(block_sums_body(&c[..n.min(BLOCK)], i64::from(at)).map(i128::from), code_power_sums(&[&c[..n.min(BLOCK)]], at), "{n}: the portable body");
+        }
+    }
+
+    #[test]
+    fn the_grid_is_the_gcd_of_the_distances() {
+        for (grid, spread, seed) in [(1i32, 20i32, 1u64), (16, 30, 2), (3, 50, 3), (12, 9, 4), (7, 1, 5)] {
+            let c = codes(500, -101, spread, grid, seed);
+            let (lo, hi) = code_min_max(&[&c[..200], &c[200..]]).expect("codes");
+            assert_eq!((lo, hi), (*c.iter().min().unwrap(), *c.iter().max().unwrap()));
+            let want = c.iter().fold(0u32, |g, &v| gcd(g, (i32::from(v) - i32::from(lo)) as u32));
+            assert_eq!(want, grid as u32, "the data's grid");
+            assert_eq!(code_grid(&[&c[..200], &c[200..]], lo), want, "grid {grid}");
+            let mut index = vec![0u32; c.len()];
+            code_levels(&[&c[..200], &c[200..]], lo, want, &mut index);
+            for (k, &v) in index.iter().zip(&c) {
+                assert_eq!(i64::from(*k) * i64::from(want), i64::from(v) - i64::from(lo));
+            }
+        }
+        assert_eq!(code_grid(&[&[5, 5, 5]], 5), 0, "one code");
+        assert_eq!(code_grid(&[&[-32768, 32767]], -32768), 65535, "the widest span");
+        assert_eq!(code_min_max(&[&[], &[]]), None);
+    }
+}

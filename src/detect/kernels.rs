@@ -231,7 +231,7 @@ impl DetectorPlan {
         {
             return false;
         }
-        let (lo, hi) = codes.iter().fold((0i16, 0i16), |(lo, hi), &c| (lo.min(c), hi.max(c)));
+        let (lo, hi) = crate::math::code_stats::code_min_max(&[codes]).map_or((0, 0), |(lo, hi)| (lo.min(0), hi.max(0)));
         let max_code = i64::from(lo).abs().max(i64::from(hi).abs());
         if ct.abs_sum.saturating_mul(max_code) > correlate_codes::EXACT_LIMIT {
             return false;

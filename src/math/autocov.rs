@@ -70,8 +70,9 @@ pub fn code_lag_product_sums(c: &[i16], centre: f64, out: &mut [f64], d: &mut Ve
     }
     let r = centre.round();
     let ri = r as i32;
-    let (lo, hi) = c.iter().fold((i16::MAX, i16::MIN), |(lo, hi), &v| (lo.min(v), hi.max(v)));
-    if !c.is_empty() && (i32::from(hi) - ri > MAX_D || ri - i32::from(lo) > MAX_D) {
+    if let Some((lo, hi)) = super::code_stats::code_min_max(&[c])
+        && (i32::from(hi) - ri > MAX_D || ri - i32::from(lo) > MAX_D)
+    {
         return false;
     }
     d.clear();

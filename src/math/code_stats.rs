@@ -49,6 +49,51 @@ fn min_max_body(c: &[i16]) -> (i16, i16) {
     c.iter().fold((i16::MAX, i16::MIN), |(lo, hi), &v| (lo.min(v), hi.max(v)))
 }
 
+/// The greatest code of `codes` and the last index holding it; `None` for
+/// no codes. One pass: each of 32 lanes keeps its greatest code and the
+/// last block of 32 where it held it (ties go to the later block), and the
+/// lanes holding the greatest are resolved at the end.
+pub fn last_max(codes: &[i16]) -> Option<(i16, usize)> {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx512bw") {
+        // SAFETY: AVX-512BW checked just above.
+        return unsafe { last_max_avx512(codes) };
+    }
+    last_max_body(codes)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bw,avx2")]
+fn last_max_avx512(codes: &[i16]) -> Option<(i16, usize)> {
+    last_max_body(codes)
+}
+
+#[inline(always)]
+fn last_max_body(codes: &[i16]) -> Option<(i16, usize)> {
+    const LANES: usize = 32;
+    // Block numbers are kept in u16 lanes: past 2¹⁶ blocks, the plain scan.
+    if codes.len() / LANES > usize::from(u16::MAX) {
+        let top = *codes.iter().max()?;
+        return Some((top, codes.iter().rposition(|&c| c == top)?));
+    }
+    let (mut acc, mut at) = ([i16::MIN; LANES], [0u16; LANES]);
+    let chunks = codes.chunks_exact(LANES);
+    let rest = chunks.remainder();
+    for (b, c) in chunks.enumerate() {
+        for l in 0..LANES {
+            let later = c[l] >= acc[l];
+            at[l] = if later { b as u16 } else { at[l] };
+            acc[l] = acc[l].max(c[l]);
+        }
+    }
+    let whole = codes.len() - rest.len();
+    let top = rest.iter().copied().chain(acc.iter().copied().take(whole.min(LANES))).max()?;
+    if let Some(i) = rest.iter().rposition(|&c| c == top) {
+        return Some((top, whole + i));
+    }
+    (0..LANES.min(whole)).filter(|&l| acc[l] == top).map(|l| usize::from(at[l]) * LANES + l).max().map(|i| (top, i))
+}
+
 /// Greatest common divisor of `c − lo` over every code of `parts` (`lo`
 /// their least code): the grid the codes lie on, in codes (1 for a
 /// digitiser's own codes, 16 for 12-bit codes shifted into 16 bits). 0 when
@@ -205,5 +250,19 @@ mod tests {
         assert_eq!(code_grid(&[&[5, 5, 5]], 5), 0, "one code");
         assert_eq!(code_grid(&[&[-32768, 32767]], -32768), 65535, "the widest span");
         assert_eq!(code_min_max(&[&[], &[]]), None);
+    }
+
+    #[test]
+    fn last_max_is_the_last_index_of_the_greatest_code() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
+        for len in [0usize, 1, 31, 32, 33, 64, 95, 2500, 2563] {
+            for spread in [1i32, 3, 200, 32767] {
+                let c = codes(len, 0, spread, 1, rng.random());
+                let want = c.iter().max().map(|&top| (top, c.iter().rposition(|&v| v == top).expect("present")));
+                assert_eq!(last_max(&c), want, "{len} codes, spread {spread}");
+                assert_eq!(last_max_body(&c), want, "{len} codes, spread {spread}: the portable body");
+            }
+        }
+        assert_eq!(last_max(&[i16::MIN; 40]), Some((i16::MIN, 39)), "every code the least");
     }
 }

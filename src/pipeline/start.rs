@@ -258,38 +258,12 @@ fn last_max_code(codes: &[i16], g: f64, o: f64) -> Option<usize> {
     if !(g > 0.0) {
         return None;
     }
-    // In eight lanes (vectorised), then the last index holding it.
-    let mut acc = [i16::MIN; 8];
-    let chunks = codes.chunks_exact(8);
-    let rest = chunks.remainder();
-    for c in chunks {
-        for l in 0..8 {
-            acc[l] = acc[l].max(c[l]);
-        }
-    }
-    let top = rest.iter().copied().chain(acc).max()?;
+    let (top, at) = crate::math::code_stats::last_max(codes)?;
     let volts = |c: i16| c as f64 * g + o;
     if top == i16::MIN || !(volts(top - 1) < volts(top)) || volts(top) == 0.0 {
         return None;
     }
-    // From the end sixteen at a time (one compare per lane, no branch per
-    // sample: the start pulse is early in the channel), then within the
-    // sixteen that hold it.
-    let mut end = codes.len() - rest.len();
-    if let Some(i) = rest.iter().rposition(|&c| c == top) {
-        return Some(end + i);
-    }
-    while end >= 16 {
-        let mut hits = 0u32;
-        for (l, &c) in codes[end - 16..end].iter().enumerate() {
-            hits |= ((c == top) as u32) << l;
-        }
-        if hits != 0 {
-            return Some(end - 16 + (31 - hits.leading_zeros()) as usize);
-        }
-        end -= 16;
-    }
-    codes[..end].iter().rposition(|&c| c == top)
+    Some(at)
 }
 
 #[cfg(test)]

@@ -55,7 +55,12 @@ const NO_SCAN_PEAK_SIGMAS: f64 = 6.0;
 /// have grown, resolving allocates nothing.
 #[derive(Debug, Default, Clone)]
 pub struct Resolver {
+    /// x − mean less the pulses (see `residual_from`).
     residual: Vec<f64>,
+    /// The span of `residual` written since it last held x − mean
+    /// everywhere (empty: nowhere): `residual_from` writes x − mean again
+    /// there only, not over the whole frame.
+    dirty: Range<usize>,
     /// Block maxima of the filter output over the range gate.
     blocks: crate::math::select::BlockMaxima,
     /// The components before a trial split (restored when the split fails).
@@ -179,6 +184,7 @@ impl Resolver {
         let (lo, hi) = shape.support();
         self.residual.clear();
         self.residual.extend(x.iter().map(|v| v - mean_v));
+        self.dirty = 0..0;
         comps.clear();
         let window = |peak: f64| {
             let a = (peak + lo).floor().max(0.0) as usize;
@@ -343,10 +349,21 @@ impl Resolver {
         comps.retain(|c| c.amplitude_v > 0.0);
     }
 
-    /// residual = x - mean - Σ pulses.
+    /// residual = x - mean - Σ pulses: x − mean is written again where
+    /// anything was written since `resolve` filled it (`dirty`; elsewhere
+    /// it is x − mean, the same bits), then the pulses are subtracted.
     fn residual_from(&mut self, x: &[f64], mean_v: f64, shape: &Shape, comps: &[Component], window: &dyn Fn(f64) -> Range<usize>) {
-        self.residual.clear();
-        self.residual.extend(x.iter().map(|v| v - mean_v));
+        debug_assert_eq!(self.residual.len(), x.len(), "resolve filled it from x");
+        let d = self.dirty.start.min(x.len())..self.dirty.end.min(x.len());
+        // Tests: every write was marked (outside `dirty` the residual is x − mean, bit for bit).
+        #[cfg(test)]
+        for (i, (r, v)) in self.residual.iter().zip(x).enumerate() {
+            assert!(d.contains(&i) || r.to_bits() == (v - mean_v).to_bits(), "sample {i} written but not marked");
+        }
+        for (r, v) in self.residual[d.clone()].iter_mut().zip(&x[d]) {
+            *r = v - mean_v;
+        }
+        self.dirty = 0..0;
         for c in comps {
             self.subtract(shape, c, window, -1.0);
         }
@@ -355,6 +372,7 @@ impl Resolver {
     /// residual[a..b] = x - mean - Σ pulses (of every group), over that span only.
     #[allow(clippy::too_many_arguments)]
     fn residual_span(&mut self, x: &[f64], mean_v: f64, shape: &Shape, groups: &[&[Component]], window: &dyn Fn(f64) -> Range<usize>, a: usize, b: usize) {
+        self.touch(a..b);
         for (r, v) in self.residual[a..b].iter_mut().zip(&x[a..b]) {
             *r = v - mean_v;
         }
@@ -473,6 +491,7 @@ impl Resolver {
         let mut ws = std::mem::take(&mut self.refit);
         let RefitScratch { jtj, jtr, aug, step, trial, base, cur, next } = &mut ws;
         // The data less the held pulses, over the region: computed once.
+        // (It marks a..b written: every write below stays in it.)
         self.residual_span(x, mean_v, shape, &[others], window, a, b);
         base.clear();
         base.extend_from_slice(&self.residual[a..b]);
@@ -594,7 +613,17 @@ impl Resolver {
 
     /// Adds `sign` times the component's pulse to the residual.
     fn subtract(&mut self, shape: &Shape, c: &Component, window: &dyn Fn(f64) -> Range<usize>, sign: f64) {
-        shape.add_scaled(c.peak_index, window(c.peak_index), sign * c.amplitude_v, &mut self.residual);
+        let w = window(c.peak_index);
+        self.touch(w.clone());
+        shape.add_scaled(c.peak_index, w, sign * c.amplitude_v, &mut self.residual);
+    }
+
+    /// `residual` is about to be written over `r`: `dirty` grows to cover it.
+    fn touch(&mut self, r: Range<usize>) {
+        if r.is_empty() {
+            return;
+        }
+        self.dirty = if self.dirty.is_empty() { r } else { self.dirty.start.min(r.start)..self.dirty.end.max(r.end) };
     }
 }
 

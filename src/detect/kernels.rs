@@ -27,10 +27,16 @@ pub struct DetectorPlan {
     /// taps are those products), so that a channel of integer codes can be
     /// filtered exactly in integers ([`run_codes`](Self::run_codes)).
     code_taps: CodeTaps,
+    /// The input, x − mean, with the template's reach of zeros either side.
     padded: Vec<f64>,
     output: Vec<f64>,
     /// The last run was [`run_codes`](Self::run_codes)'s.
     codes_ran: bool,
+    /// `run_codes` left `padded` unwritten (the integer filter reads the
+    /// codes, and only [`rerun_part`](Self::rerun_part) reads `padded`,
+    /// on frames where the resolver takes a pulse out): `rerun_part`
+    /// writes it first, from the input it is given.
+    padded_pending: bool,
 }
 
 /// Longest template [`DetectorPlan::run_codes`] filters in integers where
@@ -147,6 +153,7 @@ impl DetectorPlan {
             padded: Vec::with_capacity(max_samples + len),
             output: Vec::with_capacity(max_samples),
             codes_ran: false,
+            padded_pending: false,
         }
     }
 
@@ -190,11 +197,7 @@ impl DetectorPlan {
     /// For white noise of sigma s the output has sigma s (unit-energy taps),
     /// less near the frame edges where the template is cut.
     pub fn run(&mut self, x: &[f64], mean: f64) -> &[f64] {
-        let len = self.len();
-        self.padded.clear();
-        self.padded.resize(self.peak_tap, 0.0);
-        self.padded.extend(x.iter().map(|v| v - mean));
-        self.padded.resize(self.peak_tap + x.len() + (len - 1 - self.peak_tap), 0.0);
+        self.pad(x, mean);
         self.correlator.correlate(&self.padded, &mut self.output);
         self.codes_ran = false;
         &self.output
@@ -237,10 +240,8 @@ impl DetectorPlan {
             return false;
         }
         let (n, len, pt) = (x.len(), self.correlator.taps().len(), self.peak_tap);
-        self.padded.clear();
-        self.padded.resize(pt, 0.0);
-        self.padded.extend(x.iter().map(|v| v - mean));
-        self.padded.resize(pt + n + (len - 1 - pt), 0.0);
+        // `padded` is written only if `rerun_part` needs it.
+        self.padded_pending = true;
         let ql = ct.q.len();
         ct.codes.clear();
         ct.codes.resize(pt, 0);
@@ -274,11 +275,7 @@ impl DetectorPlan {
     /// unnoticed. Where the correlator cannot compute part of its output
     /// (the FFT method) every output is computed, as by `run`.
     pub fn run_part(&mut self, x: &[f64], mean: f64, part: Range<usize>) -> &[f64] {
-        let len = self.len();
-        self.padded.clear();
-        self.padded.resize(self.peak_tap, 0.0);
-        self.padded.extend(x.iter().map(|v| v - mean));
-        self.padded.resize(self.peak_tap + x.len() + (len - 1 - self.peak_tap), 0.0);
+        self.pad(x, mean);
         let part = part.start.min(x.len())..part.end.min(x.len());
         self.output.clear();
         self.output.resize(x.len(), f64::NAN);
@@ -300,6 +297,11 @@ impl DetectorPlan {
     /// the last run was on another length.
     pub fn rerun_part(&mut self, x: &[f64], mean: f64, changed: Range<usize>) -> bool {
         let len = self.len();
+        if self.padded_pending && self.output.len() == x.len() {
+            // Outside `changed` x − mean is the input `run_codes` had (the
+            // contract), inside it is what is written below anyway.
+            self.pad(x, mean);
+        }
         if self.padded.len() != x.len() + len - 1 || self.output.len() != x.len() || changed.end > x.len() {
             return false;
         }
@@ -321,6 +323,17 @@ impl DetectorPlan {
             correlate_valid_part(self.correlator.taps(), &self.padded, &mut self.output, part);
         }
         self.codes_ran
+    }
+
+    /// Writes the input x − mean into `padded`, with the template's reach
+    /// of zeros either side.
+    fn pad(&mut self, x: &[f64], mean: f64) {
+        let (len, pt) = (self.len(), self.peak_tap);
+        self.padded.clear();
+        self.padded.resize(pt, 0.0);
+        self.padded.extend(x.iter().map(|v| v - mean));
+        self.padded.resize(pt + x.len() + (len - 1 - pt), 0.0);
+        self.padded_pending = false;
     }
 
     /// The last output of [`run`](Self::run).

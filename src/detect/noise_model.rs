@@ -8,7 +8,7 @@
 
 use crate::frame::NoiseSummary;
 use crate::math::autocov::lag_product_sum;
-use crate::math::code_stats::{code_grid, code_min_max, code_power_sums, MAX_DISTANCE};
+use crate::math::code_stats::{code_grid, code_min_max, code_power_sums, midpoint, MAX_DISTANCE};
 use crate::math::quantised::{grid_step_within, quantised_sigma_codes, quantised_sigma_within};
 use crate::math::select::mad_sigma;
 use crate::math::sum;
@@ -18,12 +18,14 @@ use crate::math::sum;
 /// The first sample is kept as a shift and every later sample enters as
 /// `x − shift`, which is exact (Sterbenz) for a gate whose spread is small
 /// against its offset: a 1 kV mean with a 1 µV spread keeps σ to ~1e-12
-/// relative instead of losing 9 digits to the offset.
+/// relative instead of losing 9 digits to the offset. (Moments of integer
+/// codes, [`Moments::of_codes`], are shifted to the volts of their middle
+/// code instead.)
 #[derive(Debug, Clone, Copy, Default)]
 pub struct Moments {
     n: u64,
-    /// Origin of the accumulation (the first sample): kills the offset's
-    /// rounding before it can reach the deviations.
+    /// Origin of the accumulation (the first sample, or the middle code's
+    /// volts): kills the offset's rounding before it can reach the deviations.
     shift: f64,
     /// Mean of `x − shift`.
     mean: f64,
@@ -68,8 +70,7 @@ impl Moments {
         Moments { n: n as u64, shift, mean, m2, m3, m4 }
     }
 
-    /// The moments of integer codes `parts` (`lo`, `hi` their least and
-    /// greatest) decoded as `c·g + o` volts, from their power sums about
+    /// The moments of integer codes `parts` decoded as `c·g + o` volts, from their power sums about
     /// the code midway between `lo` and `hi`, summed exactly in integers:
     /// the central sums are formed exactly (times powers of n) and rounded
     /// once, so each moment is within a few ulp of the exact moment of the
@@ -79,12 +80,20 @@ impl Moments {
     /// scale `g` outside [1e-60, 1e60] (its fourth power must stay normal)
     /// or an offset that is not finite; the caller decodes and uses
     /// [`Moments::of`].
-    pub fn of_codes(parts: &[&[i16]], lo: i16, hi: i16, g: f64, o: f64) -> Option<Moments> {
+    pub fn of_codes(parts: &[&[i16]], g: f64, o: f64) -> Option<Moments> {
+        let (lo, hi) = code_min_max(parts)?;
+        Moments::of_codes_within(parts, lo, hi, g, o)
+    }
+
+    /// [`Moments::of_codes`] where the caller has `(lo, hi)`, the
+    /// [`code_min_max`] of `parts`, at hand (wrong extremes would let the
+    /// integer sums wrap).
+    fn of_codes_within(parts: &[&[i16]], lo: i16, hi: i16, g: f64, o: f64) -> Option<Moments> {
         let n: usize = parts.iter().map(|p| p.len()).sum();
         if n == 0 || hi < lo || i32::from(hi) - i32::from(lo) > 2 * MAX_DISTANCE || !(g.abs() >= 1e-60 && g.abs() <= 1e60) || !o.is_finite() {
             return None;
         }
-        let centre = ((i32::from(lo) + i32::from(hi)) >> 1) as i16;
+        let centre = midpoint(lo, hi);
         let [s1, s2, s3, s4] = code_power_sums(parts, centre);
         let ni = n as i128;
         // n·M2, n²·M3 and n³·M4 about the mean, in codes, exactly.
@@ -423,18 +432,30 @@ impl NoiseFitter {
     /// sums ([`Moments::of_codes`]) and, on a grid coarser than
     /// σ/[`GRID_FRACTION`], the quantised robust sigma from the codes'
     /// levels ([`quantised_sigma_codes`]). The same model as `fit` on the
-    /// decoded volts, to a few ulp: the moments are rounded once instead of
-    /// per sample, and the grid step is `g` times the codes' grid exactly
-    /// instead of a floating-point Euclid's. `None` (nothing fitted) where
-    /// `Moments::of_codes` declines or `g` is not positive: call `fit`.
+    /// decoded volts to rounding where the decode keeps the codes' order
+    /// and spacing (the caller's test: `detect::gates::codes_keep_order`):
+    /// the moments are rounded once instead of per sample, and the grid
+    /// step is `g` times the codes' grid exactly instead of a
+    /// floating-point Euclid's over rounded volts. Where the offset is
+    /// large against the step (|o| beyond ~5e8·g) that Euclid's tolerance
+    /// (1e-9 of the volts) exceeds half a code and `fit` can settle on a
+    /// grid of several codes; `fit_codes` keeps the codes' own grid there.
+    /// `None` (nothing fitted) where there are no codes, `Moments::of_codes`
+    /// declines or `g` is not positive: call `fit`.
     pub fn fit_codes(&mut self, parts: &[&[i16]], g: f64, o: f64, normality_alpha: f64) -> Option<NoiseSummary> {
         if !(g > 0.0) {
             return None;
         }
         let (lo, hi) = code_min_max(parts)?;
-        let m = Moments::of_codes(parts, lo, hi, g, o)?;
+        let m = Moments::of_codes_within(parts, lo, hi, g, o)?;
         self.skipped_nonfinite = 0;
         self.moments = m;
+        // The MAD's scratch, grown now however rarely it is needed: a frame
+        // that first needs it later does not allocate.
+        let n = m.count() as usize;
+        if self.scratch.capacity() < n {
+            self.scratch.reserve(n - self.scratch.len());
+        }
         let sigma = m.variance().sqrt();
         let grid = if sigma > 0.0 { code_grid(parts, lo) } else { 0 };
         let step = g * f64::from(grid);
@@ -469,12 +490,14 @@ impl NoiseFitter {
         mad_sigma(&mut self.scratch)
     }
 
-    /// Non-finite samples skipped by the last [`NoiseFitter::fit`].
+    /// Non-finite samples skipped by the last [`NoiseFitter::fit`] (0 after
+    /// [`NoiseFitter::fit_codes`]: codes are finite).
     pub fn skipped_nonfinite(&self) -> u64 {
         self.skipped_nonfinite
     }
 
-    /// Moments of the finite samples of the last [`NoiseFitter::fit`].
+    /// Moments of the finite samples of the last [`NoiseFitter::fit`] or
+    /// [`NoiseFitter::fit_codes`].
     pub fn moments(&self) -> &Moments {
         &self.moments
     }
@@ -654,7 +677,7 @@ mod tests {
             let codes: Vec<i16> = (0..n).map(|_| (centre + rng.random_range(-spread..=spread)) as i16).collect();
             let (a, b) = codes.split_at(n / 3);
             let (lo, hi) = crate::math::code_stats::code_min_max(&[a, b]).expect("codes");
-            let m = Moments::of_codes(&[a, b], lo, hi, g, o).expect("within reach");
+            let m = Moments::of_codes(&[a, b], g, o).expect("within reach");
             let ni = n as i128;
             let s: i128 = codes.iter().map(|&c| i128::from(c)).sum();
             let x = |k: u32| codes.iter().map(|&c| (ni * i128::from(c) - s).pow(k)).sum::<i128>() as f64;
@@ -676,10 +699,11 @@ mod tests {
     #[test]
     fn moments_of_codes_decline_what_they_cannot_sum_exactly() {
         let wide: [i16; 3] = [-5000, 0, 5000];
-        assert!(Moments::of_codes(&[&wide], -5000, 5000, 1e-3, 0.0).is_none(), "a span beyond 2·MAX_DISTANCE");
-        assert!(Moments::of_codes(&[&[1, 2]], 1, 2, 1e300, 0.0).is_none(), "a scale whose fourth power overflows");
-        assert!(Moments::of_codes(&[&[1, 2]], 1, 2, 1e-3, f64::NAN).is_none(), "a NaN offset");
-        assert!(Moments::of_codes(&[&[]], 0, 0, 1e-3, 0.0).is_none(), "no codes");
+        assert!(Moments::of_codes(&[&wide], 1e-3, 0.0).is_none(), "a span beyond 2·MAX_DISTANCE");
+        assert!(Moments::of_codes(&[&[1, 2]], 1e300, 0.0).is_none(), "a scale whose fourth power overflows");
+        assert!(Moments::of_codes(&[&[1, 2]], 1e-3, f64::NAN).is_none(), "a NaN offset");
+        assert!(Moments::of_codes(&[&[]], 1e-3, 0.0).is_none(), "no codes");
+        assert!(NoiseFitter::default().fit_codes(&[&[], &[]], 1e-3, 0.0, 0.01).is_none(), "no codes to fit");
         let mut f = NoiseFitter::default();
         assert!(f.fit_codes(&[&[1, 2, 3]], -1e-3, 0.0, 0.01).is_none(), "a negative scale");
     }

@@ -64,7 +64,7 @@ pub fn lag_product_sums(x: &[f64], centre: f64, out: &mut [f64], centred: &mut V
 /// `r` or the centre is not finite: the caller sums in f64.
 /// `d` is scratch, kept by the caller.
 pub fn code_lag_product_sums(c: &[i16], centre: f64, out: &mut [f64], d: &mut Vec<i16>) -> bool {
-    const MAX_D: i32 = 1 << 12;
+    const MAX_D: i32 = super::code_stats::MAX_DISTANCE;
     if !(centre.abs() < 1e6) {
         return false;
     }

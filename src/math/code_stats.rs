@@ -157,10 +157,46 @@ pub fn code_levels(parts: &[&[i16]], lo: i16, grid: u32, index: &mut [u32]) {
 /// Σd, Σd², Σd³ and Σd⁴ of d = c − `centre` over every code of `parts`,
 /// exactly. The caller bounds |d| by [`MAX_DISTANCE`] (debug-asserted).
 pub fn code_power_sums(parts: &[&[i16]], centre: i16) -> [i128; 4] {
-    let mut total = [0i128; 4];
+    power_sums::<4>(parts, centre)
+}
+
+/// Σd and Σd² of d = c − `centre` over every code of `parts`, exactly
+/// (|d| ≤ [`MAX_DISTANCE`], as for [`code_power_sums`]).
+pub fn code_square_sums(parts: &[&[i16]], centre: i16) -> [i128; 2] {
+    power_sums::<2>(parts, centre)
+}
+
+/// Mean and sum of squared deviations of the volts `c·g + o` of the codes
+/// of `parts`, from their exact sums about the code midway between the
+/// least and the greatest: n·M2 = n·Σd² − (Σd)² exactly, rounded once (the
+/// second moment of [`Moments::of_codes`](crate::detect::noise_model::Moments::of_codes)).
+/// `None` for no codes, a span over 2·[`MAX_DISTANCE`] codes, `g` outside
+/// [1e-60, 1e60] or an offset that is not finite (the caller sums the volts).
+pub fn code_mean_sum_sq_dev(parts: &[&[i16]], g: f64, o: f64) -> Option<(f64, f64)> {
+    let (lo, hi) = code_min_max(parts)?;
+    if i32::from(hi) - i32::from(lo) > 2 * MAX_DISTANCE || !(g.abs() >= 1e-60 && g.abs() <= 1e60) || !o.is_finite() {
+        return None;
+    }
+    let centre = midpoint(lo, hi);
+    let n = parts.iter().map(|p| p.len()).sum::<usize>();
+    let [s1, s2] = code_square_sums(parts, centre);
+    let c2 = (n as i128).checked_mul(s2)?.checked_sub(s1.checked_mul(s1)?)?;
+    let nf = n as f64;
+    Some(((f64::from(centre) * g + o) + g * (s1 as f64 / nf), c2 as f64 / nf * (g * g)))
+}
+
+/// The code midway between `lo` and `hi` (rounded down): no code of the
+/// span is further than half of it, plus one, from it.
+pub fn midpoint(lo: i16, hi: i16) -> i16 {
+    ((i32::from(lo) + i32::from(hi)) >> 1) as i16
+}
+
+/// The first `K` power sums (K = 2 or 4).
+fn power_sums<const K: usize>(parts: &[&[i16]], centre: i16) -> [i128; K] {
+    let mut total = [0i128; K];
     for p in parts {
         for block in p.chunks(BLOCK) {
-            let s = block_sums(block, i64::from(centre));
+            let s = block_sums::<K>(block, i64::from(centre));
             for (t, v) in total.iter_mut().zip(s) {
                 *t += i128::from(v);
             }
@@ -169,24 +205,24 @@ pub fn code_power_sums(parts: &[&[i16]], centre: i16) -> [i128; 4] {
     total
 }
 
-fn block_sums(c: &[i16], centre: i64) -> [i64; 4] {
+fn block_sums<const K: usize>(c: &[i16], centre: i64) -> [i64; K] {
     debug_assert!(c.iter().all(|&v| (i64::from(v) - centre).abs() <= i64::from(MAX_DISTANCE)));
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx512dq") && std::arch::is_x86_feature_detected!("avx512bw") {
         // SAFETY: AVX-512F, DQ and BW checked just above.
-        return unsafe { block_sums_avx512(c, centre) };
+        return unsafe { block_sums_avx512::<K>(c, centre) };
     }
-    block_sums_body(c, centre)
+    block_sums_body::<K>(c, centre)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512dq,avx512bw,avx2")]
-fn block_sums_avx512(c: &[i16], centre: i64) -> [i64; 4] {
-    block_sums_body(c, centre)
+fn block_sums_avx512<const K: usize>(c: &[i16], centre: i64) -> [i64; K] {
+    block_sums_body::<K>(c, centre)
 }
 
 #[inline(always)]
-fn block_sums_body(c: &[i16], centre: i64) -> [i64; 4] {
+fn block_sums_body<const K: usize>(c: &[i16], centre: i64) -> [i64; K] {
     // |d| ≤ 2¹²: d² fits an i32 (the cheap multiply), d³ and d⁴ an i64.
     let (mut s1, mut s2, mut s3, mut s4) = (0i64, 0i64, 0i64, 0i64);
     for &v in c {
@@ -194,10 +230,13 @@ fn block_sums_body(c: &[i16], centre: i64) -> [i64; 4] {
         let d2 = d * d;
         s1 += i64::from(d);
         s2 += i64::from(d2);
-        s3 += i64::from(d2) * i64::from(d);
-        s4 += i64::from(d2) * i64::from(d2);
+        if K > 2 {
+            s3 += i64::from(d2) * i64::from(d);
+            s4 += i64::from(d2) * i64::from(d2);
+        }
     }
-    [s1, s2, s3, s4]
+    let all = [s1, s2, s3, s4];
+    std::array::from_fn(|k| all[k])
 }
 
 #[cfg(test)]
@@ -228,7 +267,8 @@ mod tests {
                 s
             });
             assert_eq!(code_power_sums(&parts, at), want, "{n} codes about {centre}");
-            assert_eq!(block_sums_body(&c[..n.min(BLOCK)], i64::from(at)).map(i128::from), code_power_sums(&[&c[..n.min(BLOCK)]], at), "{n}: the portable body");
+            assert_eq!(block_sums_body::<4>(&c[..n.min(BLOCK)], i64::from(at)).map(i128::from), code_power_sums(&[&c[..n.min(BLOCK)]], at), "{n}: the portable body");
+            assert_eq!(code_square_sums(&parts, at), [want[0], want[1]], "{n} codes about {centre}: the first two");
         }
     }
 

@@ -251,9 +251,8 @@ impl CodeDiffMad {
     pub fn span(codes: &[i16], runs: &[std::ops::Range<usize>]) -> Option<i32> {
         let (mut lo, mut hi) = (i16::MAX, i16::MIN);
         for r in runs {
-            for &c in &codes[r.clone()] {
-                lo = lo.min(c);
-                hi = hi.max(c);
+            if let Some((a, b)) = super::code_stats::code_min_max(&[&codes[r.clone()]]) {
+                (lo, hi) = (lo.min(a), hi.max(b));
             }
         }
         let span = (i32::from(hi) - i32::from(lo)).max(0);

@@ -51,7 +51,7 @@ pub struct Noise {
     /// Screens the gates for interference events (scenes with `[events]`
     /// only), for the current sampling period.
     screen: Option<(f64, GateScreen)>,
-    /// An 8-bit stop channel's codes widened to 16 bits (for the cleaner).
+    /// An 8-bit stop channel's codes widened to 16 bits (for the fits and the cleaner).
     wide_codes: Vec<i16>,
 }
 
@@ -154,10 +154,12 @@ impl Stage for Noise {
         }
         let g = &w.noise.gates;
         // The codes as digitised (not an average or a float capture), once
-        // per frame: the fits read them, and the cleaner counts the gate's
+        // per frame, where their volts keep their order and spacing (else
+        // the volts the detector reads are not the codes' decode to
+        // rounding): the fits read them, and the cleaner counts the gate's
         // colour on them.
         let ch = &w.frame.channels[w.source.stop];
-        let codes = stop_codes(&ch.samples, &mut self.wide_codes).filter(|_| finite_scale);
+        let codes = stop_codes(&ch.samples, &mut self.wide_codes).filter(|_| finite_scale && codes_keep_order(ch.volts_per_code, ch.offset_v));
         let gated = Gated { volts: &stop_v, codes: codes.map(|c| (c, ch.volts_per_code, ch.offset_v)) };
         let raw = [g.pre.clone(), g.beyond.clone()];
         let noise = fit_runs(&mut self.fitter, gated, &raw, s.detector.normality_alpha);
@@ -193,7 +195,7 @@ impl Stage for Noise {
                 _ => noise.robust_sigma_v,
             };
             let rails = w.source.rails();
-            let codes = codes.filter(|_| codes_keep_order(ch.volts_per_code, ch.offset_v)).map(|c| (c, ch.volts_per_code));
+            let codes = codes.map(|c| (c, ch.volts_per_code));
             let kept = self.cleaner.clean(&stop_v, codes, quiet, median, start, dilate, block, rails);
             // Too little left to rest a noise model on (coloured noise whose
             // quiet blocks read low can clip nearly everything): the raw gates.

@@ -122,9 +122,10 @@ impl Stage for Start {
         let (lo, hi) = self.plan.as_ref().expect("built above").1.support();
         let away_lo = (peak as f64 + 2.0 * lo).floor();
         let away_hi = (peak as f64 + 2.0 * hi).ceil();
-        // Two passes over the samples away from the pulse (mean, then the
-        // sum of squared deviations), each in the eight-lane order of
-        // `math::sum` (vectorised; no division per sample).
+        // The mean and the sum of squared deviations of the samples away
+        // from the pulse: of codes, from exact integer sums in one pass;
+        // of volts, in two passes in the eight-lane order of `math::sum`
+        // (vectorised; no division per sample).
         let a = (away_lo.max(0.0) as usize).min(n);
         let b = ((away_hi + 1.0).max(0.0) as usize).min(n).max(a);
         let count = a + (n - b);
@@ -132,8 +133,15 @@ impl Stage for Start {
             let (mean, ss) = match coded {
                 Some((c, _)) => {
                     let (left, right) = (&c[..a], &c[b..]);
-                    let mean = (sum::code_sum(left, g, o) + sum::code_sum(right, g, o)) / count as f64;
-                    (mean, sum::code_sum_sq_dev(left, g, o, mean) + sum::code_sum_sq_dev(right, g, o, mean))
+                    // Exact integer sums where the codes are within reach
+                    // and their volts keep their order and spacing (else
+                    // the volts are not their decode to rounding), else
+                    // the volts' eight-lane sums.
+                    let exact = crate::detect::gates::codes_keep_order(g, o).then(|| crate::math::code_stats::code_mean_sum_sq_dev(&[left, right], g, o)).flatten();
+                    exact.unwrap_or_else(|| {
+                        let mean = (sum::code_sum(left, g, o) + sum::code_sum(right, g, o)) / count as f64;
+                        (mean, sum::code_sum_sq_dev(left, g, o, mean) + sum::code_sum_sq_dev(right, g, o, mean))
+                    })
                 }
                 None => {
                     let (left, right) = (&x[..a], &x[b..]);

@@ -336,6 +336,15 @@ impl DetectorPlan {
         self.padded_pending = false;
     }
 
+    /// Hands the last output over into `out` without a copy: the two
+    /// buffers are swapped and the plan's (what `out` held) is emptied, so
+    /// [`rerun_part`](Self::rerun_part) declines until the next run, which
+    /// refills it.
+    pub fn take_output(&mut self, out: &mut Vec<f64>) {
+        std::mem::swap(&mut self.output, out);
+        self.output.clear();
+    }
+
     /// The last output of [`run`](Self::run).
     pub fn output(&self) -> &[f64] {
         &self.output
@@ -615,6 +624,24 @@ mod tests {
         assert!(!plan.run_codes(&x, &codes, 1e305, 0.0, 0.0), "a scale beyond 1e300");
         assert!(!plan.run_codes(&x, &codes, 1e-3, -2e300, 0.0), "an offset beyond 1e300");
         assert!(!plan.run_codes(&x[..399], &codes, 1e-3, 0.0, 0.0), "codes that are not the samples");
+    }
+
+    #[test]
+    fn a_taken_output_is_handed_over_and_leaves_no_stale_rerun() {
+        let pulse = Shape::Parametric(crate::dsp::pulse::Pulse { sigma_rise: 3.0, sigma_fall: 5.0 });
+        let mut plan = DetectorPlan::matched_filter(&pulse, 400);
+        let codes: Vec<i16> = (0..400).map(|i| ((i * 37) % 23) as i16 - 11).collect();
+        let x: Vec<f64> = codes.iter().map(|&c| f64::from(c) * 1e-3).collect();
+        assert!(plan.run_codes(&x, &codes, 1e-3, 0.0, 0.0));
+        let want = plan.output().to_vec();
+        let mut out = vec![7.0; 3];
+        plan.take_output(&mut out);
+        assert_eq!(out, want, "the output, handed over");
+        assert!(plan.output().is_empty());
+        assert!(!plan.rerun_part(&x, 0.0, 100..110), "nothing to bring up to date");
+        assert!(plan.run_codes(&x, &codes, 1e-3, 0.0, 0.0));
+        assert_eq!(plan.output(), &want[..], "the next run refills it");
+        assert!(plan.rerun_part(&x, 0.0, 100..110));
     }
 
     #[test]

@@ -825,7 +825,12 @@ impl Stage for Detect {
         // The whole gates' positions, what the cleaning left out included.
         let full_gates = [plan.positions_inside(&w.noise.gates.pre), plan.positions_inside(&w.noise.gates.beyond)];
         w.buffers.detector_output.clear();
-        if scale == 1.0 {
+        // The resolver may read the plan's output after this (ML timing on
+        // the raw filter); otherwise the output is handed over, not copied.
+        let may_resolve = self.resolve && !whitened;
+        if scale == 1.0 && !may_resolve {
+            plan.take_output(&mut w.buffers.detector_output);
+        } else if scale == 1.0 {
             // v · 1 is v: a plain copy.
             w.buffers.detector_output.extend_from_slice(plan.output());
         } else {
@@ -929,7 +934,7 @@ impl Stage for Detect {
             // rate: nothing is declared detected (the report says no_noise_estimate).
             w.buffers.detections.clear();
         }
-        if self.resolve && !whitened && !cfar_on && !w.buffers.detections.is_empty() {
+        if may_resolve && !cfar_on && !w.buffers.detections.is_empty() {
             let raw = self.raw.as_mut().expect("built above");
             self.resolver.resolve(
                 &w.buffers.stop_v,

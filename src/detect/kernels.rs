@@ -27,7 +27,8 @@ pub struct DetectorPlan {
     /// taps are those products), so that a channel of integer codes can be
     /// filtered exactly in integers ([`run_codes`](Self::run_codes)).
     code_taps: CodeTaps,
-    /// The input, x − mean, with the template's reach of zeros either side.
+    /// The input, x − mean, with the template's reach of zeros either side
+    /// (after `run_codes`, only once `rerun_part` wrote it: `padded_pending`).
     padded: Vec<f64>,
     output: Vec<f64>,
     /// The last run was [`run_codes`](Self::run_codes)'s.
@@ -215,9 +216,13 @@ impl DetectorPlan {
     /// the FFT's and the template longer than [`CODES_OVER_FFT_TAPS`] (there
     /// the FFT is the faster), |g| or |o| exceeds 1e300 (the noise stage's
     /// limit for codes that decode to finite volts) or `mean` is not finite.
-    /// Afterwards the plan holds its input as `run` leaves it, so
-    /// [`rerun_part`](Self::rerun_part) recomputes the outputs it is asked
-    /// for as the direct f64 filter would (the others keep this run's values).
+    /// The f64 input (x − mean, padded) is not written here: the integer
+    /// filter does not read it. [`rerun_part`](Self::rerun_part) writes it
+    /// from the x and mean it is given, which must then equal this run's
+    /// x − mean bit for bit outside the samples it names as changed (the
+    /// resolver's residual, x − mean less the pulses it took out, with mean
+    /// 0, does), and recomputes the outputs it is asked for as the direct
+    /// f64 filter would (the others keep this run's values).
     pub fn run_codes(&mut self, x: &[f64], codes: &[i16], g: f64, o: f64, mean: f64) -> bool {
         let ct = &mut self.code_taps;
         let faster = match self.correlator.method() {
@@ -345,7 +350,9 @@ impl DetectorPlan {
         self.output.clear();
     }
 
-    /// The last output of [`run`](Self::run).
+    /// The last output of [`run`](Self::run), [`run_codes`](Self::run_codes)
+    /// or [`run_part`](Self::run_part), as [`rerun_part`](Self::rerun_part)
+    /// brought it up to date; empty after [`take_output`](Self::take_output).
     pub fn output(&self) -> &[f64] {
         &self.output
     }
@@ -624,6 +631,55 @@ mod tests {
         assert!(!plan.run_codes(&x, &codes, 1e305, 0.0, 0.0), "a scale beyond 1e300");
         assert!(!plan.run_codes(&x, &codes, 1e-3, -2e300, 0.0), "an offset beyond 1e300");
         assert!(!plan.run_codes(&x[..399], &codes, 1e-3, 0.0, 0.0), "codes that are not the samples");
+    }
+
+    #[test]
+    fn a_rerun_on_the_residual_after_the_integer_filter_is_the_rerun_after_the_f64_filter() {
+        // The resolver's calls: run_codes(x, mean), then rerun_part on its
+        // residual (x − mean less a pulse, mean 0). run_codes leaves the
+        // padded input to rerun_part, which writes it from the residual;
+        // after `run` it was written from x − mean up front. The outputs
+        // brought up to date are the same bits either way, for a direct and
+        // an FFT plan, and the others keep each run's values.
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(13);
+        let (n, g, o, mean) = (2500, 1.0 / 2048.0, 0.01, 0.0123);
+        let codes: Vec<i16> = (0..n).map(|_| rng.random_range(-200..=200)).collect();
+        let x: Vec<f64> = codes.iter().map(|&c| f64::from(c) * g + o).collect();
+        let mut residual: Vec<f64> = x.iter().map(|v| v - mean).collect();
+        residual[1200..1210].iter_mut().for_each(|v| *v -= 0.3);
+        let mut seen = (false, false);
+        for (rise, fall) in [(3.0, 5.0), (12.0, 30.0)] {
+            let pulse = Shape::Parametric(crate::dsp::pulse::Pulse { sigma_rise: rise, sigma_fall: fall });
+            let (mut coded, mut plain) = (DetectorPlan::matched_filter(&pulse, n), DetectorPlan::matched_filter(&pulse, n));
+            if !coded.run_codes(&x, &codes, g, o, mean) {
+                continue;
+            }
+            let before = coded.output().to_vec();
+            assert!(coded.rerun_part(&residual, 0.0, 1200..1210), "{} taps", coded.len());
+            plain.run(&x, mean);
+            let len = coded.len();
+            let reads = (1200 + coded.peak_tap + 1 - len)..(1210 + coded.peak_tap);
+            let mut want = plain.output().to_vec();
+            if plain.rerun_part(&residual, 0.0, 1200..1210) {
+                seen.0 = true;
+                want = plain.output().to_vec();
+            } else {
+                // An FFT plan recomputes no part after its own run: the
+                // direct sums over its input with the residual written in.
+                seen.1 = true;
+                plain.padded[plain.peak_tap + 1200..plain.peak_tap + 1210].copy_from_slice(&residual[1200..1210]);
+                correlate_valid_part(plain.correlator.taps(), &plain.padded, &mut want, reads.clone());
+            }
+            for p in 0..n {
+                if reads.contains(&p) {
+                    assert_eq!(coded.output()[p].to_bits(), want[p].to_bits(), "{len} taps, output {p}");
+                } else {
+                    assert_eq!(coded.output()[p].to_bits(), before[p].to_bits(), "{len} taps, output {p} moved");
+                }
+            }
+        }
+        assert!(seen.0 && seen.1, "a direct and an FFT plan: {seen:?}");
     }
 
     #[test]

@@ -8,7 +8,7 @@
 
 use crate::frame::NoiseSummary;
 use crate::math::autocov::lag_product_sum;
-use crate::math::code_stats::{code_grid, code_min_max, code_power_sums, midpoint, MAX_DISTANCE};
+use crate::math::code_stats::{code_grid, code_min_max, code_power_sums, exact_centre};
 use crate::math::quantised::{grid_step_within, quantised_sigma_codes, quantised_sigma_within};
 use crate::math::select::mad_sigma;
 use crate::math::sum;
@@ -76,7 +76,7 @@ impl Moments {
     /// once, so each moment is within a few ulp of the exact moment of the
     /// decoded values (the f64 passes of [`Moments::of`] round every
     /// sample's deviation and power). `None` where that does not hold: a
-    /// span of more than 2·[`MAX_DISTANCE`] codes, sums beyond `i128`, a
+    /// span of more than 2·[`MAX_DISTANCE`](crate::math::code_stats::MAX_DISTANCE) codes, sums beyond `i128`, a
     /// scale `g` outside [1e-60, 1e60] (its fourth power must stay normal)
     /// or an offset that is not finite; the caller decodes and uses
     /// [`Moments::of`].
@@ -90,10 +90,10 @@ impl Moments {
     /// integer sums wrap).
     fn of_codes_within(parts: &[&[i16]], lo: i16, hi: i16, g: f64, o: f64) -> Option<Moments> {
         let n: usize = parts.iter().map(|p| p.len()).sum();
-        if n == 0 || hi < lo || i32::from(hi) - i32::from(lo) > 2 * MAX_DISTANCE || !(g.abs() >= 1e-60 && g.abs() <= 1e60) || !o.is_finite() {
+        if n == 0 {
             return None;
         }
-        let centre = midpoint(lo, hi);
+        let centre = exact_centre(lo, hi, g, o)?;
         let [s1, s2, s3, s4] = code_power_sums(parts, centre);
         let ni = n as i128;
         // n·M2, n²·M3 and n³·M4 about the mean, in codes, exactly.
@@ -430,7 +430,7 @@ impl NoiseFitter {
     /// [`NoiseFitter::fit`] on the volts of integer codes `parts` decoded as
     /// `c·g + o` (`g > 0`), read as codes: the moments from exact integer
     /// sums ([`Moments::of_codes`]) and, on a grid coarser than
-    /// σ/[`GRID_FRACTION`], the quantised robust sigma from the codes'
+    /// σ/256 (`GRID_FRACTION`), the quantised robust sigma from the codes'
     /// levels ([`quantised_sigma_codes`]). The same model as `fit` on the
     /// decoded volts to rounding where the decode keeps the codes' order
     /// and spacing (the caller's test: `detect::gates::codes_keep_order`):

@@ -350,8 +350,9 @@ impl Resolver {
     }
 
     /// residual = x - mean - Σ pulses: x − mean is written again where
-    /// anything was written since `resolve` filled it (`dirty`; elsewhere
-    /// it is x − mean, the same bits), then the pulses are subtracted.
+    /// anything was written since it last held x − mean everywhere (the
+    /// fill in `resolve` or the previous `residual_from`: `dirty`;
+    /// elsewhere it is x − mean, the same bits), then the pulses are subtracted.
     fn residual_from(&mut self, x: &[f64], mean_v: f64, shape: &Shape, comps: &[Component], window: &dyn Fn(f64) -> Range<usize>) {
         debug_assert_eq!(self.residual.len(), x.len(), "resolve filled it from x");
         let d = self.dirty.start.min(x.len())..self.dirty.end.min(x.len());
@@ -360,9 +361,7 @@ impl Resolver {
         for (i, (r, v)) in self.residual.iter().zip(x).enumerate() {
             assert!(d.contains(&i) || r.to_bits() == (v - mean_v).to_bits(), "sample {i} written but not marked");
         }
-        for (r, v) in self.residual[d.clone()].iter_mut().zip(&x[d]) {
-            *r = v - mean_v;
-        }
+        self.refill(x, mean_v, d);
         self.dirty = 0..0;
         for c in comps {
             self.subtract(shape, c, window, -1.0);
@@ -373,9 +372,7 @@ impl Resolver {
     #[allow(clippy::too_many_arguments)]
     fn residual_span(&mut self, x: &[f64], mean_v: f64, shape: &Shape, groups: &[&[Component]], window: &dyn Fn(f64) -> Range<usize>, a: usize, b: usize) {
         self.touch(a..b);
-        for (r, v) in self.residual[a..b].iter_mut().zip(&x[a..b]) {
-            *r = v - mean_v;
-        }
+        self.refill(x, mean_v, a..b);
         for c in groups.iter().flat_map(|g| g.iter()) {
             let w = window(c.peak_index);
             let (lo, hi) = (w.start.clamp(a, b), w.end.clamp(a, b));
@@ -616,6 +613,13 @@ impl Resolver {
         let w = window(c.peak_index);
         self.touch(w.clone());
         shape.add_scaled(c.peak_index, w, sign * c.amplitude_v, &mut self.residual);
+    }
+
+    /// residual = x − mean over `r` (the caller marks it, or clears `dirty`).
+    fn refill(&mut self, x: &[f64], mean_v: f64, r: Range<usize>) {
+        for (v, &xv) in self.residual[r.clone()].iter_mut().zip(&x[r]) {
+            *v = xv - mean_v;
+        }
     }
 
     /// `residual` is about to be written over `r`: `dirty` grows to cover it.

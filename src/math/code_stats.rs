@@ -9,7 +9,7 @@
 //! to (8 bytes a sample).
 
 /// Largest distance |c − centre| [`code_power_sums`] accepts: d⁴ ≤ 2⁴⁸, so
-/// [`BLOCK`] of them add up in an `i64` without overflow.
+/// the 4096 of a block add up in an `i64` without overflow.
 pub const MAX_DISTANCE: i32 = 1 << 12;
 
 /// Samples summed in `i64` lanes before the block's sums join the `i128`
@@ -168,16 +168,14 @@ pub fn code_square_sums(parts: &[&[i16]], centre: i16) -> [i128; 2] {
 
 /// Mean and sum of squared deviations of the volts `c·g + o` of the codes
 /// of `parts`, from their exact sums about the code midway between the
-/// least and the greatest: n·M2 = n·Σd² − (Σd)² exactly, rounded once (the
-/// second moment of [`Moments::of_codes`](crate::detect::noise_model::Moments::of_codes)).
-/// `None` for no codes, a span over 2·[`MAX_DISTANCE`] codes, `g` outside
-/// [1e-60, 1e60] or an offset that is not finite (the caller sums the volts).
+/// least and the greatest: n·M2 = n·Σd² − (Σd)² exactly in integers, then
+/// converted and scaled (a few roundings: the second moment of
+/// [`Moments::of_codes`](crate::detect::noise_model::Moments::of_codes)).
+/// `None` for no codes, codes out of [`exact_centre`]'s reach, or sums
+/// beyond `i128` (the caller sums the volts).
 pub fn code_mean_sum_sq_dev(parts: &[&[i16]], g: f64, o: f64) -> Option<(f64, f64)> {
     let (lo, hi) = code_min_max(parts)?;
-    if i32::from(hi) - i32::from(lo) > 2 * MAX_DISTANCE || !(g.abs() >= 1e-60 && g.abs() <= 1e60) || !o.is_finite() {
-        return None;
-    }
-    let centre = midpoint(lo, hi);
+    let centre = exact_centre(lo, hi, g, o)?;
     let n = parts.iter().map(|p| p.len()).sum::<usize>();
     let [s1, s2] = code_square_sums(parts, centre);
     let c2 = (n as i128).checked_mul(s2)?.checked_sub(s1.checked_mul(s1)?)?;
@@ -185,10 +183,15 @@ pub fn code_mean_sum_sq_dev(parts: &[&[i16]], g: f64, o: f64) -> Option<(f64, f6
     Some(((f64::from(centre) * g + o) + g * (s1 as f64 / nf), c2 as f64 / nf * (g * g)))
 }
 
-/// The code midway between `lo` and `hi` (rounded down): no code of the
-/// span is further than half of it, plus one, from it.
-pub fn midpoint(lo: i16, hi: i16) -> i16 {
-    ((i32::from(lo) + i32::from(hi)) >> 1) as i16
+/// The centre about which the codes from `lo` to `hi`, decoded as `c·g +
+/// o`, are summed exactly: the code midway between them (rounded down, so
+/// no code is further than [`MAX_DISTANCE`] from it). `None` where that
+/// cannot be done: `hi < lo`, a span over 2·`MAX_DISTANCE` codes, a scale
+/// outside [1e-60, 1e60] (its fourth power must stay normal) or an offset
+/// that is not finite.
+pub fn exact_centre(lo: i16, hi: i16, g: f64, o: f64) -> Option<i16> {
+    let within = hi >= lo && i32::from(hi) - i32::from(lo) <= 2 * MAX_DISTANCE && g.abs() >= 1e-60 && g.abs() <= 1e60 && o.is_finite();
+    within.then_some(((i32::from(lo) + i32::from(hi)) >> 1) as i16)
 }
 
 /// The first `K` power sums (K = 2 or 4).

@@ -89,9 +89,10 @@ impl Stage for Start {
         // measured on the samples well away from it (the median and MAD of
         // the whole channel when too few are left).
         let n = ch.samples.len();
-        // Where the codes locate the pulse, the statistics are taken on the
-        // codes as they decode and only the pulse's neighbourhood is
-        // decoded (the same bits); otherwise the whole channel, in volts.
+        // Where the codes locate the pulse (the same sample as the volts
+        // would), the statistics are taken on the codes (exact integer
+        // sums, see below) and only the pulse's neighbourhood is decoded;
+        // otherwise the whole channel, in volts.
         let coded = match &ch.samples {
             Samples::I16(c) if codes_finite => last_max_code(c, g, o).map(|p| (&c[..], p)),
             _ => None,
@@ -123,9 +124,9 @@ impl Stage for Start {
         let away_lo = (peak as f64 + 2.0 * lo).floor();
         let away_hi = (peak as f64 + 2.0 * hi).ceil();
         // The mean and the sum of squared deviations of the samples away
-        // from the pulse: of codes, from exact integer sums in one pass;
-        // of volts, in two passes in the eight-lane order of `math::sum`
-        // (vectorised; no division per sample).
+        // from the pulse: of codes, from exact integer sums (a pass for
+        // the extremes, one for the sums); of volts, in two passes in the
+        // eight-lane order of `math::sum` (vectorised; no division per sample).
         let a = (away_lo.max(0.0) as usize).min(n);
         let b = ((away_hi + 1.0).max(0.0) as usize).min(n).max(a);
         let count = a + (n - b);

@@ -824,7 +824,6 @@ impl Stage for Detect {
         gate_pos.extend(w.buffers.quiet.iter().map(|r| plan.positions_inside(r)).filter(|p| !p.is_empty()));
         // The whole gates' positions, what the cleaning left out included.
         let full_gates = [plan.positions_inside(&w.noise.gates.pre), plan.positions_inside(&w.noise.gates.beyond)];
-        w.buffers.detector_output.clear();
         // The resolver may read the plan's output after this (ML timing on
         // the raw filter); otherwise the output is handed over, not copied.
         let may_resolve = self.resolve && !whitened;
@@ -832,8 +831,10 @@ impl Stage for Detect {
             plan.take_output(&mut w.buffers.detector_output);
         } else if scale == 1.0 {
             // v · 1 is v: a plain copy.
+            w.buffers.detector_output.clear();
             w.buffers.detector_output.extend_from_slice(plan.output());
         } else {
+            w.buffers.detector_output.clear();
             w.buffers.detector_output.extend(plan.output().iter().map(|v| v * scale));
         }
         if whitened {

@@ -98,7 +98,10 @@ fn screen_for<'a>(slot: &'a mut Option<(f64, GateScreen)>, scene: &Scene, dt: f6
 /// the fit reads the codes: [`NoiseFitter::fit_codes`]).
 #[derive(Clone, Copy)]
 struct Gated<'a> {
+    /// The channel in volts (what the fit reads without codes).
     volts: &'a [f64],
+    /// The codes whose decode `volts` is, with the volts per code and the
+    /// offset: what `fit_codes` reads.
     codes: Option<(&'a [i16], f64, f64)>,
 }
 

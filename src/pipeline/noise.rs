@@ -162,7 +162,9 @@ impl Stage for Noise {
         // rounding): the fits read them, and the cleaner counts the gate's
         // colour on them.
         let ch = &w.frame.channels[w.source.stop];
-        let codes = stop_codes(&ch.samples, &mut self.wide_codes).filter(|_| finite_scale && codes_keep_order(ch.volts_per_code, ch.offset_v));
+        let codes = (finite_scale && codes_keep_order(ch.volts_per_code, ch.offset_v))
+            .then(|| stop_codes(&ch.samples, &mut self.wide_codes))
+            .flatten();
         let gated = Gated { volts: &stop_v, codes: codes.map(|c| (c, ch.volts_per_code, ch.offset_v)) };
         let raw = [g.pre.clone(), g.beyond.clone()];
         let noise = fit_runs(&mut self.fitter, gated, &raw, s.detector.normality_alpha);
@@ -172,7 +174,7 @@ impl Stage for Noise {
         let quiet = &mut w.buffers.quiet;
         quiet.clear();
         quiet.reserve(MAX_RUNS);
-        quiet.extend([g.pre.clone(), g.beyond.clone()].into_iter().filter(|r| !r.is_empty()));
+        quiet.extend(raw.iter().filter(|r| !r.is_empty()).cloned());
         // A gate holding pulses or events: fit on what looks like noise. An
         // event filling most of the gate inflates the robust sigma too, so a
         // jump of sigma over the last frame's also calls for cleaning (a real

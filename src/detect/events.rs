@@ -1308,6 +1308,18 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
         // SAFETY: AVX-512F checked just above.
         return unsafe { dot_avx512(a, b) };
     }
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: AVX2 checked just above.
+        return unsafe { dot_avx2(a, b) };
+    }
+    lane_sum(a, b, |x, y| x * y)
+}
+
+/// [`dot`]'s lane sum compiled for AVX2 (two registers of four lanes).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn dot_avx2(a: &[f64], b: &[f64]) -> f64 {
     lane_sum(a, b, |x, y| x * y)
 }
 
@@ -1351,12 +1363,23 @@ fn centred_dots4(pairs: [(&[f64], &[f64]); 4], centre: f64) -> [f64; 4] {
         // SAFETY: AVX-512F checked just above.
         return unsafe { centred_dots4_avx512(pairs, centre) };
     }
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: AVX2 checked just above.
+        return unsafe { centred_dots4_avx2(pairs, centre) };
+    }
     centred_dots4_body(pairs, centre)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx2")]
 fn centred_dots4_avx512(pairs: [(&[f64], &[f64]); 4], centre: f64) -> [f64; 4] {
+    centred_dots4_body(pairs, centre)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn centred_dots4_avx2(pairs: [(&[f64], &[f64]); 4], centre: f64) -> [f64; 4] {
     centred_dots4_body(pairs, centre)
 }
 
@@ -1638,6 +1661,11 @@ fn folded_energy_and_first(folded: &[(f64, Vec<f64>)], x: &[f64], mean: f64, hal
         // SAFETY: AVX-512F checked just above.
         return unsafe { folded_energy_and_first_avx512(folded, x, mean, halves) };
     }
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: AVX2 checked just above.
+        return unsafe { folded_energy_and_first_avx2(folded, x, mean, halves) };
+    }
     folded_energy_and_first_body(folded, x, mean, halves)
 }
 
@@ -1646,6 +1674,13 @@ fn folded_energy_and_first(folded: &[(f64, Vec<f64>)], x: &[f64], mean: f64, hal
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx2")]
 fn folded_energy_and_first_avx512(folded: &[(f64, Vec<f64>)], x: &[f64], mean: f64, halves: &mut (Vec<f64>, Vec<f64>)) -> (f64, f64) {
+    folded_energy_and_first_body(folded, x, mean, halves)
+}
+
+/// The same for AVX2 (four lanes to a register).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn folded_energy_and_first_avx2(folded: &[(f64, Vec<f64>)], x: &[f64], mean: f64, halves: &mut (Vec<f64>, Vec<f64>)) -> (f64, f64) {
     folded_energy_and_first_body(folded, x, mean, halves)
 }
 
@@ -2231,6 +2266,11 @@ mod tests {
             if std::arch::is_x86_feature_detected!("avx512f") {
                 // SAFETY: AVX-512F checked just above.
                 assert_eq!(unsafe { dot_avx512(&a, &b) }.to_bits(), want.to_bits(), "n {n}");
+            }
+            #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("avx2") {
+                // SAFETY: AVX2 checked just above.
+                assert_eq!(unsafe { dot_avx2(&a, &b) }.to_bits(), want.to_bits(), "n {n}");
             }
             assert_eq!(dot(&b, &a).to_bits(), lane_sum(&b, &a, |x, y| x * y).to_bits(), "n {n}");
         }

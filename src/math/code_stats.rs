@@ -35,12 +35,23 @@ fn min_max(c: &[i16]) -> (i16, i16) {
         // SAFETY: AVX-512BW checked just above.
         return unsafe { min_max_avx512(c) };
     }
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: AVX2 checked just above.
+        return unsafe { min_max_avx2(c) };
+    }
     min_max_body(c)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512bw,avx2")]
 fn min_max_avx512(c: &[i16]) -> (i16, i16) {
+    min_max_body(c)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn min_max_avx2(c: &[i16]) -> (i16, i16) {
     min_max_body(c)
 }
 
@@ -59,12 +70,23 @@ pub fn last_max(codes: &[i16]) -> Option<(i16, usize)> {
         // SAFETY: AVX-512BW checked just above.
         return unsafe { last_max_avx512(codes) };
     }
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: AVX2 checked just above.
+        return unsafe { last_max_avx2(codes) };
+    }
     last_max_body(codes)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512bw,avx2")]
 fn last_max_avx512(codes: &[i16]) -> Option<(i16, usize)> {
+    last_max_body(codes)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn last_max_avx2(codes: &[i16]) -> Option<(i16, usize)> {
     last_max_body(codes)
 }
 
@@ -215,12 +237,23 @@ fn block_sums<const K: usize>(c: &[i16], centre: i64) -> [i64; K] {
         // SAFETY: AVX-512F, DQ and BW checked just above.
         return unsafe { block_sums_avx512::<K>(c, centre) };
     }
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: AVX2 checked just above.
+        return unsafe { block_sums_avx2::<K>(c, centre) };
+    }
     block_sums_body::<K>(c, centre)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512dq,avx512bw,avx2")]
 fn block_sums_avx512<const K: usize>(c: &[i16], centre: i64) -> [i64; K] {
+    block_sums_body::<K>(c, centre)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn block_sums_avx2<const K: usize>(c: &[i16], centre: i64) -> [i64; K] {
     block_sums_body::<K>(c, centre)
 }
 

@@ -85,6 +85,17 @@ fn on_grid_run(x: &[f64], lo: f64, eps: f64, q: f64, inv_q: f64) -> usize {
         // SAFETY: AVX-512F checked just above.
         return unsafe { on_grid_run_avx512(x, lo, eps, q, inv_q) };
     }
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: AVX2 checked just above.
+        return unsafe { on_grid_run_avx2(x, lo, eps, q, inv_q) };
+    }
+    on_grid_run_body(x, lo, eps, q, inv_q)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn on_grid_run_avx2(x: &[f64], lo: f64, eps: f64, q: f64, inv_q: f64) -> usize {
     on_grid_run_body(x, lo, eps, q, inv_q)
 }
 
@@ -176,6 +187,11 @@ fn level_indices(x: &[f64], lo: f64, inv_step: f64, top: i64, index: &mut [u32])
             unsafe { level_indices_avx512(x, lo, inv_step, top, index) };
             return;
         }
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU has AVX2 (checked just above).
+            unsafe { level_indices_avx2(x, lo, inv_step, top, index) };
+            return;
+        }
     }
     level_indices_body(x, lo, inv_step, top, index);
 }
@@ -183,6 +199,19 @@ fn level_indices(x: &[f64], lo: f64, inv_step: f64, top: i64, index: &mut [u32])
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2,fma")]
 fn level_indices_avx512(x: &[f64], lo: f64, inv_step: f64, top: i64, index: &mut [u32]) {
+    level_indices_floor(x, lo, inv_step, top, index);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn level_indices_avx2(x: &[f64], lo: f64, inv_step: f64, top: i64, index: &mut [u32]) {
+    level_indices_floor(x, lo, inv_step, top, index);
+}
+
+/// [`level_indices_body`]'s levels by a packed floor (for CPUs with a
+/// rounding instruction: AVX2's four lanes or AVX-512's eight).
+#[inline(always)]
+fn level_indices_floor(x: &[f64], lo: f64, inv_step: f64, top: i64, index: &mut [u32]) {
     // The quotient q lies in [0, 2¹⁷) (at most MAX_LEVELS levels), where
     // truncation is floor (one rounding instruction here) and the integer
     // floor(q) is the low bits of floor(q) + 2⁵²: packed, no saturating
@@ -417,12 +446,17 @@ mod tests {
         let mut got = vec![0u32; x.len()];
         level_indices(&x, lo, 1.0 / step, top, &mut got);
         assert_eq!(got, want);
+        // The packed floor's arithmetic, whichever copy this CPU runs.
+        level_indices_floor(&x, lo, 1.0 / step, top, &mut got);
+        assert_eq!(got, want);
         // Off the grid too (the truncation, not only exact levels).
         for v in &mut x[..1003] {
             *v += 0.2499;
         }
         level_indices_body(&x, lo, 1.0 / step, top, &mut want);
         level_indices(&x, lo, 1.0 / step, top, &mut got);
+        assert_eq!(got, want);
+        level_indices_floor(&x, lo, 1.0 / step, top, &mut got);
         assert_eq!(got, want);
         assert_eq!(want[1003], 0, "NaN");
     }

@@ -23,6 +23,14 @@ fn wide() -> bool {
     std::arch::is_x86_feature_detected!("avx512f")
 }
 
+/// Whether this CPU runs the AVX2 copies (four lanes to a register, the
+/// eight lanes in two: the same operations on the same lanes, so the same bits).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn avx2() -> bool {
+    std::arch::is_x86_feature_detected!("avx2")
+}
+
 /// Σ f(x_i) in the lane order (the neutral element −0.0 in every lane).
 /// (An AVX-512 copy measured no faster: eight chains of one add each are
 /// as quick in four SSE2 registers.)
@@ -152,6 +160,22 @@ fn lane_sum_codes_avx512(
 /// shorter slice sets the length): a least-squares amplitude fit's sums,
 /// in one pass.
 pub fn fit_sums(x: &[f64], s: &[f64], mean: f64) -> (f64, f64, f64) {
+    #[cfg(target_arch = "x86_64")]
+    if avx2() {
+        // SAFETY: AVX2 checked just above.
+        return unsafe { fit_sums_avx2(x, s, mean) };
+    }
+    fit_sums_body(x, s, mean)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn fit_sums_avx2(x: &[f64], s: &[f64], mean: f64) -> (f64, f64, f64) {
+    fit_sums_body(x, s, mean)
+}
+
+#[inline(always)]
+fn fit_sums_body(x: &[f64], s: &[f64], mean: f64) -> (f64, f64, f64) {
     let n = x.len().min(s.len());
     let (x, s) = (&x[..n], &s[..n]);
     let (mut ss, mut xs, mut xx) = ([-0.0f64; LANES], [-0.0f64; LANES], [-0.0f64; LANES]);
@@ -182,6 +206,17 @@ pub fn central_power_sums(x: &[f64], shift: f64, mean: f64) -> (f64, f64, f64) {
         // SAFETY: AVX-512F checked just above.
         return unsafe { central_power_sums_avx512(x, shift, mean) };
     }
+    #[cfg(target_arch = "x86_64")]
+    if avx2() {
+        // SAFETY: AVX2 checked just above.
+        return unsafe { central_power_sums_avx2(x, shift, mean) };
+    }
+    central_power_sums_body(x, shift, mean)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn central_power_sums_avx2(x: &[f64], shift: f64, mean: f64) -> (f64, f64, f64) {
     central_power_sums_body(x, shift, mean)
 }
 
@@ -222,6 +257,17 @@ pub fn all_finite(x: &[f64]) -> bool {
         // SAFETY: AVX-512F checked just above.
         return unsafe { all_finite_avx512(x) };
     }
+    #[cfg(target_arch = "x86_64")]
+    if avx2() {
+        // SAFETY: AVX2 checked just above.
+        return unsafe { all_finite_avx2(x) };
+    }
+    all_finite_body(x)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn all_finite_avx2(x: &[f64]) -> bool {
     all_finite_body(x)
 }
 
@@ -284,5 +330,30 @@ mod tests {
         y[700] = f64::NEG_INFINITY;
         assert!(!all_finite(&y));
         assert_eq!(sum(&[2.5]), 2.5);
+    }
+
+    #[test]
+    fn every_copy_a_cpu_may_run_gives_the_portable_bits() {
+        let x: Vec<f64> = (0..1003).map(|i| ((i * 37 % 101) as f64 * 0.37).sin() * 1e3 + 3.0).collect();
+        let s: Vec<f64> = (0..1000).map(|i| ((i * 13 % 61) as f64 * 0.21).cos()).collect();
+        for n in [0usize, 1, 7, 8, 9, 15, 16, 17, 1000, 1003] {
+            let (x, mean) = (&x[..n], 2.75);
+            let want = (fit_sums_body(x, &s, mean), central_power_sums_body(x, 1.5, mean), all_finite_body(x));
+            let bits = |(a, b, c): (f64, f64, f64)| [a.to_bits(), b.to_bits(), c.to_bits()];
+            assert_eq!(bits(fit_sums(x, &s, mean)), bits(want.0), "fit_sums, n {n}");
+            assert_eq!(bits(central_power_sums(x, 1.5, mean)), bits(want.1), "central_power_sums, n {n}");
+            #[cfg(target_arch = "x86_64")]
+            if avx2() {
+                // SAFETY: AVX2 checked just above.
+                let got = unsafe { (fit_sums_avx2(x, &s, mean), central_power_sums_avx2(x, 1.5, mean), all_finite_avx2(x)) };
+                assert_eq!((bits(got.0), bits(got.1), got.2), (bits(want.0), bits(want.1), want.2), "AVX2, n {n}");
+            }
+            #[cfg(target_arch = "x86_64")]
+            if wide() {
+                // SAFETY: AVX-512F checked just above.
+                let got = unsafe { (central_power_sums_avx512(x, 1.5, mean), all_finite_avx512(x)) };
+                assert_eq!((bits(got.0), got.1), (bits(want.1), want.2), "AVX-512, n {n}");
+            }
+        }
     }
 }

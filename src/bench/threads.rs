@@ -68,7 +68,7 @@ impl ThreadsCost {
         let n = self.threads;
         let skip = pilot_skip(self.frames);
         let clock = if skip > 0 {
-            format!("; each rate from the {}st outcome to the last (the first {skip}, the threaded pipeline's pilot on one thread and every arm's start-up, off the clock)", skip + 1)
+            format!("; each rate from the {} outcome to the last (the first {skip}, the threaded pipeline's pilot on one thread and every arm's start-up, off the clock)", ordinal(skip + 1))
         } else {
             "; each rate from the first outcome to the last".to_string()
         };
@@ -161,6 +161,18 @@ fn pilot_skip(frames: usize) -> usize {
     if frames >= 2 * threaded::PILOT_FRAMES { threaded::PILOT_FRAMES } else { 0 }
 }
 
+/// `n` as an English ordinal: 1st, 2nd, 3rd, 4th, 11th, 12th, 13th, 21st, 101st.
+fn ordinal(n: usize) -> String {
+    let suffix = match (n % 10, n % 100) {
+        (_, 11..=13) => "th",
+        (1, _) => "st",
+        (2, _) => "nd",
+        (3, _) => "rd",
+        _ => "th",
+    };
+    format!("{n}{suffix}")
+}
+
 /// Steady-state outcomes per second of `frames` on `threads` threads, and
 /// the cut: the clock runs from the outcome of frame
 /// [`threaded::PILOT_FRAMES`] on, whatever the thread count (before it a
@@ -191,4 +203,13 @@ fn offline(scene: &Scene, frames: &[Frame], threads: usize) -> (f64, threaded::C
         _ => f64::INFINITY,
     };
     ((count.saturating_sub(1)) as f64 / span, cut)
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn ordinals_take_the_english_suffix() {
+        let got: Vec<String> = [1, 2, 3, 4, 11, 12, 13, 21, 22, 23, 101, 111, 201].into_iter().map(super::ordinal).collect();
+        assert_eq!(got, ["1st", "2nd", "3rd", "4th", "11th", "12th", "13th", "21st", "22nd", "23rd", "101st", "111th", "201st"]);
+    }
 }

@@ -1300,7 +1300,7 @@ fn z_of((num, var): (f64, f64), sigma: f64) -> f64 {
 }
 
 /// Σ aᵢbᵢ over the shorter of the two ([`lane_sum`]'s order; in one
-/// AVX-512 register where the CPU has it, the same bits).
+/// AVX-512 register, or two AVX2 ones, where the CPU has them: the same bits).
 #[inline]
 fn dot(a: &[f64], b: &[f64]) -> f64 {
     #[cfg(target_arch = "x86_64")]
@@ -1355,8 +1355,8 @@ fn centred_dot(a: &[f64], centre: f64, b: &[f64]) -> f64 {
 /// [`dot`]'s lane order (each pair's lanes take the operations of one such
 /// sum alone, in the same order: the same bits, a NaN's sign aside), as four
 /// independent chains over the length they share: one product per lane
-/// waits on four others' instead of on its own last add. In AVX-512
-/// registers where the CPU has them (the same bits).
+/// waits on four others' instead of on its own last add. In AVX-512 or
+/// AVX2 registers where the CPU has them (the same bits).
 fn centred_dots4(pairs: [(&[f64], &[f64]); 4], centre: f64) -> [f64; 4] {
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx512f") {
@@ -2276,6 +2276,32 @@ mod tests {
         }
     }
 
+    #[test]
+    fn four_centred_dots_are_four_centred_dots_bit_for_bit_on_every_copy() {
+        use rand::{Rng, SeedableRng};
+        use rand_distr::StandardNormal;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(23);
+        let mut v = |n: usize| -> Vec<f64> { (0..n).map(|_| rng.sample::<f64, _>(StandardNormal) * 3.0 + 0.5).collect() };
+        // Pairs of different lengths (the shared run, each one's own rest, a tail under eight).
+        for lens in [[0usize, 0, 0, 0], [7, 8, 9, 1], [64, 70, 33, 129], [200, 200, 200, 203]] {
+            let (a, b): (Vec<Vec<f64>>, Vec<Vec<f64>>) = lens.iter().map(|&n| (v(n), v(n + 2))).unzip();
+            let pairs: [(&[f64], &[f64]); 4] = std::array::from_fn(|j| (&a[j][..], &b[j][..]));
+            let want = pairs.map(|(x, y)| centred_dot(x, 0.75, y).to_bits());
+            assert_eq!(centred_dots4(pairs, 0.75).map(f64::to_bits), want, "{lens:?}");
+            assert_eq!(centred_dots4_body(pairs, 0.75).map(f64::to_bits), want, "{lens:?}: the portable body");
+            #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("avx2") {
+                // SAFETY: AVX2 checked just above.
+                assert_eq!(unsafe { centred_dots4_avx2(pairs, 0.75) }.map(f64::to_bits), want, "{lens:?}: AVX2");
+            }
+            #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("avx512f") {
+                // SAFETY: AVX-512F checked just above.
+                assert_eq!(unsafe { centred_dots4_avx512(pairs, 0.75) }.map(f64::to_bits), want, "{lens:?}: AVX-512");
+            }
+        }
+    }
+
     /// Zeros of both signs, infinities, NaNs of both signs and subnormals.
     const ODD_FLOATS: [f64; 8] = [-0.0, 0.0, f64::INFINITY, f64::NEG_INFINITY, f64::NAN, -f64::NAN, f64::from_bits(3), f64::from_bits(0x8000_0000_0000_0005)];
 
@@ -2638,9 +2664,21 @@ mod tests {
                 let (eb, db) = folded_energy_and_first(&folded, &centred, 0.0, &mut halves);
                 let (em, dm) = folded_energy_and_first(&folded, &raw, mean, &mut halves);
                 assert_eq!((em.to_bits(), dm.to_bits()), (eb.to_bits(), db.to_bits()), "len {len}");
-                // The portable loop and the AVX-512 compile of it: the same bits.
+                // The portable loop and the compiles of it this CPU can run: the same bits.
                 let (ep, dp) = folded_energy_and_first_body(&folded, &raw, mean, &mut halves);
                 assert_eq!((em.to_bits(), dm.to_bits()), (ep.to_bits(), dp.to_bits()), "len {len}");
+                #[cfg(target_arch = "x86_64")]
+                if std::arch::is_x86_feature_detected!("avx2") {
+                    // SAFETY: AVX2 checked just above.
+                    let (ea, da) = unsafe { folded_energy_and_first_avx2(&folded, &raw, mean, &mut halves) };
+                    assert_eq!((ea.to_bits(), da.to_bits()), (ep.to_bits(), dp.to_bits()), "len {len}: AVX2");
+                }
+                #[cfg(target_arch = "x86_64")]
+                if std::arch::is_x86_feature_detected!("avx512f") {
+                    // SAFETY: AVX-512F checked just above.
+                    let (ea, da) = unsafe { folded_energy_and_first_avx512(&folded, &raw, mean, &mut halves) };
+                    assert_eq!((ea.to_bits(), da.to_bits()), (ep.to_bits(), dp.to_bits()), "len {len}: AVX-512");
+                }
             }
         }
         // A column that is neither even nor odd: no folding.

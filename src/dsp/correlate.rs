@@ -89,8 +89,9 @@ fn direct_cost_ns(taps: usize, outputs: usize) -> f64 {
     outputs as f64 * (taps as f64 * direct_ns_per_mac() + DIRECT_NS_PER_OUTPUT)
 }
 
-/// Cost of one multiply-accumulate of the direct loop this CPU will run
-/// (one figure for both fused copies: see the cost model's constants).
+/// Cost of one multiply-accumulate of the direct loop this CPU will run, as
+/// the choice of method counts it (one figure for both fused copies, not
+/// each one's own: see the cost model's constants).
 fn direct_ns_per_mac() -> f64 {
     ns_per_mac(direct_path())
 }
@@ -113,7 +114,9 @@ enum DirectPath {
 fn direct_path() -> DirectPath {
     #[cfg(target_arch = "x86_64")]
     {
-        if std::arch::is_x86_feature_detected!("avx512f") {
+        // Every feature the AVX-512 copies enable (a hypervisor may hide
+        // some of what AVX-512F implies).
+        if std::arch::is_x86_feature_detected!("avx512f") && std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
             return DirectPath::Avx512;
         }
         if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")

@@ -328,6 +328,13 @@ impl PulseShape for TablePulse {
                 unsafe { self.fill_grid_avx512(t0, inv, out) };
                 return;
             }
+            if let Some(inv) = self.inv_step
+                && has!("avx2")
+            {
+                // SAFETY: the CPU has AVX2 (checked just above).
+                unsafe { self.fill_grid_avx2(t0, inv, out) };
+                return;
+            }
         }
         self.fill_grid_scalar(t0, out);
     }
@@ -377,6 +384,107 @@ impl TablePulse {
             rest.copy_from_slice(&last[..rest.len()]);
         }
         count
+    }
+
+    /// [`fill_grid_avx512`](Self::fill_grid_avx512) for CPUs with AVX2 but
+    /// not AVX-512: the same eights, read the same ways, in eight plain
+    /// lanes ([`grid_eight_lanes`](Self::grid_eight_lanes)) the compiler
+    /// keeps in two registers each; bit for bit [`eval`](Self::eval) too.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    fn fill_grid_avx2(&self, t0: f64, inv: f64, out: &mut [(f64, f64)]) -> (usize, usize) {
+        let mut count = (0, 0);
+        let mut tally = |read: Read| match read {
+            Read::Phased => count.0 += 1,
+            Read::Gathered => count.1 += 1,
+            Read::Off => {}
+        };
+        let mut chunks = out.chunks_exact_mut(8);
+        let mut k0 = 0usize;
+        for chunk in &mut chunks {
+            tally(self.grid_eight_lanes(t0, k0, inv, chunk.try_into().expect("eight points")));
+            k0 += 8;
+        }
+        let rest = chunks.into_remainder();
+        if !rest.is_empty() {
+            let mut last = [(0.0, 0.0); 8];
+            tally(self.grid_eight_lanes(t0, k0, inv, &mut last));
+            rest.copy_from_slice(&last[..rest.len()]);
+        }
+        count
+    }
+
+    /// [`grid_eight`](Self::grid_eight)'s operations, lane by lane, in
+    /// plain arrays: the same point, the same mask, the same test for eight
+    /// cells one phase apart (on the cells as `vcvttpd2qq` gives them: out
+    /// of the i64 range and NaN read as i64::MIN), the same reads and the
+    /// same arithmetic in the same order, nothing fused.
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    fn grid_eight_lanes(&self, t0: f64, k0: usize, inv: f64, chunk: &mut [(f64, f64); 8]) -> Read {
+        let (values, slopes) = (&self.values[..], &self.slopes[..]);
+        let n = values.len();
+        let top = (n - 1) as f64;
+        let mut u = [0.0f64; 8];
+        let mut ok = [false; 8];
+        for l in 0..8 {
+            let t = t0 + (k0 as f64 + l as f64);
+            u[l] = (t - self.first) * inv;
+            ok[l] = u[l] >= 0.0 && u[l] < top;
+        }
+        if !ok.iter().any(|&o| o) {
+            *chunk = [(0.0, 0.0); 8];
+            return Read::Off;
+        }
+        let (mut fl, mut s) = ([0.0f64; 8], [0.0f64; 8]);
+        for l in 0..8 {
+            fl[l] = u[l].floor() + 0.0;
+            s[l] = u[l] - fl[l];
+        }
+        // The truncating conversion's result, i64::MIN where it has none.
+        let cell = |x: f64| if x >= -9_223_372_036_854_775_808.0 && x < 9_223_372_036_854_775_808.0 { x as i64 } else { i64::MIN };
+        let cell0 = cell(fl[0]);
+        let phased = self.phased.as_ref().and_then(|ph| {
+            let per = 1usize << ph.shift;
+            let (r, q) = ((cell0 & (per as i64 - 1)) as usize, cell0 >> ph.shift);
+            let (r1, q1) = if r + 1 == per { (0, q + 1) } else { (r + 1, q) };
+            let pad = Phased::PAD as i64;
+            let inside = q >= -pad && q1 + 8 <= ph.points as i64 + pad;
+            let apart = (0..8).all(|l| cell(fl[l]) == cell0.wrapping_add((l as i64) << ph.shift));
+            (inside && apart).then_some((ph, (r, q), (r1, q1)))
+        });
+        let eight = |run: &[f64]| -> [f64; 8] { run.try_into().expect("eight") };
+        let (p0, p1, m0, m1, read) = match phased {
+            Some((ph, (r, q), (r1, q1))) => (eight(ph.run8(r, 0, q)), eight(ph.run8(r1, 0, q1)), eight(ph.run8(r, 1, q)), eight(ph.run8(r1, 1, q1)), Read::Phased),
+            None => {
+                // Lanes off the table read cell 0 (their values are not used).
+                let at: [usize; 8] = std::array::from_fn(|l| if ok[l] { fl[l] as usize } else { 0 });
+                (
+                    at.map(|c| values[c]),
+                    at.map(|c| values[c + 1]),
+                    at.map(|c| slopes[c] * self.step),
+                    at.map(|c| slopes[c + 1] * self.step),
+                    Read::Gathered,
+                )
+            }
+        };
+        for l in 0..8 {
+            let s = s[l];
+            let s2 = s * s;
+            let s3 = s2 * s;
+            let a = 2.0 * s3 - 3.0 * s2 + 1.0;
+            let b = s3 - 2.0 * s2 + s;
+            let c = -2.0 * s3 + 3.0 * s2;
+            let d = s3 - s2;
+            let v = a * p0[l] + b * m0[l] + c * p1[l] + d * m1[l];
+            let da = 6.0 * s2 - 6.0 * s;
+            let db = 3.0 * s2 - 4.0 * s + 1.0;
+            let dc = -6.0 * s2 + 6.0 * s;
+            let dd = 3.0 * s2 - 2.0 * s;
+            let dv = da * p0[l] + db * m0[l] + dc * p1[l] + dd * m1[l];
+            chunk[l] = if ok[l] { (v, dv * inv) } else { (0.0, 0.0) };
+        }
+        read
     }
 
     /// Points t0 + k0 … t0 + k0 + 7 for [`fill_grid_avx512`](Self::fill_grid_avx512)
@@ -726,6 +834,22 @@ mod tests {
             // SAFETY: the CPU has the features (checked just above).
             let reads = unsafe { t.fill_grid_avx512(t0, inv, &mut out) };
             same(&out, "fill_grid_avx512");
+            // The AVX2 copy where the CPU has both: the same reads too.
+            let mut out = vec![(7.0, 7.0); count];
+            // SAFETY: AVX-512 implies AVX2.
+            let lanes = unsafe { t.fill_grid_avx2(t0, inv, &mut out) };
+            same(&out, "fill_grid_avx2");
+            assert_eq!(lanes, reads, "the AVX2 copy reads as the AVX-512 one does");
+            return reads;
+        }
+        #[cfg(target_arch = "x86_64")]
+        if let Some(inv) = t.inv_step
+            && std::arch::is_x86_feature_detected!("avx2")
+        {
+            let mut out = vec![(7.0, 7.0); count];
+            // SAFETY: the CPU has AVX2 (checked just above).
+            let reads = unsafe { t.fill_grid_avx2(t0, inv, &mut out) };
+            same(&out, "fill_grid_avx2");
             return reads;
         }
         (0, 0)
@@ -795,9 +919,9 @@ mod tests {
         // The sign of zero where u is −0 (t just below a subnormal `first`).
         check_grid(&TablePulse::new(vec![-0.0, -0.0, 0.0, 0.0, 0.0], 2.0, 5e-324), 0.0, 3);
         check_grid(&TablePulse::new(vec![-0.0, -0.0, 0.0, 0.0, 0.0], 0.5, 5e-324), 0.0, 9);
-        // Where the CPU has AVX-512, both ways were taken (none elsewhere).
+        // Where the CPU has AVX2 or AVX-512, both ways were taken (none elsewhere).
         #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx512f") && std::arch::is_x86_feature_detected!("avx512dq") && std::arch::is_x86_feature_detected!("avx512vl") && std::arch::is_x86_feature_detected!("fma") {
+        if std::arch::is_x86_feature_detected!("avx2") {
             assert!(phased_tables > 100 && by_phase > 10_000, "{phased_tables} tables by phase, {by_phase} eights read so");
             assert!(gathered_on_phased > 0 && gather > 0, "the gather where the cells are not one phase apart: {gathered_on_phased}, {gather}");
         }

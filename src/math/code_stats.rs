@@ -305,6 +305,21 @@ mod tests {
             assert_eq!(code_power_sums(&parts, at), want, "{n} codes about {centre}");
             assert_eq!(block_sums_body::<4>(&c[..n.min(BLOCK)], i64::from(at)).map(i128::from), code_power_sums(&[&c[..n.min(BLOCK)]], at), "{n}: the portable body");
             assert_eq!(code_square_sums(&parts, at), [want[0], want[1]], "{n} codes about {centre}: the first two");
+            // Each compile of the block's body this CPU can run.
+            let block = &c[..n.min(BLOCK)];
+            let body = (block_sums_body::<4>(block, i64::from(at)), block_sums_body::<2>(block, i64::from(at)), min_max_body(block), last_max_body(block));
+            #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("avx2") {
+                // SAFETY: AVX2 checked just above.
+                let got = unsafe { (block_sums_avx2::<4>(block, i64::from(at)), block_sums_avx2::<2>(block, i64::from(at)), min_max_avx2(block), last_max_avx2(block)) };
+                assert_eq!(got, body, "{n}: AVX2");
+            }
+            #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("avx512dq") && std::arch::is_x86_feature_detected!("avx512bw") {
+                // SAFETY: AVX-512F, DQ and BW checked just above.
+                let got = unsafe { (block_sums_avx512::<4>(block, i64::from(at)), block_sums_avx512::<2>(block, i64::from(at)), min_max_avx512(block), last_max_avx512(block)) };
+                assert_eq!(got, body, "{n}: AVX-512");
+            }
         }
     }
 
@@ -337,6 +352,11 @@ mod tests {
                 let want = c.iter().max().map(|&top| (top, c.iter().rposition(|&v| v == top).expect("present")));
                 assert_eq!(last_max(&c), want, "{len} codes, spread {spread}");
                 assert_eq!(last_max_body(&c), want, "{len} codes, spread {spread}: the portable body");
+                #[cfg(target_arch = "x86_64")]
+                if std::arch::is_x86_feature_detected!("avx2") {
+                    // SAFETY: AVX2 checked just above.
+                    assert_eq!(unsafe { last_max_avx2(&c) }, want, "{len} codes, spread {spread}: AVX2");
+                }
             }
         }
         assert_eq!(last_max(&[i16::MIN; 40]), Some((i16::MIN, 39)), "every code the least");

@@ -79,7 +79,7 @@ pub fn grid_step_within(x: &[f64], lo: f64, hi: f64, min_step: f64) -> Option<f6
 /// to it as `round`'s) where the quotient is below 2⁵¹, and quotients
 /// beyond are left to the caller.
 fn on_grid_run(x: &[f64], lo: f64, eps: f64, q: f64, inv_q: f64) -> usize {
-    // The same arithmetic in AVX-512 registers where the CPU has it (picked at run time).
+    // The same arithmetic in AVX-512 or AVX2 registers where the CPU has them (picked at run time).
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx512f") {
         // SAFETY: AVX-512F checked just above.
@@ -177,8 +177,10 @@ const WINDOWS: [(f64, f64, usize); 4] = [(0.1, 0.9, 3), (0.05, 0.95, 3), (0.02, 
 
 /// Each sample's level on the grid from `lo` with 1/step `inv_step`, at most
 /// `top`, into `index` (`lo` is the least of `x`, and `x` spans at most
-/// [`MAX_LEVELS`] levels; a NaN is level 0); with AVX-512 where the CPU has it (the packed
-/// conversion to integers), the same arithmetic either way.
+/// [`MAX_LEVELS`] levels, `inv_step` finite; a NaN is level 0): with AVX-512
+/// or AVX2 where the CPU has them, by a packed floor
+/// ([`level_indices_floor`]), else by a signed conversion; the same levels
+/// for every such input.
 fn level_indices(x: &[f64], lo: f64, inv_step: f64, top: i64, index: &mut [u32]) {
     #[cfg(target_arch = "x86_64")]
     {
@@ -210,6 +212,7 @@ fn level_indices_avx2(x: &[f64], lo: f64, inv_step: f64, top: i64, index: &mut [
 
 /// [`level_indices_body`]'s levels by a packed floor (for CPUs with a
 /// rounding instruction: AVX2's four lanes or AVX-512's eight).
+#[cfg(any(target_arch = "x86_64", test))]
 #[inline(always)]
 fn level_indices_floor(x: &[f64], lo: f64, inv_step: f64, top: i64, index: &mut [u32]) {
     // The quotient q lies in [0, 2¹⁷) (at most MAX_LEVELS levels), where
@@ -305,6 +308,11 @@ pub fn quantised_sigma_within(x: &[f64], lo: f64, hi: f64, step: f64, counts: &m
     // number of steps from the lowest: the nearest integer is the same
     // whether (v − lo) is divided by the step or multiplied by its inverse.
     let inv_step = 1.0 / step;
+    // A step so fine (below ~5.6e-309) that its inverse overflows has no
+    // levels to count (every path would read them differently).
+    if !inv_step.is_finite() {
+        return None;
+    }
     let levels = levels as usize;
     probit_sigma(x.len(), levels, step, counts, |index| level_indices(x, lo, inv_step, levels as i64 - 1, index))
 }
@@ -446,7 +454,8 @@ mod tests {
         let mut got = vec![0u32; x.len()];
         level_indices(&x, lo, 1.0 / step, top, &mut got);
         assert_eq!(got, want);
-        // The packed floor's arithmetic, whichever copy this CPU runs.
+        // The packed floor's arithmetic (compiled here for the baseline
+        // target: the same operations the AVX2 and AVX-512 copies run).
         level_indices_floor(&x, lo, 1.0 / step, top, &mut got);
         assert_eq!(got, want);
         // Off the grid too (the truncation, not only exact levels).
@@ -485,6 +494,26 @@ mod tests {
             assert_eq!(round(x).to_bits(), x.round().to_bits(), "{x}");
         }
         assert!(round(f64::NAN).is_nan());
+    }
+
+    #[test]
+    fn the_grid_run_is_the_same_on_every_copy_and_a_subnormal_step_has_no_levels() {
+        let mut x = quantised(1003, 37.0, 0.5, -3.25, 12);
+        let (lo, _) = crate::math::select::min_max(&x);
+        // Off the grid at a few places (the run stops at the first).
+        for at in [1002usize, 517, 9] {
+            let want = on_grid_run_body(&x, lo, 1e-9, 0.5, 2.0);
+            assert_eq!(on_grid_run(&x, lo, 1e-9, 0.5, 2.0), want, "off at {at}");
+            #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("avx2") {
+                // SAFETY: AVX2 checked just above.
+                assert_eq!(unsafe { on_grid_run_avx2(&x, lo, 1e-9, 0.5, 2.0) }, want, "off at {at}: AVX2");
+            }
+            x[at] += 0.1;
+        }
+        // Samples on a grid of the least subnormal: 1/step overflows.
+        let tiny: Vec<f64> = (0..64).map(|k| f64::from_bits(1) * (k % 7) as f64).collect();
+        assert_eq!(quantised_sigma_within(&tiny, 0.0, 6.0 * f64::from_bits(1), f64::from_bits(1), &mut Vec::new()), None);
     }
 
     /// `grid_step` as first written: one sample at a time, dividing.

@@ -199,7 +199,8 @@ fn fit_sums_body(x: &[f64], s: &[f64], mean: f64) -> (f64, f64, f64) {
 }
 
 /// (Σ d², Σ d³, Σ d⁴) of d_i = (x_i − shift) − mean, in one pass (in
-/// AVX-512 registers where the CPU has them: 1.5x faster than SSE2's).
+/// AVX-512 registers where the CPU has them: 1.5x faster than SSE2's; else
+/// in AVX2 ones where it has those).
 pub fn central_power_sums(x: &[f64], shift: f64, mean: f64) -> (f64, f64, f64) {
     #[cfg(target_arch = "x86_64")]
     if wide() {
@@ -336,7 +337,18 @@ mod tests {
     fn every_copy_a_cpu_may_run_gives_the_portable_bits() {
         let x: Vec<f64> = (0..1003).map(|i| ((i * 37 % 101) as f64 * 0.37).sin() * 1e3 + 3.0).collect();
         let s: Vec<f64> = (0..1000).map(|i| ((i * 13 % 61) as f64 * 0.21).cos()).collect();
+        let mut odd = x.clone();
+        (odd[5], odd[700], odd[1002]) = (f64::NAN, f64::INFINITY, f64::NEG_INFINITY);
         for n in [0usize, 1, 7, 8, 9, 15, 16, 17, 1000, 1003] {
+            // Finiteness on values with a NaN or an infinity in reach too.
+            let odd = &odd[..n];
+            assert_eq!(all_finite(odd), all_finite_body(odd), "all_finite, n {n}");
+            assert_eq!(all_finite_body(odd), n <= 5, "n {n}");
+            #[cfg(target_arch = "x86_64")]
+            if avx2() {
+                // SAFETY: AVX2 checked just above.
+                assert_eq!(unsafe { all_finite_avx2(odd) }, n <= 5, "AVX2, n {n}");
+            }
             let (x, mean) = (&x[..n], 2.75);
             let want = (fit_sums_body(x, &s, mean), central_power_sums_body(x, 1.5, mean), all_finite_body(x));
             let bits = |(a, b, c): (f64, f64, f64)| [a.to_bits(), b.to_bits(), c.to_bits()];

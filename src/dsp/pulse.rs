@@ -441,18 +441,29 @@ impl TablePulse {
             fl[l] = u[l].floor() + 0.0;
             s[l] = u[l] - fl[l];
         }
-        // The truncating conversion's result, i64::MIN where it has none.
-        let cell = |x: f64| if x >= -9_223_372_036_854_775_808.0 && x < 9_223_372_036_854_775_808.0 { x as i64 } else { i64::MIN };
-        let cell0 = cell(fl[0]);
-        let phased = self.phased.as_ref().and_then(|ph| {
+        // Lane 0's cell as the truncating conversion gives it (i64::MIN out
+        // of the i64 range and for NaN).
+        let cell0 = if fl[0] >= -9_223_372_036_854_775_808.0 && fl[0] < 9_223_372_036_854_775_808.0 { fl[0] as i64 } else { i64::MIN };
+        let mut phased = None;
+        if let Some(ph) = self.phased.as_ref() {
             let per = 1usize << ph.shift;
             let (r, q) = ((cell0 & (per as i64 - 1)) as usize, cell0 >> ph.shift);
             let (r1, q1) = if r + 1 == per { (0, q + 1) } else { (r + 1, q) };
             let pad = Phased::PAD as i64;
-            let inside = q >= -pad && q1 + 8 <= ph.points as i64 + pad;
-            let apart = (0..8).all(|l| cell(fl[l]) == cell0.wrapping_add((l as i64) << ph.shift));
-            (inside && apart).then_some((ph, (r, q), (r1, q1)))
-        });
+            if q >= -pad && q1 + 8 <= ph.points as i64 + pad {
+                // Inside the phases' runs cell0 is small, so lane l's cell
+                // is cell0 + l·per exactly when its floor is that number in
+                // f64 (a NaN or a floor out of range equals none).
+                let base = cell0 as f64;
+                let mut apart = true;
+                for (l, &f) in fl.iter().enumerate() {
+                    apart &= f == base + ((l as i64) << ph.shift) as f64;
+                }
+                if apart {
+                    phased = Some((ph, (r, q), (r1, q1)));
+                }
+            }
+        }
         let eight = |run: &[f64]| -> [f64; 8] { run.try_into().expect("eight") };
         let (p0, p1, m0, m1, read) = match phased {
             Some((ph, (r, q), (r1, q1))) => (eight(ph.run8(r, 0, q)), eight(ph.run8(r1, 0, q1)), eight(ph.run8(r, 1, q)), eight(ph.run8(r1, 1, q1)), Read::Phased),

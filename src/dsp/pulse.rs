@@ -363,27 +363,7 @@ impl TablePulse {
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2,fma")]
     fn fill_grid_avx512(&self, t0: f64, inv: f64, out: &mut [(f64, f64)]) -> (usize, usize) {
-        let mut count = (0, 0);
-        let mut tally = |read: Read| match read {
-            Read::Phased => count.0 += 1,
-            Read::Gathered => count.1 += 1,
-            Read::Off => {}
-        };
-        let mut chunks = out.chunks_exact_mut(8);
-        let mut k0 = 0usize;
-        for chunk in &mut chunks {
-            tally(self.grid_eight(t0, k0, inv, chunk.try_into().expect("eight points")));
-            k0 += 8;
-        }
-        // The last few points as a whole eight (the same bits per point): a
-        // fit's window is seldom a multiple of eight.
-        let rest = chunks.into_remainder();
-        if !rest.is_empty() {
-            let mut last = [(0.0, 0.0); 8];
-            tally(self.grid_eight(t0, k0, inv, &mut last));
-            rest.copy_from_slice(&last[..rest.len()]);
-        }
-        count
+        by_eights(out, |k0, chunk| self.grid_eight(t0, k0, inv, chunk))
     }
 
     /// [`fill_grid_avx512`](Self::fill_grid_avx512) for CPUs with AVX2 but
@@ -393,25 +373,7 @@ impl TablePulse {
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
     fn fill_grid_avx2(&self, t0: f64, inv: f64, out: &mut [(f64, f64)]) -> (usize, usize) {
-        let mut count = (0, 0);
-        let mut tally = |read: Read| match read {
-            Read::Phased => count.0 += 1,
-            Read::Gathered => count.1 += 1,
-            Read::Off => {}
-        };
-        let mut chunks = out.chunks_exact_mut(8);
-        let mut k0 = 0usize;
-        for chunk in &mut chunks {
-            tally(self.grid_eight_lanes(t0, k0, inv, chunk.try_into().expect("eight points")));
-            k0 += 8;
-        }
-        let rest = chunks.into_remainder();
-        if !rest.is_empty() {
-            let mut last = [(0.0, 0.0); 8];
-            tally(self.grid_eight_lanes(t0, k0, inv, &mut last));
-            rest.copy_from_slice(&last[..rest.len()]);
-        }
-        count
+        by_eights(out, |k0, chunk| self.grid_eight_lanes(t0, k0, inv, chunk))
     }
 
     /// [`grid_eight`](Self::grid_eight)'s operations, lane by lane, in
@@ -598,6 +560,34 @@ impl TablePulse {
         }
         read
     }
+}
+
+/// `out` eight points at a time by `eight` (called with the first point's
+/// index and the eight to fill; the last few points as a whole eight, the
+/// same bits per point: a fit's window is seldom a multiple of eight);
+/// returns the eights read by phase and those gathered.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn by_eights(out: &mut [(f64, f64)], mut eight: impl FnMut(usize, &mut [(f64, f64); 8]) -> Read) -> (usize, usize) {
+    let mut count = (0, 0);
+    let mut tally = |read: Read| match read {
+        Read::Phased => count.0 += 1,
+        Read::Gathered => count.1 += 1,
+        Read::Off => {}
+    };
+    let mut chunks = out.chunks_exact_mut(8);
+    let mut k0 = 0usize;
+    for chunk in &mut chunks {
+        tally(eight(k0, chunk.try_into().expect("eight points")));
+        k0 += 8;
+    }
+    let rest = chunks.into_remainder();
+    if !rest.is_empty() {
+        let mut last = [(0.0, 0.0); 8];
+        tally(eight(k0, &mut last));
+        rest.copy_from_slice(&last[..rest.len()]);
+    }
+    count
 }
 
 /// How [`TablePulse::grid_eight`] read the spline's inputs for its eight points.

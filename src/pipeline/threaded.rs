@@ -1009,7 +1009,90 @@ fn partition(costs: &[f64], parts: usize) -> Vec<usize> {
 
 #[cfg(test)]
 mod tests {
-    use super::{chain_pace, partition, ring_pace, ring_partition, RING_GAIN};
+    use super::{chain_pace, partition, ring_pace, ring_partition, Mode, Staged, RING_GAIN};
+    use crate::frame::Frame;
+    use crate::pipeline::{FrameError, Stage, Unit};
+    use crate::scene::Scene;
+
+    /// A stage that panics on the frame with sequence number `at` and
+    /// otherwise is `inner` (a rebuilt stage is the scene's own: it panics once).
+    struct Boom {
+        inner: Box<dyn Stage>,
+        at: u64,
+    }
+
+    impl Stage for Boom {
+        fn name(&self) -> &'static str {
+            self.inner.name()
+        }
+        fn process(&mut self, w: Unit, out: &mut Vec<Unit>) -> Result<(), FrameError> {
+            if w.frame.sequence == self.at {
+                panic!("boom in {} at frame {}", self.inner.name(), self.at);
+            }
+            self.inner.process(w, out)
+        }
+        fn flush(&mut self, out: &mut Vec<Unit>) {
+            self.inner.flush(out)
+        }
+        fn consumed(&mut self) -> Option<Unit> {
+            self.inner.consumed()
+        }
+    }
+
+    /// A stage that panics on a thread (the first stage of the first
+    /// segment, the middle stage, the last stage) costs its frame only:
+    /// that frame's outcome carries the panic's message and no report,
+    /// every other frame's outcome comes out once, in order, with its
+    /// report, and the pipeline carries on (the stage rebuilt) — on the
+    /// ring and on the chain.
+    #[test]
+    fn a_stage_panicking_on_a_thread_costs_its_frame_only() {
+        let scene = Scene::default_scene();
+        let sim = crate::physics::Simulator::new(&scene).expect("the default scene simulates");
+        let frames: Vec<Frame> = (0..1000).map(|i| sim.frame(5, i).0).collect();
+        for ring in [true, false] {
+            let mut s = Staged::new(&scene, "t", 2);
+            s.prefer_ring(Some(ring));
+            let Mode::Local { pipeline, .. } = &mut s.mode else { unreachable!("a new pipeline starts on the calling thread") };
+            let n = pipeline.stages.len();
+            assert!(n >= 3, "{n} stages");
+            // After the pilot (400 frames on the calling thread): on the threads.
+            let booms = [(0, 500u64), (n / 2 + 1, 700), (n - 1, 900)];
+            let mut names = Vec::new();
+            for &(i, at) in &booms {
+                let inner = pipeline.stages.remove(i);
+                names.push(inner.name());
+                pipeline.stages.insert(i, Box::new(Boom { inner, at }));
+            }
+            let mut outcomes = Vec::new();
+            let mut out = Vec::new();
+            for f in &frames {
+                s.push(f.clone(), &mut out);
+                outcomes.append(&mut out);
+            }
+            let flushed = s.finish(&mut out);
+            outcomes.append(&mut out);
+            assert!(flushed.reports.is_empty() && flushed.panic.is_none());
+            let cut = s.cut();
+            assert_eq!(cut.threads == [0, 1, 0], ring, "{cut}");
+            assert_eq!(outcomes.len(), frames.len(), "{cut}: one outcome per frame");
+            for (i, o) in outcomes.iter().enumerate() {
+                match booms.iter().zip(&names).find(|(b, _)| b.1 == i as u64) {
+                    Some((_, name)) => {
+                        let msg = o.panic.as_deref().unwrap_or_else(|| panic!("{cut}: frame {i}: no panic reported"));
+                        assert_eq!(msg, format!("boom in {name} at frame {i}"), "{cut}");
+                        assert!(o.reports.is_empty(), "{cut}: frame {i}: its unit is lost");
+                    }
+                    None => {
+                        assert!(o.panic.is_none(), "{cut}: frame {i}: {:?}", o.panic);
+                        assert!(o.result.is_ok(), "{cut}: frame {i}: {:?}", o.result);
+                        assert_eq!(o.reports.len(), 1, "{cut}: frame {i}");
+                        assert_eq!(o.reports[0].seq_first, i as u64, "{cut}: in order");
+                    }
+                }
+            }
+        }
+    }
 
     #[test]
     fn partition_minimises_the_largest_run() {

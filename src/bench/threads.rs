@@ -38,6 +38,16 @@ pub struct ThreadsCost {
     pub cut: String,
     /// Each stage's time per frame in that trial's pilot, s.
     pub stage_s: Vec<(&'static str, f64)>,
+    /// Each stage's time per frame on one thread over the second half of
+    /// the frames (steady state: the noise colour and the thresholds it sets
+    /// have settled), s.
+    pub steady_stage_s: Vec<(&'static str, f64)>,
+    /// CPU time per frame of the pipeline's threads on one thread, s (user +
+    /// system, from /proc: Linux only, else empty), over the last trial's
+    /// timed frames: the calling thread's (see [`pipeline_cpu_s`]).
+    pub cpu_1: Vec<(String, f64)>,
+    /// The same on N threads: the calling thread's, then each stage thread's.
+    pub cpu_n: Vec<(String, f64)>,
     /// Offline frames/s per trial, one thread.
     pub offline_1: Vec<f64>,
     /// Offline frames/s per trial, N threads.
@@ -92,13 +102,65 @@ impl ThreadsCost {
             100.0 * median(&self.service_1) / median(&self.offline_1),
             self.cut
         );
-        if !self.stage_s.is_empty() {
-            let total: f64 = self.stage_s.iter().map(|s| s.1).sum();
-            md += "\nStage times per frame on one thread (the pilot's timed frames):\n\n| stage | µs/frame | share |\n|---|---|---|\n";
-            for (name, t) in &self.stage_s {
-                md += &format!("| {name} | {:.1} | {:.0} % |\n", t * 1e6, 100.0 * t / total);
-            }
+        md += &self.stage_table();
+        md += &self.cpu_table();
+        md
+    }
+}
+
+impl ThreadsCost {
+    /// Stage times per frame on one thread: the pilot's (which chose the
+    /// cut) beside the steady state's.
+    fn stage_table(&self) -> String {
+        let total = |v: &[(&str, f64)]| v.iter().map(|s| s.1).sum::<f64>();
+        let (pilot, steady) = (total(&self.stage_s), total(&self.steady_stage_s));
+        let cell = |t: Option<f64>, all: f64| t.map_or("–".to_string(), |t| format!("{:.1} | {:.0} %", t * 1e6, 100.0 * t / all));
+        let mut md = format!(
+            "\nStage times per frame on one thread: in the pilot's timed frames ({}–{}, whose times chose the cut) \
+             and over the second half of the frames (steady state: the pooled noise colour, and the thresholds it sets, have settled):\n\n\
+             | stage | pilot µs/frame | share | steady µs/frame | share |\n|---|---|---|---|---|\n",
+            threaded::PILOT_WARMUP + 1,
+            threaded::PILOT_FRAMES
+        );
+        let names = if self.stage_s.is_empty() { &self.steady_stage_s } else { &self.stage_s };
+        for (name, _) in names {
+            let of = |v: &[(&str, f64)]| v.iter().find(|s| s.0 == *name).map(|s| s.1);
+            md += &format!("| {name} | {} | {} |\n", cell(of(&self.stage_s), pilot), cell(of(&self.steady_stage_s), steady));
         }
+        md
+    }
+
+    /// CPU time per frame by thread on one and on N threads, and the
+    /// speed-up that CPU allows with every core busy.
+    fn cpu_table(&self) -> String {
+        let sum = |v: &[(String, f64)]| v.iter().map(|c| c.1).sum::<f64>();
+        let (one, many) = (sum(&self.cpu_1), sum(&self.cpu_n));
+        let n = self.threads;
+        // On threads only once a stage thread ran (the pilot ended).
+        if !(one > 0.0 && many > 0.0) || !self.cpu_n.iter().any(|c| c.0.starts_with("tofwave-seg")) {
+            return format!(
+                "\nCPU time by thread: not measured (it needs /proc, the {n}-thread arm past its pilot, and at least {MIN_CPU_S} s of CPU time over each arm's timed frames).\n"
+            );
+        }
+        let mut md = format!(
+            "\nCPU time per frame by thread over the timed frames of the last trial (user + system, from /proc; \
+             the calling thread feeds the frames and renders the JSON lines, and on one thread runs every stage too):\n\n\
+             | thread | 1 thread, µs/frame | {n} threads, µs/frame |\n|---|---|---|\n"
+        );
+        for (name, t) in &self.cpu_n {
+            let alone = self.cpu_1.iter().find(|c| c.0 == *name).map_or("–".to_string(), |c| format!("{:.1}", c.1 * 1e6));
+            md += &format!("| {name} | {alone} | {:.1} |\n", t * 1e6);
+        }
+        md += &format!("| all | {:.1} | {:.1} |\n", one * 1e6, many * 1e6);
+        md += &format!(
+            "\nOn {n} threads the pipeline spends {:+.0} % CPU per frame against one thread; with all {n} cores busy that \
+             alone bounds the speed-up at {n} × {:.1} / {:.1} = {:.2}× (measured: {:.2}×).\n",
+            100.0 * (many / one - 1.0),
+            one * 1e6,
+            many * 1e6,
+            n as f64 * one / many,
+            self.offline_speedup()
+        );
         md
     }
 }
@@ -124,6 +186,9 @@ pub fn measure_threads_cost(
         samples_per_frame: frames[0].len(),
         cut: String::new(),
         stage_s: Vec::new(),
+        steady_stage_s: threaded::stage_times(scene, frames, frames.len() / 2),
+        cpu_1: Vec::new(),
+        cpu_n: Vec::new(),
         offline_1: Vec::new(),
         offline_n: Vec::new(),
         service_1: Vec::new(),
@@ -131,11 +196,14 @@ pub fn measure_threads_cost(
     };
     for t in 0..trials {
         for (n, into) in [(1, &mut cost.offline_1), (threads, &mut cost.offline_n)] {
-            let (fps, cut) = offline(scene, frames, n);
+            let (fps, cut, cpu) = offline(scene, frames, n);
             into.push(fps);
             if n == threads {
                 cost.cut = cut.to_string();
                 cost.stage_s = cut.stage_s;
+                cost.cpu_n = cpu;
+            } else {
+                cost.cpu_1 = cpu;
             }
         }
         for (n, into) in [(1, &mut cost.service_1), (threads, &mut cost.service_n)] {
@@ -179,9 +247,15 @@ fn ordinal(n: usize) -> String {
 /// pipeline on several threads runs on one while it chooses its cut, and
 /// every pipeline pays its start-up), unless there are too few frames for
 /// that, then from the first outcome.
-fn offline(scene: &Scene, frames: &[Frame], threads: usize) -> (f64, threaded::Cut) {
+///
+/// Also each pipeline thread's CPU time per frame (see [`ThreadsCost::cpu_n`])
+/// from the first timed outcome to the one nine tenths of the way to the
+/// last (the stage threads end before the last outcomes come out).
+fn offline(scene: &Scene, frames: &[Frame], threads: usize) -> (f64, threaded::Cut, Vec<(String, f64)>) {
     let skip = pilot_skip(frames.len());
     let (mut first, mut last, mut count, mut seen) = (None, None, 0usize, 0usize);
+    let cpu_end = skip + (frames.len() - skip) * 9 / 10;
+    let (mut cpu_from, mut cpu) = (None, Vec::new());
     let cut = threaded::run(scene, "bench", threads, frames.iter().cloned(), |o| {
         if o.reports.is_empty() && seen == frames.len() {
             return; // the final flush's outcome
@@ -197,16 +271,121 @@ fn offline(scene: &Scene, frames: &[Frame], threads: usize) -> (f64, threaded::C
         first.get_or_insert(now);
         last = Some(now);
         count += 1;
+        if count == 1 {
+            cpu_from = pipeline_cpu_s();
+        } else if seen == cpu_end
+            && let (Some(from), Some(to)) = (&cpu_from, pipeline_cpu_s())
+        {
+            let spent: Vec<(String, f64)> = to.into_iter().filter_map(|(tid, name, t)| from.iter().find(|f| f.0 == tid).map(|f| (name, t - f.2))).collect();
+            // /proc counts in 10 ms ticks: at least MIN_CPU_S keeps that within 2 %.
+            if spent.iter().map(|s| s.1).sum::<f64>() >= MIN_CPU_S {
+                let frames = (count - 1) as f64;
+                cpu = spent.into_iter().map(|(name, t)| (name, t / frames)).collect();
+            }
+        }
     });
     let span = match (first, last) {
         (Some(a), Some(b)) => b.duration_since(a).as_secs_f64().max(1e-9),
         _ => f64::INFINITY,
     };
-    ((count.saturating_sub(1)) as f64 / span, cut)
+    ((count.saturating_sub(1)) as f64 / span, cut, cpu)
+}
+
+/// Least CPU time (s) over an arm's timed frames for its CPU time by thread
+/// to be reported (/proc counts 10 ms ticks).
+const MIN_CPU_S: f64 = 0.5;
+
+/// CPU time so far (user + system, s) of the calling thread (named
+/// "calling thread") and of the pipeline's stage threads ("tofwave-seg…"),
+/// with their thread ids, from /proc (Linux); None where it cannot be read.
+fn pipeline_cpu_s() -> Option<Vec<(u64, String, f64)>> {
+    // /proc reports times in USER_HZ, 100 on every Linux.
+    const USER_HZ: f64 = 100.0;
+    let me: u64 = std::fs::read_link("/proc/thread-self").ok()?.file_name()?.to_str()?.parse().ok()?;
+    let mut out = Vec::new();
+    for entry in std::fs::read_dir("/proc/self/task").ok()? {
+        let Ok(entry) = entry else { continue };
+        let Some(tid) = entry.file_name().to_str().and_then(|t| t.parse::<u64>().ok()) else { continue };
+        // A thread that ended since the listing is skipped.
+        let Ok(stat) = std::fs::read_to_string(entry.path().join("stat")) else { continue };
+        let Some((name, times)) = thread_times(&stat) else { continue };
+        let name = match (tid == me, name.starts_with("tofwave-seg")) {
+            (true, _) => "calling thread".to_string(),
+            (false, true) => name.to_string(),
+            (false, false) => continue,
+        };
+        out.push((tid, name, times / USER_HZ));
+    }
+    out.sort_by(|a, b| (a.1 != "calling thread", &a.1).cmp(&(b.1 != "calling thread", &b.1)));
+    Some(out)
+}
+
+/// A /proc task `stat` line's thread name and utime + stime (clock ticks):
+/// the name is in parentheses (it may hold spaces and parentheses itself),
+/// utime and stime the 14th and 15th fields of the line.
+fn thread_times(stat: &str) -> Option<(&str, f64)> {
+    let (open, close) = (stat.find('(')?, stat.rfind(')')?);
+    let fields: Vec<&str> = stat.get(close + 1..)?.split_whitespace().collect();
+    let (user, system): (f64, f64) = (fields.get(11)?.parse().ok()?, fields.get(12)?.parse().ok()?);
+    Some((stat.get(open + 1..close)?, user + system))
 }
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn a_task_stat_line_gives_its_name_and_cpu_ticks() {
+        // A name with a space and parentheses; utime 1234, stime 56.
+        let line = "4242 (odd (name) x) S 1 2 3 4 5 6 7 8 9 10 1234 56 0 0 20 0 1 0 99 0 0";
+        assert_eq!(super::thread_times(line), Some(("odd (name) x", 1290.0)));
+        assert_eq!(super::thread_times("4242 (short) S 1 2"), None);
+        // This thread reads its own line, and names itself the calling thread.
+        let me = super::pipeline_cpu_s();
+        if cfg!(target_os = "linux") {
+            let me = me.expect("/proc on Linux");
+            assert_eq!(me.iter().filter(|t| t.1 == "calling thread").count(), 1, "{me:?}");
+            assert!(me.iter().all(|t| t.2 >= 0.0), "{me:?}");
+        }
+    }
+
+    /// A cost with the given per-thread CPU (µs/frame) on one and two threads.
+    fn cost(cpu_1: &[(&str, f64)], cpu_n: &[(&str, f64)]) -> super::ThreadsCost {
+        let us = |v: &[(&str, f64)]| v.iter().map(|(n, t)| (n.to_string(), t * 1e-6)).collect();
+        super::ThreadsCost {
+            threads: 2,
+            frames: 1000,
+            samples_per_frame: 2500,
+            cut: "a+b (40 %) | c (60 %)".into(),
+            stage_s: vec![("validate", 1e-6), ("a", 30e-6), ("c", 69e-6)],
+            steady_stage_s: vec![("validate", 1e-6), ("a", 19e-6), ("c", 80e-6)],
+            cpu_1: us(cpu_1),
+            cpu_n: us(cpu_n),
+            offline_1: vec![5000.0],
+            offline_n: vec![8000.0],
+            service_1: vec![4000.0],
+            service_n: vec![7200.0],
+        }
+    }
+
+    #[test]
+    fn the_report_bounds_the_speed_up_by_the_cpu_per_frame() {
+        let c = cost(&[("calling thread", 200.0)], &[("calling thread", 10.0), ("tofwave-seg0", 110.0), ("tofwave-seg1", 130.0)]);
+        let md = c.markdown();
+        assert!(md.contains("| tofwave-seg0 | – | 110.0 |"), "{md}");
+        assert!(md.contains("| calling thread | 200.0 | 10.0 |"), "{md}");
+        assert!(md.contains("| all | 200.0 | 250.0 |"), "{md}");
+        assert!(md.contains("+25 % CPU per frame"), "{md}");
+        assert!(md.contains("2 × 200.0 / 250.0 = 1.60× (measured: 1.60×)"), "{md}");
+        // The pilot's stage times beside the steady state's, each with its share.
+        assert!(md.contains("(201–400, whose times chose the cut)"), "{md}");
+        assert!(md.contains("| a | 30.0 | 30 % | 19.0 | 19 % |"), "{md}");
+        // Without /proc (or with no stage threads) there is no CPU table, and the report says why.
+        let none = cost(&[], &[]).markdown();
+        assert!(!none.contains("CPU time per frame") && none.contains("| c | 69.0 | 69 % | 80.0 | 80 % |"), "{none}");
+        assert!(none.contains("CPU time by thread: not measured"), "{none}");
+        let pilot_only = cost(&[("calling thread", 200.0)], &[("calling thread", 190.0)]).markdown();
+        assert!(pilot_only.contains("CPU time by thread: not measured"), "{pilot_only}");
+    }
+
     #[test]
     fn ordinals_take_the_english_suffix() {
         let got: Vec<String> = [1, 2, 3, 4, 11, 12, 13, 21, 22, 23, 101, 111, 201].into_iter().map(super::ordinal).collect();

@@ -52,7 +52,7 @@ const RING_IN_FLIGHT: usize = 16 * CHUNK;
 /// pipeline's start-up (plans built, error tables measured, the pooled colour
 /// and the thresholds it sets still settling) costs far more per frame than
 /// the steady state the cut is for.
-const PILOT_WARMUP: usize = 200;
+pub const PILOT_WARMUP: usize = 200;
 /// Frames after those, still on one thread, whose step times choose the cut.
 const PILOT_TIMED: usize = 200;
 /// Frames a pipeline on several threads runs on the calling thread before

@@ -151,3 +151,26 @@ fn process_threads_flag_gives_the_same_output() {
     assert_eq!(one.lines().count(), 500);
     assert!(one == two, "process --threads 2 differs from --threads 1");
 }
+
+/// `bench --threads 2` runs its four arms and writes threads.md: the rates,
+/// the ratios, the cut, the pilot's and the steady stage times, and the
+/// CPU time by thread or why it was not measured (too few frames here).
+#[test]
+fn bench_threads_writes_its_report() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().to_str().unwrap();
+    let printed = tofwave_ok(&["bench", "--threads", "2", "--threads-frames", "900", "--threads-trials", "1", "--out", out]);
+    let md = std::fs::read_to_string(dir.path().join("threads.md")).unwrap();
+    assert!(printed.contains(md.trim()), "prints what it writes");
+    for want in [
+        "| offline, 2 threads (`process --threads 2`) |",
+        "| service, 2 workers (`serve --workers-per-sensor 2`) |",
+        "Offline 2 threads / 1 thread: **",
+        ". Cut: validate+",
+        "| stage | pilot µs/frame | share | steady µs/frame | share |",
+        "| events |",
+        "CPU time by thread: not measured",
+    ] {
+        assert!(md.contains(want), "threads.md lacks {want:?}:\n{md}");
+    }
+}

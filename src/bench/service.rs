@@ -334,13 +334,22 @@ impl DashboardCost {
 /// CPU time (user + system) this process has used, s; `None` off Linux.
 fn process_cpu_s() -> Option<f64> {
     let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
-    // Fields after the command name (which may hold spaces) and its ')'.
-    let rest = &stat[stat.rfind(')')? + 2..];
-    let f: Vec<&str> = rest.split_whitespace().collect();
-    // utime and stime are fields 14 and 15 of the line, 12 and 13 after ')'.
+    stat_cpu_s(&stat).map(|(_, s)| s)
+}
+
+/// /proc reports CPU times in USER_HZ ticks: 100 on every Linux
+/// architecture tofwave builds for.
+pub(super) const USER_HZ: f64 = 100.0;
+
+/// A /proc `stat` line's command (thread) name and CPU time (user +
+/// system, s): the name is in parentheses (it may hold spaces and
+/// parentheses itself), utime and stime are the 14th and 15th fields of
+/// the line (the 12th and 13th after the name's ')').
+pub(super) fn stat_cpu_s(stat: &str) -> Option<(&str, f64)> {
+    let (open, close) = (stat.find('(')?, stat.rfind(')')?);
+    let f: Vec<&str> = stat.get(close + 1..)?.split_whitespace().collect();
     let ticks: f64 = f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?;
-    // USER_HZ is 100 on every Linux architecture tofwave builds for.
-    Some(ticks / 100.0)
+    Some((stat.get(open + 1..close)?, ticks / USER_HZ))
 }
 
 /// A dashboard client reading `/events` (every sensor) and counting what it gets.

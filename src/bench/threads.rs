@@ -14,12 +14,16 @@
 //! subscribers (every report carries its line). Left out of the offline
 //! arms, that work (a few µs per report) would count against the service
 //! alone.
+//!
+//! The report also gives each stage's time per frame on one thread (in the
+//! pilot, and in steady state) and, on Linux, each pipeline thread's CPU
+//! time per frame on one and on N threads (from /proc).
 
 use std::time::Instant;
 
 use super::BenchError;
 use super::cluster::trial;
-use super::service::median;
+use super::service::{median, stat_cpu_s, USER_HZ};
 use crate::frame::Frame;
 use crate::pipeline::{report_json, threaded};
 use crate::scene::Scene;
@@ -44,10 +48,13 @@ pub struct ThreadsCost {
     pub steady_stage_s: Vec<(&'static str, f64)>,
     /// CPU time per frame of the pipeline's threads on one thread, s (user +
     /// system, from /proc: Linux only, else empty), over the last trial's
-    /// timed frames: the calling thread's (see [`pipeline_cpu_s`]).
+    /// CPU window (see [`offline`]): the calling thread's.
     pub cpu_1: Vec<(String, f64)>,
     /// The same on N threads: the calling thread's, then each stage thread's.
     pub cpu_n: Vec<(String, f64)>,
+    /// One /proc tick over the CPU windows' frames (the fewer of the two
+    /// arms'), s/frame: how far each thread's figure may be off.
+    pub cpu_tick_s: f64,
     /// Offline frames/s per trial, one thread.
     pub offline_1: Vec<f64>,
     /// Offline frames/s per trial, N threads.
@@ -106,9 +113,7 @@ impl ThreadsCost {
         md += &self.cpu_table();
         md
     }
-}
 
-impl ThreadsCost {
     /// Stage times per frame on one thread: the pilot's (which chose the
     /// cut) beside the steady state's.
     fn stage_table(&self) -> String {
@@ -131,21 +136,25 @@ impl ThreadsCost {
     }
 
     /// CPU time per frame by thread on one and on N threads, and the
-    /// speed-up that CPU allows with every core busy.
+    /// speed-up that CPU allows where N cores are all there is and the
+    /// one-thread arm runs all the time.
     fn cpu_table(&self) -> String {
         let sum = |v: &[(String, f64)]| v.iter().map(|c| c.1).sum::<f64>();
         let (one, many) = (sum(&self.cpu_1), sum(&self.cpu_n));
         let n = self.threads;
         // On threads only once a stage thread ran (the pilot ended).
-        if !(one > 0.0 && many > 0.0) || !self.cpu_n.iter().any(|c| c.0.starts_with("tofwave-seg")) {
+        if !(one > 0.0 && many > 0.0 && self.cpu_n.iter().any(|c| c.0.starts_with("tofwave-seg"))) {
             return format!(
-                "\nCPU time by thread: not measured (it needs /proc, the {n}-thread arm past its pilot, and at least {MIN_CPU_S} s of CPU time over each arm's timed frames).\n"
+                "\nCPU time by thread: not measured (it needs /proc, the {n}-thread arm past its pilot with its threads running through \
+                 the CPU window, and at least {MIN_CPU_S} s of CPU time in each arm's window: a longer run).\n"
             );
         }
         let mut md = format!(
-            "\nCPU time per frame by thread over the timed frames of the last trial (user + system, from /proc; \
-             the calling thread feeds the frames and renders the JSON lines, and on one thread runs every stage too):\n\n\
-             | thread | 1 thread, µs/frame | {n} threads, µs/frame |\n|---|---|---|\n"
+            "\nCPU time per frame by thread in the last trial, from its first timed outcome to the one nine tenths of the way \
+             to the last (user + system, from /proc, in 10 ms ticks: each figure within ±{:.1} µs/frame; the calling thread \
+             feeds the frames and renders the JSON lines, and on one thread runs every stage too):\n\n\
+             | thread | 1 thread, µs/frame | {n} threads, µs/frame |\n|---|---|---|\n",
+            self.cpu_tick_s * 1e6
         );
         for (name, t) in &self.cpu_n {
             let alone = self.cpu_1.iter().find(|c| c.0 == *name).map_or("–".to_string(), |c| format!("{:.1}", c.1 * 1e6));
@@ -153,8 +162,9 @@ impl ThreadsCost {
         }
         md += &format!("| all | {:.1} | {:.1} |\n", one * 1e6, many * 1e6);
         md += &format!(
-            "\nOn {n} threads the pipeline spends {:+.0} % CPU per frame against one thread; with all {n} cores busy that \
-             alone bounds the speed-up at {n} × {:.1} / {:.1} = {:.2}× (that trial's: {:.2}×).\n",
+            "\nOn {n} threads the pipeline spends {:+.0} % CPU per frame against one thread. Where {n} cores are all the \
+             process has, and one thread runs without pause, that alone allows at most {n} × {:.1} / {:.1} = {:.2}× \
+             (that trial's: {:.2}×).\n",
             100.0 * (many / one - 1.0),
             one * 1e6,
             many * 1e6,
@@ -189,6 +199,7 @@ pub fn measure_threads_cost(
         steady_stage_s: threaded::stage_times(scene, frames, frames.len() / 2),
         cpu_1: Vec::new(),
         cpu_n: Vec::new(),
+        cpu_tick_s: 0.0,
         offline_1: Vec::new(),
         offline_n: Vec::new(),
         service_1: Vec::new(),
@@ -198,12 +209,17 @@ pub fn measure_threads_cost(
         for (n, into) in [(1, &mut cost.offline_1), (threads, &mut cost.offline_n)] {
             let (fps, cut, cpu) = offline(scene, frames, n);
             into.push(fps);
-            if n == threads {
+            let (per_frame, window) = cpu.unwrap_or_default();
+            if n == 1 {
+                cost.cpu_1 = per_frame;
+                cost.cpu_tick_s = 0.0;
+            } else {
                 cost.cut = cut.to_string();
                 cost.stage_s = cut.stage_s;
-                cost.cpu_n = cpu;
-            } else {
-                cost.cpu_1 = cpu;
+                cost.cpu_n = per_frame;
+            }
+            if window > 0 {
+                cost.cpu_tick_s = cost.cpu_tick_s.max(1.0 / USER_HZ / window as f64);
             }
         }
         for (n, into) in [(1, &mut cost.service_1), (threads, &mut cost.service_n)] {
@@ -248,14 +264,18 @@ fn ordinal(n: usize) -> String {
 /// every pipeline pays its start-up), unless there are too few frames for
 /// that, then from the first outcome.
 ///
-/// Also each pipeline thread's CPU time per frame (see [`ThreadsCost::cpu_n`])
+/// Also, where /proc can be read, each pipeline thread's CPU time per frame
+/// (see [`ThreadsCost::cpu_n`]) and the frames it is over (the CPU window):
 /// from the first timed outcome to the one nine tenths of the way to the
-/// last (the stage threads end before the last outcomes come out).
-fn offline(scene: &Scene, frames: &[Frame], threads: usize) -> (f64, threaded::Cut, Vec<(String, f64)>) {
+/// last, and at least [`threaded::most_in_flight`] outcomes before the last
+/// (the stage threads end before the outcomes still in flight at the end
+/// come out). None where the window is empty, a stage thread ended within
+/// it, or it holds under [`MIN_CPU_S`] of CPU time.
+fn offline(scene: &Scene, frames: &[Frame], threads: usize) -> (f64, threaded::Cut, Option<CpuWindow>) {
     let skip = pilot_skip(frames.len());
     let (mut first, mut last, mut count, mut seen) = (None, None, 0usize, 0usize);
-    let cpu_end = skip + (frames.len() - skip) * 9 / 10;
-    let (mut cpu_from, mut cpu) = (None, Vec::new());
+    let cpu_end = (skip + (frames.len() - skip) * 9 / 10).min(frames.len().saturating_sub(threaded::most_in_flight(threads)));
+    let (mut cpu_from, mut cpu) = (None, None);
     let cut = threaded::run(scene, "bench", threads, frames.iter().cloned(), |o| {
         if o.reports.is_empty() && seen == frames.len() {
             return; // the final flush's outcome
@@ -275,12 +295,13 @@ fn offline(scene: &Scene, frames: &[Frame], threads: usize) -> (f64, threaded::C
             cpu_from = pipeline_cpu_s();
         } else if seen == cpu_end
             && let (Some(from), Some(to)) = (&cpu_from, pipeline_cpu_s())
+            // Every thread there at the start is there still.
+            && from.iter().all(|f| to.iter().any(|t| t.0 == f.0))
         {
             let spent: Vec<(String, f64)> = to.into_iter().filter_map(|(tid, name, t)| from.iter().find(|f| f.0 == tid).map(|f| (name, t - f.2))).collect();
-            // /proc counts in 10 ms ticks: at least MIN_CPU_S keeps that within 2 %.
             if spent.iter().map(|s| s.1).sum::<f64>() >= MIN_CPU_S {
-                let frames = (count - 1) as f64;
-                cpu = spent.into_iter().map(|(name, t)| (name, t / frames)).collect();
+                let window = count - 1;
+                cpu = Some((spent.into_iter().map(|(name, t)| (name, t / window as f64)).collect(), window));
             }
         }
     });
@@ -291,7 +312,11 @@ fn offline(scene: &Scene, frames: &[Frame], threads: usize) -> (f64, threaded::C
     ((count.saturating_sub(1)) as f64 / span, cut, cpu)
 }
 
-/// Least CPU time (s) over an arm's timed frames for its CPU time by thread
+/// Each pipeline thread's CPU time per frame (name, s/frame) over a CPU
+/// window, and the frames in it.
+type CpuWindow = (Vec<(String, f64)>, usize);
+
+/// Least CPU time (s) over an arm's CPU window for its CPU time by thread
 /// to be reported (/proc counts 10 ms ticks).
 const MIN_CPU_S: f64 = 0.5;
 
@@ -299,8 +324,6 @@ const MIN_CPU_S: f64 = 0.5;
 /// "calling thread") and of the pipeline's stage threads ("tofwave-seg…"),
 /// with their thread ids, from /proc (Linux); None where it cannot be read.
 fn pipeline_cpu_s() -> Option<Vec<(u64, String, f64)>> {
-    // /proc reports times in USER_HZ, 100 on every Linux.
-    const USER_HZ: f64 = 100.0;
     let me: u64 = std::fs::read_link("/proc/thread-self").ok()?.file_name()?.to_str()?.parse().ok()?;
     let mut out = Vec::new();
     for entry in std::fs::read_dir("/proc/self/task").ok()? {
@@ -308,27 +331,18 @@ fn pipeline_cpu_s() -> Option<Vec<(u64, String, f64)>> {
         let Some(tid) = entry.file_name().to_str().and_then(|t| t.parse::<u64>().ok()) else { continue };
         // A thread that ended since the listing is skipped.
         let Ok(stat) = std::fs::read_to_string(entry.path().join("stat")) else { continue };
-        let Some((name, times)) = thread_times(&stat) else { continue };
+        let Some((name, cpu_s)) = stat_cpu_s(&stat) else { continue };
         let name = match (tid == me, name.starts_with("tofwave-seg")) {
             (true, _) => "calling thread".to_string(),
             (false, true) => name.to_string(),
             (false, false) => continue,
         };
-        out.push((tid, name, times / USER_HZ));
+        out.push((tid, name, cpu_s));
     }
     out.sort_by(|a, b| (a.1 != "calling thread", &a.1).cmp(&(b.1 != "calling thread", &b.1)));
     Some(out)
 }
 
-/// A /proc task `stat` line's thread name and utime + stime (clock ticks):
-/// the name is in parentheses (it may hold spaces and parentheses itself),
-/// utime and stime the 14th and 15th fields of the line.
-fn thread_times(stat: &str) -> Option<(&str, f64)> {
-    let (open, close) = (stat.find('(')?, stat.rfind(')')?);
-    let fields: Vec<&str> = stat.get(close + 1..)?.split_whitespace().collect();
-    let (user, system): (f64, f64) = (fields.get(11)?.parse().ok()?, fields.get(12)?.parse().ok()?);
-    Some((stat.get(open + 1..close)?, user + system))
-}
 
 #[cfg(test)]
 mod tests {
@@ -336,14 +350,13 @@ mod tests {
     fn a_task_stat_line_gives_its_name_and_cpu_ticks() {
         // A name with a space and parentheses; utime 1234, stime 56.
         let line = "4242 (odd (name) x) S 1 2 3 4 5 6 7 8 9 10 1234 56 0 0 20 0 1 0 99 0 0";
-        assert_eq!(super::thread_times(line), Some(("odd (name) x", 1290.0)));
-        assert_eq!(super::thread_times("4242 (short) S 1 2"), None);
+        assert_eq!(super::stat_cpu_s(line), Some(("odd (name) x", 12.9)));
+        assert_eq!(super::stat_cpu_s("4242 (short) S 1 2"), None);
         // This thread reads its own line, and names itself the calling thread.
         let me = super::pipeline_cpu_s();
         if cfg!(target_os = "linux") {
             let me = me.expect("/proc on Linux");
             assert_eq!(me.iter().filter(|t| t.1 == "calling thread").count(), 1, "{me:?}");
-            assert!(me.iter().all(|t| t.2 >= 0.0), "{me:?}");
         }
     }
 
@@ -359,8 +372,9 @@ mod tests {
             steady_stage_s: vec![("validate", 1e-6), ("a", 19e-6), ("c", 80e-6)],
             cpu_1: us(cpu_1),
             cpu_n: us(cpu_n),
+            cpu_tick_s: 2e-6,
             offline_1: vec![4000.0, 5000.0],
-            offline_n: vec![7000.0, 8000.0],
+            offline_n: vec![7000.0, 7600.0],
             service_1: vec![4000.0],
             service_n: vec![7200.0],
         }
@@ -374,7 +388,8 @@ mod tests {
         assert!(md.contains("| calling thread | 200.0 | 10.0 |"), "{md}");
         assert!(md.contains("| all | 200.0 | 250.0 |"), "{md}");
         assert!(md.contains("+25 % CPU per frame"), "{md}");
-        assert!(md.contains("2 × 200.0 / 250.0 = 1.60× (that trial's: 1.60×)"), "{md}");
+        assert!(md.contains("at most 2 × 200.0 / 250.0 = 1.60× (that trial's: 1.52×)"), "{md}");
+        assert!(md.contains("within ±2.0 µs/frame"), "{md}");
         // The pilot's stage times beside the steady state's, each with its share.
         assert!(md.contains("(201–400, whose times chose the cut)"), "{md}");
         assert!(md.contains("| a | 30.0 | 30 % | 19.0 | 19 % |"), "{md}");

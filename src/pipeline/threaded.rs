@@ -48,6 +48,14 @@ const QUEUE: usize = 4;
 /// their bound): sixteen chunks, so that each of its queues can hold work
 /// while the calling thread, which feeds it, is off the core.
 const RING_IN_FLIGHT: usize = 16 * CHUNK;
+
+/// About the most frames pushed to a pipeline on `threads` threads whose
+/// outcome has not come out: the ring's limit, or each segment of a chain
+/// with its queue full and a chunk in hand, and the chunk being filled.
+/// (A caller that stops taking outcomes lets the chain's last queue grow.)
+pub fn most_in_flight(threads: usize) -> usize {
+    RING_IN_FLIGHT.max(threads * (QUEUE + 1) * CHUNK) + CHUNK
+}
 /// Frames run on one thread first whose step times are not used: the
 /// pipeline's start-up (plans built, error tables measured, the pooled colour
 /// and the thresholds it sets still settling) costs far more per frame than
@@ -1039,12 +1047,12 @@ mod tests {
         }
     }
 
-    /// A stage that panics on a thread (the first stage of the first
-    /// segment, the middle stage, the last stage) costs its frame only:
-    /// that frame's outcome carries the panic's message and no report,
-    /// every other frame's outcome comes out once, in order, with its
-    /// report, and the pipeline carries on (the stage rebuilt) — on the
-    /// ring and on the chain.
+    /// A stage that panics on a thread costs its frame only: that frame's
+    /// outcome carries the panic's message and no report, every other
+    /// frame's outcome comes out once, in order, with its report, and the
+    /// pipeline carries on (the stage rebuilt) — on the ring and on the
+    /// chain. Every stage panics once, each on its own frame after the
+    /// pilot, so every segment is tried whatever the cut.
     #[test]
     fn a_stage_panicking_on_a_thread_costs_its_frame_only() {
         let scene = Scene::default_scene();
@@ -1057,7 +1065,8 @@ mod tests {
             let n = pipeline.stages.len();
             assert!(n >= 3, "{n} stages");
             // After the pilot (400 frames on the calling thread): on the threads.
-            let booms = [(0, 500u64), (n / 2 + 1, 700), (n - 1, 900)];
+            let booms: Vec<(usize, u64)> = (0..n).map(|i| (i, 450 + 80 * i as u64)).collect();
+            assert!(booms.last().expect("stages").1 < frames.len() as u64);
             let mut names = Vec::new();
             for &(i, at) in &booms {
                 let inner = pipeline.stages.remove(i);

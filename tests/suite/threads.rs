@@ -154,7 +154,7 @@ fn process_threads_flag_gives_the_same_output() {
 
 /// `bench --threads 2` runs its four arms and writes threads.md: the rates,
 /// the ratios, the cut, the pilot's and the steady stage times, and the
-/// CPU time by thread or why it was not measured (too few frames here).
+/// CPU time by thread or why it was not measured (likely, with this few frames).
 #[test]
 fn bench_threads_writes_its_report() {
     let dir = tempfile::tempdir().unwrap();
@@ -169,8 +169,9 @@ fn bench_threads_writes_its_report() {
         ". Cut: validate+",
         "| stage | pilot µs/frame | share | steady µs/frame | share |",
         "| events |",
-        "CPU time by thread: not measured",
     ] {
         assert!(md.contains(want), "threads.md lacks {want:?}:\n{md}");
     }
+    // Measured where the arms' CPU windows are long enough, else said not to be.
+    assert!(md.contains("CPU time by thread: not measured") || md.contains("\n| all | "), "{md}");
 }

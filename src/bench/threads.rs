@@ -343,7 +343,6 @@ fn pipeline_cpu_s() -> Option<Vec<(u64, String, f64)>> {
     Some(out)
 }
 
-
 #[cfg(test)]
 mod tests {
     #[test]

@@ -56,6 +56,7 @@ const RING_IN_FLIGHT: usize = 16 * CHUNK;
 pub fn most_in_flight(threads: usize) -> usize {
     RING_IN_FLIGHT.max(threads * (QUEUE + 1) * CHUNK) + CHUNK
 }
+
 /// Frames run on one thread first whose step times are not used: the
 /// pipeline's start-up (plans built, error tables measured, the pooled colour
 /// and the thresholds it sets still settling) costs far more per frame than

@@ -339,19 +339,8 @@ fn pipeline_cpu_s() -> Option<Vec<(u64, String, f64)>> {
         };
         out.push((tid, name, cpu_s));
     }
-    out.sort_by(|a, b| thread_order(&a.1).cmp(&thread_order(&b.1)));
+    out.sort_by(|a, b| (a.1 != "calling thread", &a.1).cmp(&(b.1 != "calling thread", &b.1)));
     Some(out)
-}
-
-/// Where a thread's row goes in the CPU table: the calling thread first,
-/// then the stage threads by their first segment's number (`tofwave-seg2`
-/// before `tofwave-seg10`), then by name.
-fn thread_order(name: &str) -> (bool, usize, &str) {
-    let segment = name.strip_prefix("tofwave-seg").map_or(usize::MAX, |rest| {
-        let digits = rest.find(|c: char| !c.is_ascii_digit()).unwrap_or(rest.len());
-        rest[..digits].parse().unwrap_or(usize::MAX)
-    });
-    (name != "calling thread", segment, name)
 }
 
 #[cfg(test)]
@@ -409,13 +398,6 @@ mod tests {
         assert!(none.contains("CPU time by thread: not measured"), "{none}");
         let pilot_only = cost(&[("calling thread", 200.0)], &[("calling thread", 190.0)]).markdown();
         assert!(pilot_only.contains("CPU time by thread: not measured"), "{pilot_only}");
-    }
-
-    #[test]
-    fn thread_rows_go_calling_thread_first_then_by_segment_number() {
-        let mut names = vec!["tofwave-seg10", "tofwave-seg2", "calling thread", "tofwave-seg0+2", "tofwave-seg1", "tofwave-seg11"];
-        names.sort_by(|a, b| super::thread_order(a).cmp(&super::thread_order(b)));
-        assert_eq!(names, ["calling thread", "tofwave-seg0+2", "tofwave-seg1", "tofwave-seg2", "tofwave-seg10", "tofwave-seg11"]);
     }
 
     #[test]

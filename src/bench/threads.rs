@@ -101,9 +101,11 @@ impl ThreadsCost {
         md += &row(&format!("offline, {n} threads (`process --threads {n}`)"), &self.offline_n);
         md += &row("service, 1 worker (`serve`)", &self.service_1);
         md += &row(&format!("service, {n} workers (`serve --workers-per-sensor {n}`)"), &self.service_n);
+        // Enough digits to tell a ratio or share from the targets' 1.8× and
+        // 80 % (rounded to 1.80× or 80 %, 1.795× or 79.6 % would pass).
         md += &format!(
-            "\nOffline {n} threads / 1 thread: **{:.2}×**; service with {n} workers / offline with {n} threads: **{:.0} %**; \
-             service with 1 worker / offline 1 thread: {:.0} %. Cut: {}.\n",
+            "\nOffline {n} threads / 1 thread: **{:.3}×**; service with {n} workers / offline with {n} threads: **{:.1} %**; \
+             service with 1 worker / offline 1 thread: {:.1} %. Cut: {}.\n",
             self.offline_speedup(),
             100.0 * self.service_share(),
             100.0 * median(&self.service_1) / median(&self.offline_1),
@@ -389,6 +391,9 @@ mod tests {
         assert!(md.contains("+25 % CPU per frame"), "{md}");
         assert!(md.contains("at most 2 × 200.0 / 250.0 = 1.60× (that trial's: 1.52×)"), "{md}");
         assert!(md.contains("within ±2.0 µs/frame"), "{md}");
+        // The ratio and the service's share to the digit that tells them from 1.8× and 80 %.
+        assert!(md.contains("Offline 2 threads / 1 thread: **1.622×**; service with 2 workers / offline with 2 threads: **98.6 %**"), "{md}");
+        assert!(md.contains("service with 1 worker / offline 1 thread: 88.9 %."), "{md}");
         // The pilot's stage times beside the steady state's, each with its share.
         assert!(md.contains("(201–400, whose times chose the cut)"), "{md}");
         assert!(md.contains("| a | 30.0 | 30 % | 19.0 | 19 % |"), "{md}");

@@ -102,7 +102,7 @@ impl ThreadsCost {
         md += &row("service, 1 worker (`serve`)", &self.service_1);
         md += &row(&format!("service, {n} workers (`serve --workers-per-sensor {n}`)"), &self.service_n);
         // Enough digits to tell a ratio or share from the targets' 1.8× and
-        // 80 % (rounded to 1.80× or 80 %, 1.795× or 79.6 % would pass).
+        // 80 % (rounded to 1.80× or 80 %, 1.797× or 79.6 % would pass).
         md += &format!(
             "\nOffline {n} threads / 1 thread: **{:.3}×**; service with {n} workers / offline with {n} threads: **{:.1} %**; \
              service with 1 worker / offline 1 thread: {:.1} %. Cut: {}.\n",

@@ -145,7 +145,7 @@ impl ThreadsCost {
         let (one, many) = (sum(&self.cpu_1), sum(&self.cpu_n));
         let n = self.threads;
         // On threads only once a stage thread ran (the pilot ended).
-        if !(one > 0.0 && many > 0.0 && self.cpu_n.iter().any(|c| c.0.starts_with("tofwave-seg"))) {
+        if !(one > 0.0 && many > 0.0 && self.cpu_n.iter().any(|c| c.0.starts_with(threaded::SEGMENT_THREAD_PREFIX))) {
             return format!(
                 "\nCPU time by thread: not measured (it needs /proc, the {n}-thread arm past its pilot with its threads running through \
                  the CPU window, and at least {MIN_CPU_S} s of CPU time in each arm's window: a longer run).\n"
@@ -334,7 +334,7 @@ fn pipeline_cpu_s() -> Option<Vec<(u64, String, f64)>> {
         // A thread that ended since the listing is skipped.
         let Ok(stat) = std::fs::read_to_string(entry.path().join("stat")) else { continue };
         let Some((name, cpu_s)) = stat_cpu_s(&stat) else { continue };
-        let name = match (tid == me, name.starts_with("tofwave-seg")) {
+        let name = match (tid == me, name.starts_with(threaded::SEGMENT_THREAD_PREFIX)) {
             (true, _) => "calling thread".to_string(),
             (false, true) => name.to_string(),
             (false, false) => continue,

@@ -49,6 +49,11 @@ const QUEUE: usize = 4;
 /// while the calling thread, which feeds it, is off the core.
 const RING_IN_FLIGHT: usize = 16 * CHUNK;
 
+/// What every stage thread's name starts with (`tofwave-seg0`, `-seg1`, …;
+/// the ring's `tofwave-seg0+2` and `tofwave-seg1`): how tools tell them
+/// from the process's other threads.
+pub const SEGMENT_THREAD_PREFIX: &str = "tofwave-seg";
+
 /// About the most frames pushed to a pipeline on `threads` threads whose
 /// outcome has not come out: the ring's limit, or each segment of a chain
 /// with its queue full and a chunk in hand, and the chunk being filled.
@@ -460,12 +465,12 @@ impl Staged {
             let (mid_tx, mid_rx) = channel::<Vec<Msg>>();
             let (out_tx, out_rx) = channel::<Vec<Msg>>();
             let (back, spare_b, r1) = (head_tx.clone(), spare_tx.clone(), rebuild(f1));
-            let mid = std::thread::Builder::new().name("tofwave-seg1".into()).spawn(move || segment(g1, mid_rx, Out::Back(back), spare_b, r1));
+            let mid = std::thread::Builder::new().name(format!("{SEGMENT_THREAD_PREFIX}1")).spawn(move || segment(g1, mid_rx, Out::Back(back), spare_b, r1));
             let (r0, r2) = (rebuild(f0), rebuild(f2));
             let validate = pipeline.validate;
             let ends = Ends { first: g0, last: g2, rebuild_first: r0, rebuild_last: r2 };
             let head = std::thread::Builder::new()
-                .name("tofwave-seg0+2".into())
+                .name(format!("{SEGMENT_THREAD_PREFIX}0+2"))
                 .spawn(move || ring_head(validate, spare, spare_rx, head_rx, mid_tx, out_tx, ends));
             self.mode = Mode::Split(Pool {
                 frames: Some(FramesTx::Ring(head_tx)),
@@ -499,7 +504,7 @@ impl Staged {
                 (Out::Next(tx), rx)
             };
             let rebuild = rebuild(first);
-            let name = format!("tofwave-seg{i}");
+            let name = format!("{SEGMENT_THREAD_PREFIX}{i}");
             let handle = match head.take() {
                 Some((validate, spare, spare_rx, frames_rx)) => std::thread::Builder::new()
                     .name(name)

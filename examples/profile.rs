@@ -228,10 +228,10 @@ static GLOBAL: Counting = Counting;
 /// `threaded::run` on `threads` threads as `tofwave bench --threads` runs
 /// its offline arms (frames cloned as they go in, each report's JSON
 /// rendered): wall µs/frame from the outcome of frame
-/// `threaded::PILOT_FRAMES` on, and the allocations per frame over the same
+/// `threaded::SETTLED_FRAMES` on (both pilots over), and the allocations per frame over the same
 /// span, whole process (the frame's clone and the JSON included).
 fn threads_probe(scene: &Scene, frames: &[Frame], threads: usize) {
-    let skip = tofwave::pipeline::threaded::PILOT_FRAMES;
+    let skip = tofwave::pipeline::threaded::SETTLED_FRAMES;
     assert!(frames.len() > 2 * skip, "PROFILE_THREADS wants more than {} frames", 2 * skip);
     let (mut first, mut last, mut seen, mut allocations) = (None, None, 0usize, 0u64);
     let cut = tofwave::pipeline::threaded::run(scene, "bench", threads, frames.iter().cloned(), |o| {

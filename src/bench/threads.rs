@@ -3,11 +3,13 @@
 //! against one thread, on the same frames in trials alternating the arms.
 //!
 //! Rates are steady-state: outcomes (offline) or reports reaching a
-//! subscriber (service) from the 401st to the last, divided by the time
-//! between them, on every arm: the first 400 frames are those the threaded
-//! pipeline runs on one thread to choose its cut, and those in which any
-//! pipeline pays its start-up. (With fewer than 800 frames per trial the
-//! clock starts at the first.)
+//! subscriber (service) from the 2201st to the last, divided by the time
+//! between them, on every arm: the first 2200 frames hold the threaded
+//! pipeline's two pilots (frames it runs on one thread to choose its cut,
+//! the second once start-up has passed) and the frames in which any
+//! pipeline pays its start-up. (With fewer than 4400 frames per trial the
+//! clock starts at the 401st, after the first pilot, and with fewer than
+//! 800 at the first.)
 //!
 //! Every arm renders each report's JSON line: the offline arms as `process`
 //! does (on its calling thread, as the frames finish), the service for its
@@ -42,6 +44,8 @@ pub struct ThreadsCost {
     pub cut: String,
     /// Each stage's time per frame in that trial's pilot, s.
     pub stage_s: Vec<(&'static str, f64)>,
+    /// That pilot's timed frames, first and last (counted from 1).
+    pub pilot: Option<(usize, usize)>,
     /// Each stage's time per frame on one thread over the second half of
     /// the frames (steady state: the noise colour and the thresholds it sets
     /// have settled), s.
@@ -85,7 +89,8 @@ impl ThreadsCost {
         let n = self.threads;
         let skip = pilot_skip(self.frames);
         let clock = if skip > 0 {
-            format!("; each rate from the {} outcome to the last (the first {skip}, the threaded pipeline's pilot on one thread and every arm's start-up, off the clock)", ordinal(skip + 1))
+            let pilots = if skip >= threaded::SETTLED_FRAMES { "two pilots" } else { "first pilot" };
+            format!("; each rate from the {} outcome to the last (the first {skip}, the threaded pipeline's {pilots} on one thread and every arm's start-up, off the clock)", ordinal(skip + 1))
         } else {
             "; each rate from the first outcome to the last".to_string()
         };
@@ -122,12 +127,11 @@ impl ThreadsCost {
         let total = |v: &[(&str, f64)]| v.iter().map(|s| s.1).sum::<f64>();
         let (pilot, steady) = (total(&self.stage_s), total(&self.steady_stage_s));
         let cell = |t: Option<f64>, all: f64| t.map_or("–".to_string(), |t| format!("{:.1} | {:.0} %", t * 1e6, 100.0 * t / all));
+        let frames = self.pilot.map_or("none ran".to_string(), |(a, b)| format!("{a}–{b}"));
         let mut md = format!(
-            "\nStage times per frame on one thread: in the pilot's timed frames ({}–{}, whose times chose the cut) \
+            "\nStage times per frame on one thread: in the pilot's timed frames ({frames}, whose times chose the cut) \
              and over the second half of the frames (steady state: the pooled noise colour, and the thresholds it sets, have settled):\n\n\
-             | stage | pilot µs/frame | share | steady µs/frame | share |\n|---|---|---|---|---|\n",
-            threaded::PILOT_WARMUP + 1,
-            threaded::PILOT_FRAMES
+             | stage | pilot µs/frame | share | steady µs/frame | share |\n|---|---|---|---|---|\n"
         );
         let names = if self.stage_s.is_empty() { &self.steady_stage_s } else { &self.stage_s };
         for (name, _) in names {
@@ -198,6 +202,7 @@ pub fn measure_threads_cost(
         samples_per_frame: frames[0].len(),
         cut: String::new(),
         stage_s: Vec::new(),
+        pilot: None,
         steady_stage_s: threaded::stage_times(scene, frames, frames.len() / 2),
         cpu_1: Vec::new(),
         cpu_n: Vec::new(),
@@ -218,6 +223,7 @@ pub fn measure_threads_cost(
             } else {
                 cost.cut = cut.to_string();
                 cost.stage_s = cut.stage_s;
+                cost.pilot = cut.pilot;
                 cost.cpu_n = per_frame;
             }
             if window > 0 {
@@ -241,10 +247,12 @@ pub fn measure_threads_cost(
     Ok(cost)
 }
 
-/// Outcomes left off the clock out of `frames`: [`threaded::PILOT_FRAMES`]
-/// where there are at least twice as many frames, else none.
+/// Outcomes left off the clock out of `frames`: the pilots' and start-up's,
+/// [`threaded::SETTLED_FRAMES`], where there are at least twice as many
+/// frames, else the first pilot's, [`threaded::PILOT_FRAMES`], where there
+/// are twice as many as that, else none.
 fn pilot_skip(frames: usize) -> usize {
-    if frames >= 2 * threaded::PILOT_FRAMES { threaded::PILOT_FRAMES } else { 0 }
+    [threaded::SETTLED_FRAMES, threaded::PILOT_FRAMES].into_iter().find(|&skip| frames >= 2 * skip).unwrap_or(0)
 }
 
 /// `n` as an English ordinal: 1st, 2nd, 3rd, 4th, 11th, 12th, 13th, 21st, 101st.
@@ -260,11 +268,9 @@ fn ordinal(n: usize) -> String {
 }
 
 /// Steady-state outcomes per second of `frames` on `threads` threads, and
-/// the cut: the clock runs from the outcome of frame
-/// [`threaded::PILOT_FRAMES`] on, whatever the thread count (before it a
-/// pipeline on several threads runs on one while it chooses its cut, and
-/// every pipeline pays its start-up), unless there are too few frames for
-/// that, then from the first outcome.
+/// the cut: the clock runs from the outcome of frame [`pilot_skip`] on,
+/// whatever the thread count (before it a pipeline on several threads runs
+/// on one while it chooses its cut, and every pipeline pays its start-up).
 ///
 /// Also, where /proc can be read, each pipeline thread's CPU time per frame
 /// (see [`ThreadsCost::cpu_n`]) and the frames it is over (the CPU window):
@@ -370,6 +376,7 @@ mod tests {
             samples_per_frame: 2500,
             cut: "a+b (40 %) | c (60 %)".into(),
             stage_s: vec![("validate", 1e-6), ("a", 30e-6), ("c", 69e-6)],
+            pilot: Some((2001, 2200)),
             steady_stage_s: vec![("validate", 1e-6), ("a", 19e-6), ("c", 80e-6)],
             cpu_1: us(cpu_1),
             cpu_n: us(cpu_n),
@@ -395,7 +402,7 @@ mod tests {
         assert!(md.contains("Offline 2 threads / 1 thread: **1.622×**; service with 2 workers / offline with 2 threads: **98.6 %**"), "{md}");
         assert!(md.contains("service with 1 worker / offline 1 thread: 88.9 %."), "{md}");
         // The pilot's stage times beside the steady state's, each with its share.
-        assert!(md.contains("(201–400, whose times chose the cut)"), "{md}");
+        assert!(md.contains("(2001–2200, whose times chose the cut)"), "{md}");
         assert!(md.contains("| a | 30.0 | 30 % | 19.0 | 19 % |"), "{md}");
         // Without /proc (or with no stage threads) there is no CPU table, and the report says why.
         let none = cost(&[], &[]).markdown();

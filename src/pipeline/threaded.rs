@@ -15,7 +15,10 @@
 //! the single-thread run whatever the cut. What the cut changes is only how
 //! fast: the slowest segment sets the pace. The first frames run on the
 //! calling thread, the later of them timed stage by stage, and the cut that
-//! balances those times best is used for the rest.
+//! balances those times best is used from then on. Once start-up has passed
+//! ([`REPILOT_AT`] frames), the stages come back to the calling thread, are
+//! timed there once more (a second pilot, now on the steady state's costs),
+//! and are cut again for good.
 //!
 //! Units that finish (their report went out, or averaging consumed them) go
 //! back to segment 0, whose validate stage reuses their buffers.
@@ -72,6 +75,20 @@ const PILOT_TIMED: usize = 200;
 /// Frames a pipeline on several threads runs on the calling thread before
 /// its stages go to their threads.
 pub const PILOT_FRAMES: usize = PILOT_WARMUP + PILOT_TIMED;
+/// Frames pushed after which a pipeline on threads brings its stages back
+/// to the calling thread once, times them there for [`PILOT_TIMED`] frames
+/// more (the second pilot) and cuts them again by those times, for good.
+/// The first pilot runs while start-up still costs: the pooled noise colour
+/// takes every frame, and the detector's thresholds are solved again for
+/// each new estimate, until it has pooled 10⁶ gate samples (some 800 frames
+/// of the prototype's gates; by this many frames, every gate of 500 samples
+/// or more); after that it takes one frame in eight. Its cost then ends up
+/// several times its steady share, enough for the first pilot to choose the
+/// wrong cut.
+pub const REPILOT_AT: usize = 2000;
+/// Frames after which a pipeline on several threads keeps its cut (the
+/// second pilot's end): the start of its steady state.
+pub const SETTLED_FRAMES: usize = REPILOT_AT + PILOT_TIMED;
 
 /// One push's units on their way through the segments.
 struct InFlight {
@@ -89,6 +106,30 @@ enum Msg {
     Push(InFlight),
     /// End of input: flush the segment's stages in order, then pass it on.
     Flush,
+    /// Pass it on, then end the thread, handing its stages back unflushed
+    /// (see [`Parts`]).
+    HandBack,
+}
+
+/// How a run of messages left a segment.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Ended {
+    /// It carries on.
+    No,
+    /// The end of input passed (its stages flushed).
+    Flushed,
+    /// A hand-back passed: the thread returns its stages.
+    HandedBack,
+}
+
+/// What a stage thread returns when a hand-back reaches it: each run of its
+/// stages with the pipeline index of the run's first stage, and on the head
+/// thread its validate stage, its spare units and their queue. Empty where
+/// the thread ended otherwise (end of input, or its queue gone).
+#[derive(Default)]
+struct Parts {
+    head: Option<(super::validate::Validate, Vec<Unit>, Receiver<Unit>)>,
+    runs: Vec<(usize, Vec<Box<dyn Stage>>)>,
 }
 
 /// How the stages were cut: the stage names of each segment, and the pilot
@@ -99,6 +140,10 @@ pub struct Cut {
     pub segments: Vec<Vec<&'static str>>,
     /// Fraction of the pilot's time each segment took (sums to 1).
     pub shares: Vec<f64>,
+    /// The frames (first and last, counted from 1) whose stage times chose
+    /// the cut: the first pilot's, or once [`SETTLED_FRAMES`] frames have
+    /// been pushed, the second's (None before a pilot ends).
+    pub pilot: Option<(usize, usize)>,
     /// Each stage's mean time per frame over the pilot's timed frames, s
     /// (validate first; empty when no pilot ran).
     pub stage_s: Vec<(&'static str, f64)>,
@@ -177,6 +222,8 @@ pub struct Staged {
     cut: Option<Cut>,
     /// Two threads: the ring (true), the chain (false), or by the pilot (None).
     ring: Option<bool>,
+    /// Frames pushed so far.
+    pushed: usize,
 }
 
 impl std::fmt::Debug for Staged {
@@ -186,9 +233,9 @@ impl std::fmt::Debug for Staged {
 }
 
 enum Mode {
-    /// On the calling thread: `seen` frames so far, the pilot's step times,
-    /// and emptied report lists handed back by [`Staged::recycle`].
-    Local { pipeline: Box<Pipeline>, seen: usize, costs: Vec<f64>, lists: Vec<Vec<Report>> },
+    /// On the calling thread: the pilot's step times, and emptied report
+    /// lists handed back by [`Staged::recycle`].
+    Local { pipeline: Box<Pipeline>, costs: Vec<f64>, lists: Vec<Vec<Report>> },
     /// The segments on their threads.
     Split(Pool),
     /// Finished.
@@ -217,7 +264,7 @@ struct Pool {
     /// back to the head in its unit and is filled again there).
     spare_reports: Vec<Report>,
     lists: Vec<Vec<Report>>,
-    handles: Vec<std::thread::JoinHandle<()>>,
+    handles: Vec<std::thread::JoinHandle<Parts>>,
 }
 
 /// Most reports, and most report lists, [`Staged::recycle`] keeps once the
@@ -236,12 +283,13 @@ impl Staged {
             scene: scene.clone(),
             sensor: sensor.to_string(),
             threads: threads.clamp(1, costs.len()),
-            mode: Mode::Local { pipeline, seen: 0, costs, lists: Vec::new() },
+            mode: Mode::Local { pipeline, costs, lists: Vec::new() },
             observer: None,
             last_noise: None,
             names,
             cut: None,
             ring: None,
+            pushed: 0,
         }
     }
 
@@ -271,11 +319,13 @@ impl Staged {
         &self.scene
     }
 
-    /// How the stages are cut (one segment until the pilot has chosen).
+    /// How the stages are cut (one segment until the first pilot has
+    /// chosen; the latest pilot's choice after).
     pub fn cut(&self) -> Cut {
         self.cut.clone().unwrap_or_else(|| Cut {
             segments: vec![self.names.clone()],
             shares: vec![1.0],
+            pilot: None,
             stage_s: Vec::new(),
             threads: vec![0],
         })
@@ -314,9 +364,14 @@ impl Staged {
     /// Processes `frame`; appends the outcomes that are ready (this frame's
     /// and earlier ones', in order) to `out`.
     pub fn push(&mut self, frame: Frame, out: &mut Vec<Outcome>) {
+        if self.pushed == REPILOT_AT && matches!(self.mode, Mode::Split(_)) {
+            self.hand_back(out);
+        }
+        let seen = self.pushed;
+        self.pushed += 1;
         match &mut self.mode {
-            Mode::Local { pipeline, seen, costs, lists } => {
-                let timed = self.threads > 1 && *seen >= PILOT_WARMUP;
+            Mode::Local { pipeline, costs, lists } => {
+                let timed = self.threads > 1 && seen >= PILOT_WARMUP;
                 let run = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
                     if self.threads > 1 {
                         push_timed(pipeline, frame, timed.then_some(costs.as_mut_slice()), lists.pop().unwrap_or_default())
@@ -326,7 +381,6 @@ impl Staged {
                         (reports, result)
                     }
                 }));
-                *seen += 1;
                 let outcome = match run {
                     Ok((reports, result)) => Outcome { reports, result, panic: None },
                     Err(panic) => {
@@ -340,7 +394,9 @@ impl Staged {
                     self.last_noise = Some(n);
                 }
                 out.push(outcome);
-                if self.threads > 1 && *seen >= PILOT_WARMUP + PILOT_TIMED {
+                // Each pilot's end (none ends inside the second pilot's frames).
+                let pilot_over = self.pushed >= PILOT_FRAMES && !(REPILOT_AT + 1..SETTLED_FRAMES).contains(&self.pushed);
+                if self.threads > 1 && pilot_over {
                     self.split();
                 }
             }
@@ -416,6 +472,54 @@ impl Staged {
         Outcome { reports, result: Ok(()), panic: None }
     }
 
+    /// Brings the stages back from their threads to the calling thread, as
+    /// they are (nothing flushed), for the second pilot: every frame in
+    /// flight first finishes, its outcome to `out`. Each thread passes the
+    /// hand-back on behind the frames it has, then returns its stages.
+    fn hand_back(&mut self, out: &mut Vec<Outcome>) {
+        self.sync(out);
+        let Mode::Split(mut pool) = std::mem::replace(&mut self.mode, Mode::Done) else { return };
+        // (The frames' queue is dropped only once the threads have ended:
+        // dropping the ring's tells its head the input has ended.)
+        let sent = pool.frames.as_ref().is_some_and(FramesTx::hand_back);
+        let (mut head, mut runs) = (None, Vec::new());
+        for h in pool.handles.drain(..) {
+            // (A thread cannot panic out: its stages' panics are caught.)
+            if let Ok(parts) = h.join() {
+                head = head.or(parts.head);
+                runs.extend(parts.runs);
+            }
+        }
+        runs.sort_by_key(|r| r.0);
+        let stages: Vec<Box<dyn Stage>> = runs.into_iter().flat_map(|r| r.1).collect();
+        let observer = self.observer.take();
+        let pipeline = match head {
+            Some((validate, mut spare, spare_rx)) if sent && stages.len() + 1 == self.names.len() => {
+                spare.extend(spare_rx.try_iter());
+                spare.append(&mut pool.back);
+                Pipeline {
+                    scene: self.scene.clone(),
+                    sensor: self.sensor.clone(),
+                    validate,
+                    stages,
+                    last_noise: self.last_noise,
+                    observer,
+                    entering: Vec::new(),
+                    leaving: Vec::new(),
+                    spare,
+                    spare_reports: std::mem::take(&mut pool.spare_reports),
+                }
+            }
+            _ => {
+                tracing::error!(sensor = %self.sensor, "the stage threads did not hand their stages back: the pipeline starts afresh");
+                let mut p = Pipeline::new(&self.scene, &self.sensor);
+                p.observer = observer;
+                p
+            }
+        };
+        self.mode = Mode::Local { pipeline: Box::new(pipeline), costs: vec![0.0; self.names.len()], lists: std::mem::take(&mut pool.lists) };
+    }
+
     /// Cuts the stages by the pilot's times and starts their threads.
     fn split(&mut self) {
         let Mode::Local { pipeline, costs, lists, .. } = std::mem::replace(&mut self.mode, Mode::Done) else {
@@ -440,6 +544,7 @@ impl Staged {
         let cut = Cut {
             segments: bounds.windows(2).map(|b| names[b[0]..b[1]].to_vec()).collect(),
             shares: bounds.windows(2).map(|b| costs[b[0]..b[1]].iter().sum::<f64>() / total).collect(),
+            pilot: Some((self.pushed + 1 - PILOT_TIMED, self.pushed)),
             stage_s: if even { Vec::new() } else { names.iter().zip(&costs).map(|(n, c)| (*n, c / PILOT_TIMED as f64)).collect() },
             threads: threads.clone(),
         };
@@ -456,7 +561,7 @@ impl Staged {
         let spare = std::mem::take(&mut pipeline.spare);
         let (spare_tx, spare_rx) = channel::<Unit>();
         let rebuild = |first: usize| Rebuild { scene: self.scene.clone(), sensor: self.sensor.clone(), first };
-        if threads.len() == 3 {
+        if threads == [0, 1, 0] {
             let [(f0, g0), (f1, g1), (f2, g2)]: [(usize, Vec<Box<dyn Stage>>); 3] = groups.try_into().ok().expect("three segments");
             let (head_tx, head_rx) = channel::<HeadMsg>();
             // Unbounded as the head's own queue is: the head thread never
@@ -487,7 +592,7 @@ impl Staged {
             });
             return;
         }
-        let (frames_tx, frames_rx) = sync_channel::<Vec<Frame>>(QUEUE);
+        let (frames_tx, frames_rx) = sync_channel::<HeadMsg>(QUEUE);
         let mut handles = Vec::new();
         let mut input: Option<Receiver<Vec<Msg>>> = None;
         let mut head = Some((pipeline.validate, spare, spare_rx, frames_rx));
@@ -677,18 +782,20 @@ impl Out {
     }
 }
 
-/// What the ring's head thread is sent: frames from the calling thread,
-/// the middle segment's output, and the end of input.
+/// What a head thread is sent: frames from the calling thread, the
+/// middle segment's output (the ring's), the end of input (the ring's: the
+/// chain's head sees its queue close), and the hand-back.
 enum HeadMsg {
     Frames(Vec<Frame>),
     Back(Vec<Msg>),
     End,
+    HandBack,
 }
 
 /// How the calling thread hands frames to the head thread.
 enum FramesTx {
     /// The chain's head queue (bounded: a full queue holds the caller back).
-    Chain(SyncSender<Vec<Frame>>),
+    Chain(SyncSender<HeadMsg>),
     /// The ring's head queue (unbounded, as the middle segment writes to it
     /// too; [`Pool::limit`] holds the caller back). Dropping it ends the input.
     Ring(Sender<HeadMsg>),
@@ -698,8 +805,16 @@ impl FramesTx {
     /// False when the head thread is gone.
     fn send(&self, chunk: Vec<Frame>) -> bool {
         match self {
-            FramesTx::Chain(tx) => tx.send(chunk).is_ok(),
+            FramesTx::Chain(tx) => tx.send(HeadMsg::Frames(chunk)).is_ok(),
             FramesTx::Ring(tx) => tx.send(HeadMsg::Frames(chunk)).is_ok(),
+        }
+    }
+
+    /// Tells the head thread to hand the stages back; false when it is gone.
+    fn hand_back(&self) -> bool {
+        match self {
+            FramesTx::Chain(tx) => tx.send(HeadMsg::HandBack).is_ok(),
+            FramesTx::Ring(tx) => tx.send(HeadMsg::HandBack).is_ok(),
         }
     }
 }
@@ -833,11 +948,11 @@ fn head_chunk(
     msgs
 }
 
-/// Runs `stages` on what the segment before passed on; true once the end
-/// of input (a flush) has passed.
-fn pass_on(stages: &mut [Box<dyn Stage>], msgs: Vec<Msg>, leaving: &mut Vec<Unit>, retired: &mut Vec<Unit>, rebuild: &Rebuild) -> (Vec<Msg>, bool) {
+/// Runs `stages` on what the segment before passed on, and says whether
+/// the end of input or a hand-back passed (nothing comes after either).
+fn pass_on(stages: &mut [Box<dyn Stage>], msgs: Vec<Msg>, leaving: &mut Vec<Unit>, retired: &mut Vec<Unit>, rebuild: &Rebuild) -> (Vec<Msg>, Ended) {
     let mut next = Vec::with_capacity(msgs.len());
-    let mut ended = false;
+    let mut ended = Ended::No;
     for msg in msgs {
         match msg {
             Msg::Push(mut inflight) => {
@@ -846,48 +961,66 @@ fn pass_on(stages: &mut [Box<dyn Stage>], msgs: Vec<Msg>, leaving: &mut Vec<Unit
             }
             Msg::Flush => {
                 flush_stages(stages, &mut next, retired, rebuild);
-                ended = true;
+                ended = Ended::Flushed;
+            }
+            Msg::HandBack => {
+                next.push(Msg::HandBack);
+                ended = Ended::HandedBack;
             }
         }
     }
     (next, ended)
 }
 
-/// Segment 0: validates each frame (reusing finished units' buffers) and
-/// runs its stages.
+/// Segment 0 of the chain: validates each frame (reusing finished units'
+/// buffers) and runs its stages; flushes them when its queue closes.
 fn head_segment(
     mut validate: super::validate::Validate,
     mut spare: Vec<Unit>,
     spare_rx: Receiver<Unit>,
-    frames: Receiver<Vec<Frame>>,
+    frames: Receiver<HeadMsg>,
     mut stages: Vec<Box<dyn Stage>>,
     out: Out,
     rebuild: Rebuild,
-) {
+) -> Parts {
     let mut leaving = Vec::new();
-    while let Ok(chunk) = frames.recv() {
-        spare.extend(spare_rx.try_iter());
-        let msgs = head_chunk(&mut validate, &mut spare, chunk, &mut stages, &mut leaving, &rebuild);
-        if !out.send(msgs) {
-            return;
+    while let Ok(msg) = frames.recv() {
+        match msg {
+            HeadMsg::Frames(chunk) => {
+                spare.extend(spare_rx.try_iter());
+                let msgs = head_chunk(&mut validate, &mut spare, chunk, &mut stages, &mut leaving, &rebuild);
+                if !out.send(msgs) {
+                    return Parts::default();
+                }
+            }
+            HeadMsg::HandBack => {
+                let _ = out.send(vec![Msg::HandBack]);
+                return Parts { head: Some((validate, spare, spare_rx)), runs: vec![(rebuild.first, stages)] };
+            }
+            HeadMsg::Back(_) | HeadMsg::End => break,
         }
     }
     let mut msgs = Vec::new();
     flush_stages(&mut stages, &mut msgs, &mut spare, &rebuild);
     let _ = out.send(msgs);
+    Parts::default()
 }
 
 /// A later segment: runs its stages on what the segment before it passes on.
-fn segment(mut stages: Vec<Box<dyn Stage>>, from: Receiver<Vec<Msg>>, out: Out, spare_tx: Sender<Unit>, rebuild: Rebuild) {
+fn segment(mut stages: Vec<Box<dyn Stage>>, from: Receiver<Vec<Msg>>, out: Out, spare_tx: Sender<Unit>, rebuild: Rebuild) -> Parts {
     let mut leaving = Vec::new();
     let mut retired = Vec::new();
     while let Ok(msgs) = from.recv() {
-        let (next, _) = pass_on(&mut stages, msgs, &mut leaving, &mut retired, &rebuild);
+        let (next, ended) = pass_on(&mut stages, msgs, &mut leaving, &mut retired, &rebuild);
         retired.drain(..).for_each(|w| drop(spare_tx.send(w)));
         if !out.send(next) {
-            return;
+            break;
+        }
+        if ended == Ended::HandedBack {
+            return Parts { head: None, runs: vec![(rebuild.first, stages)] };
         }
     }
+    Parts::default()
 }
 
 /// The ring's head thread: the first segment on frames (validated here, as
@@ -895,8 +1028,9 @@ fn segment(mut stages: Vec<Box<dyn Stage>>, from: Receiver<Vec<Msg>>, out: Out, 
 /// passes back, in the order they arrive; each keeps its own order, so
 /// every stage sees its units in frame order. The end of input flushes the
 /// first segment into the middle one, whose flush comes back through the
-/// last; then the thread ends. Units the last segment finishes with are
-/// reused here directly.
+/// last; then the thread ends. A hand-back goes round the same way, and the
+/// thread returns its stages once it is back. Units the last segment
+/// finishes with are reused here directly.
 fn ring_head(
     mut validate: super::validate::Validate,
     mut spare: Vec<Unit>,
@@ -905,7 +1039,7 @@ fn ring_head(
     to_middle: Sender<Vec<Msg>>,
     out: Sender<Vec<Msg>>,
     mut ends: Ends,
-) {
+) -> Parts {
     let mut leaving = Vec::new();
     let mut to_middle = Some(to_middle);
     while let Ok(msg) = input.recv() {
@@ -918,7 +1052,14 @@ fn ring_head(
                 // neither thread ever waits on the other to take a chunk
                 // (the calling thread's in-flight limit bounds both).
                 if tx.send(msgs).is_err() {
-                    return;
+                    return Parts::default();
+                }
+            }
+            HeadMsg::HandBack => {
+                if let Some(tx) = &to_middle
+                    && tx.send(vec![Msg::HandBack]).is_err()
+                {
+                    return Parts::default();
                 }
             }
             HeadMsg::End => {
@@ -930,12 +1071,17 @@ fn ring_head(
             }
             HeadMsg::Back(msgs) => {
                 let (next, ended) = pass_on(&mut ends.last, msgs, &mut leaving, &mut spare, &ends.rebuild_last);
-                if out.send(next).is_err() || ended {
-                    return;
+                if out.send(next).is_err() || ended == Ended::Flushed {
+                    return Parts::default();
+                }
+                if ended == Ended::HandedBack {
+                    let runs = vec![(ends.rebuild_first.first, ends.first), (ends.rebuild_last.first, ends.last)];
+                    return Parts { head: Some((validate, spare, spare_rx)), runs };
                 }
             }
         }
     }
+    Parts::default()
 }
 
 /// A panic's message, for the outcome of the frame it cost.
@@ -1106,6 +1252,34 @@ mod tests {
                     }
                 }
             }
+        }
+    }
+
+    /// The threads a pipeline runs on once cut: on three, a chain of three
+    /// segments each on a thread of its own (three segments once ran as the
+    /// ring, on two); on two, the ring when asked for (the first and last
+    /// segments on one thread). Checked again past the second pilot.
+    #[test]
+    fn each_segment_of_a_chain_has_a_thread_of_its_own() {
+        let scene = Scene::default_scene();
+        let sim = crate::physics::Simulator::new(&scene).expect("the default scene simulates");
+        for (threads, ring, want) in [(3, None, 3), (2, Some(true), 2), (2, Some(false), 2)] {
+            let mut s = Staged::new(&scene, "t", threads);
+            s.prefer_ring(ring);
+            let mut out = Vec::new();
+            for i in 0..super::SETTLED_FRAMES as u64 + 10 {
+                s.push(sim.frame(5, i).0, &mut out);
+                out.clear();
+                if i + 1 == super::PILOT_FRAMES as u64 + 10 || i + 1 == super::SETTLED_FRAMES as u64 + 10 {
+                    let Mode::Split(pool) = &s.mode else { panic!("{threads} threads: on threads after the pilot") };
+                    let cut = s.cut();
+                    assert_eq!(pool.handles.len(), want, "{threads} threads, ring {ring:?}: {cut}");
+                    let used = cut.threads.iter().max().map_or(0, |t| t + 1);
+                    assert_eq!(used, want, "{cut}");
+                    assert_eq!(cut.threads == [0, 1, 0], ring == Some(true), "{cut}");
+                }
+            }
+            s.finish(&mut out);
         }
     }
 

@@ -12,8 +12,13 @@ use tofwave::scene::Scene;
 /// 700 frames of the default (prototype) scene: past the 400 frames the
 /// threaded run spends on one thread choosing its cut.
 fn simulated(dir: &tempfile::TempDir) -> Vec<Frame> {
+    simulated_n(dir, 700)
+}
+
+/// `n` frames of the default scene, seed 11.
+fn simulated_n(dir: &tempfile::TempDir, n: usize) -> Vec<Frame> {
     let path = dir.path().join("sim.twr");
-    tofwave_ok(&["simulate", "--frames", "700", "--seed", "11", "--out", path.to_str().unwrap()]);
+    tofwave_ok(&["simulate", "--frames", &n.to_string(), "--seed", "11", "--out", path.to_str().unwrap()]);
     let opts = ReadOptions { sensor_id: "t".into(), ..ReadOptions::default() };
     capture::frames(&[PathBuf::from(&path)], &opts).unwrap().map(|f| f.unwrap()).collect()
 }
@@ -138,6 +143,49 @@ fn the_ring_and_the_chain_give_one_threads_reports() {
     }
     assert_eq!(s.cut().threads, [0, 1, 0]);
     drop(s);
+}
+
+/// Past `threaded::REPILOT_AT` frames the stages come back from their
+/// threads, unflushed, are timed again on the calling thread and cut anew:
+/// the reports stay one thread's, bit for bit, on the ring, the chain and
+/// three threads, with an averaging group open across the hand-back
+/// (2000 = 3 × 666 + 2), a refused frame at it and one in the second pilot,
+/// and the cut says which frames chose it.
+#[test]
+fn the_second_pilot_hands_the_stages_back_and_changes_no_report() {
+    assert_eq!((threaded::REPILOT_AT, threaded::SETTLED_FRAMES), (2000, 2200), "the frames below are placed for these");
+    let dir = tempfile::tempdir().unwrap();
+    let mut frames = simulated_n(&dir, 2600);
+    for k in [600, 2000, 2100] {
+        frames[k].sample_interval_s = -1.0;
+    }
+    for average in [1u32, 3] {
+        let mut scene = Scene::default_scene();
+        scene.averaging.frames = average;
+        let (one, _) = run(&scene, &frames, 1);
+        assert_eq!(one.iter().filter(|l| l.starts_with("refused")).count(), 3, "the bad frames are refused");
+        let mut arms: Vec<(String, Vec<String>, threaded::Cut)> = Vec::new();
+        for ring in [true, false] {
+            // All outcomes handed back at frame 1990, ten frames before the hand-back.
+            let (lines, cut) = staged(&scene, &frames, ring, 1990);
+            assert_eq!(cut.threads == [0, 1, 0], ring, "{cut}");
+            arms.push((format!("ring {ring}"), lines, cut));
+        }
+        let (lines, cut) = run(&scene, &frames, 2);
+        arms.push(("2 threads run".into(), lines, cut));
+        let (lines, cut) = run(&scene, &frames, 3);
+        arms.push(("3 threads".into(), lines, cut));
+        for (arm, lines, cut) in &arms {
+            assert_eq!(cut.pilot, Some((2001, 2200)), "{arm}: the second pilot chose the cut ({cut})");
+            assert_eq!(lines.len(), one.len(), "average {average}, {arm} ({cut})");
+            for (i, (a, b)) in one.iter().zip(lines).enumerate() {
+                assert_eq!(a, b, "average {average}, {arm} ({cut}): outcome line {i} differs");
+            }
+        }
+    }
+    // Before the second pilot, the first chose the cut.
+    let (_, cut) = run(&Scene::default_scene(), &frames[..1000], 2);
+    assert_eq!(cut.pilot, Some((201, 400)), "{cut}");
 }
 
 #[test]

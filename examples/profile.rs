@@ -15,10 +15,10 @@
 //! cloned before the clock starts), the same after the first 256 frames of
 //! each pass (start-up off the clock) where there are more than 512, and,
 //! with `PROFILE_STAGES=1`, each stage's µs/frame from the threaded
-//! engine's pilot (frames 200-400, one thread). With `PROFILE_THREADS=N`
+//! engine's first pilot (frames 201-400, one thread). With `PROFILE_THREADS=N`
 //! it instead runs the frames once through the threaded engine on N threads,
 //! as `tofwave bench --threads` runs its offline arms, and prints wall
-//! µs/frame and allocations/frame (whole process) after the pilot.
+//! µs/frame and allocations/frame (whole process) after both pilots (frame 2200).
 
 
 use std::alloc::{GlobalAlloc, Layout, System};
@@ -119,8 +119,9 @@ fn main() {
         p.push(frames[0].clone(), &mut out).expect("valid frames");
         println!("{}", tofwave::pipeline::report_json(&out[0]));
     }
-    if std::env::var_os("PROFILE_STAGES").is_some() && frames.len() >= 400 {
-        let cut = tofwave::pipeline::threaded::run(&scene, "bench", 2, frames.iter().take(400).cloned(), |_| {});
+    let pilot = tofwave::pipeline::threaded::PILOT_FRAMES;
+    if std::env::var_os("PROFILE_STAGES").is_some() && frames.len() >= pilot {
+        let cut = tofwave::pipeline::threaded::run(&scene, "bench", 2, frames.iter().take(pilot).cloned(), |_| {});
         for (name, s) in &cut.stage_s {
             println!("  {name:>18}: {:7.1} us/frame", s * 1e6);
         }

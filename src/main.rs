@@ -222,10 +222,11 @@ struct ProcessArgs {
     #[arg(long, short, default_value = "-", value_name = "FILE")]
     output: PathBuf,
     /// Threads for the one sensor's pipeline (threads). The stages are cut into this many
-    /// consecutive segments, one thread each, cut where the stage times measured on the
-    /// first frames balance best (on 2 threads also a ring: three segments, the first and
-    /// last on one thread, where one heavy stage in the middle would leave the chain
-    /// unbalanced); every stage still sees the frames in order, so the reports are
+    /// consecutive segments, one thread each, cut where the stage times measured on one
+    /// thread balance best: on frames 201-400, and again on frames 2001-2200, once start-up
+    /// has passed (on 2 threads also a ring: three segments, the first and last on one
+    /// thread, where one heavy stage in the middle would leave the chain unbalanced);
+    /// every stage still sees the frames in order, so the reports are
     /// bit-identical to one thread's. The busiest thread sets the pace, so more threads
     /// than stages (the scene's, plus validate) add nothing. Default: the machine's cores
     /// for 1000 frames or more, else 1.
@@ -752,7 +753,8 @@ fn run(scene: &Scene, c: &SceneInput, threads: Option<u32>, progress: bool, mut 
             bar.suspend(|| eprintln!("refused: {e}"));
         } else if let Some(m) = &o.panic {
             refused += 1;
-            bar.suspend(|| eprintln!("refused: the pipeline panicked on this frame ({m}); the stage was rebuilt"));
+            let rebuilt = if threads > 1 { "the stage was rebuilt" } else { "the pipeline was rebuilt" };
+            bar.suspend(|| eprintln!("refused: the pipeline panicked on this frame ({m}); {rebuilt}"));
         }
         bar.inc(1);
     });

@@ -7,9 +7,10 @@
 //! between them, on every arm: the first 2200 frames hold the threaded
 //! pipeline's two pilots (frames it runs on one thread to choose its cut,
 //! the second once start-up has passed) and the frames in which any
-//! pipeline pays its start-up. (With fewer than 4400 frames per trial the
-//! clock starts at the 401st, after the first pilot, and with fewer than
-//! 800 at the first.)
+//! pipeline pays its start-up. With fewer than 2600 frames per trial the
+//! clock starts at the 401st, after the first pilot (and past 2000 frames
+//! the second pilot is then on the clock), and with fewer than 800 at the
+//! first.
 //!
 //! Every arm renders each report's JSON line: the offline arms as `process`
 //! does (on its calling thread, as the frames finish), the service for its
@@ -247,12 +248,12 @@ pub fn measure_threads_cost(
     Ok(cost)
 }
 
-/// Outcomes left off the clock out of `frames`: the pilots' and start-up's,
-/// [`threaded::SETTLED_FRAMES`], where there are at least twice as many
-/// frames, else the first pilot's, [`threaded::PILOT_FRAMES`], where there
-/// are twice as many as that, else none.
+/// Outcomes left off the clock out of `frames`: both pilots' and
+/// start-up's, [`threaded::SETTLED_FRAMES`], where at least
+/// [`threaded::PILOT_FRAMES`] follow them, else the first pilot's,
+/// [`threaded::PILOT_FRAMES`], where as many follow it, else none.
 fn pilot_skip(frames: usize) -> usize {
-    [threaded::SETTLED_FRAMES, threaded::PILOT_FRAMES].into_iter().find(|&skip| frames >= 2 * skip).unwrap_or(0)
+    [threaded::SETTLED_FRAMES, threaded::PILOT_FRAMES].into_iter().find(|&skip| frames >= skip + threaded::PILOT_FRAMES).unwrap_or(0)
 }
 
 /// `n` as an English ordinal: 1st, 2nd, 3rd, 4th, 11th, 12th, 13th, 21st, 101st.
@@ -270,7 +271,8 @@ fn ordinal(n: usize) -> String {
 /// Steady-state outcomes per second of `frames` on `threads` threads, and
 /// the cut: the clock runs from the outcome of frame [`pilot_skip`] on,
 /// whatever the thread count (before it a pipeline on several threads runs
-/// on one while it chooses its cut, and every pipeline pays its start-up).
+/// on one while it chooses its cut, and every pipeline pays its start-up),
+/// or from the first outcome where there are too few frames for that.
 ///
 /// Also, where /proc can be read, each pipeline thread's CPU time per frame
 /// (see [`ThreadsCost::cpu_n`]) and the frames it is over (the CPU window):

@@ -642,17 +642,10 @@ impl EventTest {
         let basis = &mut self.basis;
         basis.event_model(band, len, &self.xw, &mut self.pulses, pulse, others, first);
         basis.push_pulse(band, len, &self.xw, self.pulses.get(pulse, c), first);
-        let k = basis.cols.len();
         // The fit's coefficients on the kept columns: Lᵀβ = y.
         basis.g.clear();
         basis.g.extend_from_slice(&basis.y);
-        for i in (0..k).rev() {
-            let mut s = basis.g[i];
-            for j in i + 1..k {
-                s -= basis.l[j * CAP_COLS + i] * basis.g[j];
-            }
-            basis.g[i] = s * basis.inv_diag[i];
-        }
+        basis.back_substitute();
         out.resize(len, 0.0);
         for (i, &col) in basis.cols.iter().enumerate() {
             if let Col::Band(j) = col {
@@ -967,6 +960,12 @@ struct Basis {
     /// 1 / L's diagonal, one per kept column: the substitutions through L
     /// multiply (a chain of divisions waited some 13 cycles a row).
     inv_diag: Vec<f64>,
+    /// Leading rows of L that are rows of the identity (zeros left of a
+    /// unit diagonal: band columns pushed first, orthonormal): the
+    /// substitutions pass over them, whose terms there are zeros and whose
+    /// division is by 1 (the same values, bit for bit, up to the sign of a
+    /// zero).
+    unit_rows: usize,
 }
 
 /// Most columns one judgement holds (band columns plus a pulse and its slope
@@ -984,6 +983,7 @@ impl Basis {
         self.cols.clear();
         self.vals.clear();
         self.y.clear();
+        self.unit_rows = 0;
         if self.l.len() < CAP_COLS * CAP_COLS {
             self.l.resize(CAP_COLS * CAP_COLS, 0.0);
         }
@@ -1109,8 +1109,8 @@ impl Basis {
             let v = self.inner(band, len, self.cols[i], a);
             self.g.push(v);
         }
-        // Forward substitution: L l = g.
-        for i in 0..k {
+        // Forward substitution: L l = g (the unit rows leave g as it is).
+        for i in self.unit_rows.min(k)..k {
             let row = &self.l[i * CAP_COLS..i * CAP_COLS + i];
             let s = self.g[i] - dot(row, &self.g[..i]);
             self.g[i] = s * self.inv_diag[i];
@@ -1139,6 +1139,22 @@ impl Basis {
         let y = (self.with_x(xw, a) - dot(&self.g, &self.y)) / d;
         self.y.push(y);
         self.cols.push(a);
+        if self.unit_rows == k && d == 1.0 && self.g.iter().all(|v| *v == 0.0) {
+            self.unit_rows += 1;
+        }
+    }
+
+    /// Solves Lᵀ β = `g` in place over the kept columns (a unit row's
+    /// entries left of its diagonal are zeros: passed over).
+    fn back_substitute(&mut self) {
+        let k = self.cols.len();
+        for i in (0..k).rev() {
+            let mut s = self.g[i];
+            for j in (i + 1).max(self.unit_rows)..k {
+                s -= self.l[j * CAP_COLS + i] * self.g[j];
+            }
+            self.g[i] = s * self.inv_diag[i];
+        }
     }
 
     /// Drops the columns after the first `k` (the factor's rows past them
@@ -1146,6 +1162,7 @@ impl Basis {
     fn truncate(&mut self, k: usize) {
         self.cols.truncate(k);
         self.y.truncate(k);
+        self.unit_rows = self.unit_rows.min(k);
     }
 
     /// Appends the unit column of window sample `i`: the sample is left out
@@ -1260,14 +1277,7 @@ impl Basis {
             return (num, d2);
         }
         // Coefficients of the column on the kept ones: Lᵀ β = l.
-        let k = self.cols.len();
-        for i in (0..k).rev() {
-            let mut s = self.g[i];
-            for j in i + 1..k {
-                s -= self.l[j * CAP_COLS + i] * self.g[j];
-            }
-            self.g[i] = s * self.inv_diag[i];
-        }
+        self.back_substitute();
         q[start..start + n].copy_from_slice(&self.vals[off..off + n]);
         for (i, &col) in self.cols.iter().enumerate() {
             let beta = self.g[i];

@@ -78,13 +78,15 @@ pub const PILOT_FRAMES: usize = PILOT_WARMUP + PILOT_TIMED;
 /// Frames pushed after which a pipeline on threads brings its stages back
 /// to the calling thread once, times them there for [`PILOT_TIMED`] frames
 /// more (the second pilot) and cuts them again by those times, for good.
-/// The first pilot runs while start-up still costs: the pooled noise colour
-/// takes every frame, and the detector's thresholds are solved again for
-/// each new estimate, until it has pooled 10⁶ gate samples (some 800 frames
-/// of the prototype's gates; by this many frames, every gate of 500 samples
-/// or more); after that it takes one frame in eight. Its cost then ends up
-/// several times its steady share, enough for the first pilot to choose the
-/// wrong cut.
+/// The first pilot runs while start-up still costs: the detect stage pools
+/// the noise colour from every frame, and solves the detector's thresholds
+/// again for each new estimate, until the colour rests on 10⁶ gate samples
+/// (some 800 frames of the prototype's gates; by this many frames, those of
+/// any gates of 500 samples or more), and from one frame in eight after
+/// that. In one run of eight on the prototype's scene, the stages up to
+/// and with the matched filter took 44 % of the first pilot's time against
+/// 23 % in steady state, and it chose the wrong cut (`docs/bench/report.md`,
+/// "Threads, seventeenth round").
 pub const REPILOT_AT: usize = 2000;
 /// Frames after which a pipeline on several threads keeps its cut (the
 /// second pilot's end): the start of its steady state.
@@ -204,16 +206,20 @@ where
 /// With more than one thread the first frames run on the calling thread
 /// (the pilot: start-up, then the stages timed); from then on the stages
 /// run on one thread per segment of the cut, and the calling thread only
-/// hands frames in and takes outcomes out.
+/// hands frames in and takes outcomes out, except for the second pilot
+/// (frames [`REPILOT_AT`] + 1 to [`SETTLED_FRAMES`], on the calling thread
+/// again), after which the stages are cut again for good.
 ///
 /// A stage that panics costs the unit it held (its frame's outcome says so)
-/// and its own running state: on the calling thread the whole pipeline is
-/// rebuilt from the scene, as a fresh one; on threads only that stage is.
-/// The other frames and the other stages carry on.
+/// and its own running state: that stage is rebuilt from the scene, and the
+/// other frames and the other stages carry on. (On one thread the whole
+/// pipeline is rebuilt, as a fresh one.)
 pub struct Staged {
     scene: Scene,
     sensor: String,
     threads: usize,
+    /// Builds a stage afresh after a panic in a pilot (see [`Rebuild`]).
+    rebuild: Rebuild,
     mode: Mode,
     observer: Option<Observer>,
     last_noise: Option<NoiseSummary>,
@@ -283,6 +289,7 @@ impl Staged {
             scene: scene.clone(),
             sensor: sensor.to_string(),
             threads: threads.clamp(1, costs.len()),
+            rebuild: Rebuild { scene: scene.clone(), sensor: sensor.to_string(), first: 0 },
             mode: Mode::Local { pipeline, costs, lists: Vec::new() },
             observer: None,
             last_noise: None,
@@ -295,8 +302,8 @@ impl Staged {
 
     /// On two threads, the ring (`Some(true)`, wherever there are three
     /// stages or more), the chain (`Some(false)`), or whichever the pilot's
-    /// stage times favour (`None`, the default). For tests and experiments;
-    /// call it before the pilot ends.
+    /// stage times favour (`None`, the default), at each pilot's cut. For
+    /// tests and experiments; call it before the first pilot ends.
     pub fn prefer_ring(&mut self, ring: Option<bool>) {
         self.ring = ring;
     }
@@ -320,7 +327,8 @@ impl Staged {
     }
 
     /// How the stages are cut (one segment until the first pilot has
-    /// chosen; the latest pilot's choice after).
+    /// chosen; the latest pilot's choice after, the first's while the
+    /// second pilot runs on the calling thread).
     pub fn cut(&self) -> Cut {
         self.cut.clone().unwrap_or_else(|| Cut {
             segments: vec![self.names.clone()],
@@ -372,21 +380,21 @@ impl Staged {
         match &mut self.mode {
             Mode::Local { pipeline, costs, lists } => {
                 let timed = self.threads > 1 && seen >= PILOT_WARMUP;
+                // A pilot rebuilds only the stage that panicked (as the
+                // stage threads do); one thread, the whole pipeline.
                 let run = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
                     if self.threads > 1 {
-                        push_timed(pipeline, frame, timed.then_some(costs.as_mut_slice()), lists.pop().unwrap_or_default())
+                        push_timed(pipeline, frame, timed.then_some(costs.as_mut_slice()), lists.pop().unwrap_or_default(), Some(&self.rebuild))
                     } else {
                         let mut reports = lists.pop().unwrap_or_default();
                         let result = pipeline.push(frame, &mut reports);
-                        (reports, result)
+                        (reports, result, None)
                     }
                 }));
                 let outcome = match run {
-                    Ok((reports, result)) => Outcome { reports, result, panic: None },
+                    Ok((reports, result, panic)) => Outcome { reports, result, panic },
                     Err(panic) => {
-                        let observer = pipeline.observer.take();
-                        **pipeline = Pipeline::new(&self.scene, &self.sensor);
-                        pipeline.observer = observer;
+                        **pipeline = fresh(&self.rebuild, pipeline.observer.take());
                         Outcome { reports: Vec::new(), result: Ok(()), panic: Some(panic_message(panic.as_ref())) }
                     }
                 };
@@ -394,9 +402,9 @@ impl Staged {
                     self.last_noise = Some(n);
                 }
                 out.push(outcome);
-                // Each pilot's end (none ends inside the second pilot's frames).
-                let pilot_over = self.pushed >= PILOT_FRAMES && !(REPILOT_AT + 1..SETTLED_FRAMES).contains(&self.pushed);
-                if self.threads > 1 && pilot_over {
+                // Each pilot's end (on several threads the pipeline is here
+                // only up to the first and within the second).
+                if self.threads > 1 && (self.pushed == PILOT_FRAMES || self.pushed >= SETTLED_FRAMES) {
                     self.split();
                 }
             }
@@ -481,7 +489,7 @@ impl Staged {
         let Mode::Split(mut pool) = std::mem::replace(&mut self.mode, Mode::Done) else { return };
         // (The frames' queue is dropped only once the threads have ended:
         // dropping the ring's tells its head the input has ended.)
-        let sent = pool.frames.as_ref().is_some_and(FramesTx::hand_back);
+        let sent = pool.frames.as_ref().is_some_and(|tx| tx.send(HeadMsg::HandBack));
         let (mut head, mut runs) = (None, Vec::new());
         for h in pool.handles.drain(..) {
             // (A thread cannot panic out: its stages' panics are caught.)
@@ -511,10 +519,10 @@ impl Staged {
                 }
             }
             _ => {
+                // (Not seen: the threads catch their stages' panics.)
                 tracing::error!(sensor = %self.sensor, "the stage threads did not hand their stages back: the pipeline starts afresh");
-                let mut p = Pipeline::new(&self.scene, &self.sensor);
-                p.observer = observer;
-                p
+                debug_assert!(false, "the stage threads did not hand their stages back");
+                fresh(&self.rebuild, observer)
             }
         };
         self.mode = Mode::Local { pipeline: Box::new(pipeline), costs: vec![0.0; self.names.len()], lists: std::mem::take(&mut pool.lists) };
@@ -663,32 +671,55 @@ pub fn stage_times(scene: &Scene, frames: &[Frame], warmup: usize) -> Vec<(&'sta
     let mut timed = 0usize;
     for (i, f) in frames.iter().enumerate() {
         let on = i >= warmup;
-        let _ = push_timed(&mut pipeline, f.clone(), on.then_some(costs.as_mut_slice()), Vec::new());
+        let _ = push_timed(&mut pipeline, f.clone(), on.then_some(costs.as_mut_slice()), Vec::new(), None);
         timed += on as usize;
     }
     names.into_iter().zip(costs).map(|(n, c)| (n, c / timed.max(1) as f64)).collect()
 }
 
+/// A fresh pipeline for `rebuild`'s scene and sensor, with `observer`.
+fn fresh(rebuild: &Rebuild, observer: Option<Observer>) -> Pipeline {
+    let mut p = Pipeline::new(&rebuild.scene, &rebuild.sensor);
+    p.observer = observer;
+    p
+}
+
 /// One frame through `pipeline` stage by stage, each stage's time added to
 /// `costs` (index 0 validate) when given; its reports go to `reports` (a
 /// recycled list), each leaving a recycled report in its unit, as
-/// [`Pipeline::push`] does.
+/// [`Pipeline::push`] does. With `rebuild`, a stage (or validate) that
+/// panics is built afresh and the panic's message returned, as on the
+/// stage threads; without, the panic goes on up.
 fn push_timed(
     pipeline: &mut Pipeline,
     frame: Frame,
     mut costs: Option<&mut [f64]>,
     mut reports: Vec<Report>,
-) -> (Vec<Report>, Result<(), FrameError>) {
+    rebuild: Option<&Rebuild>,
+) -> (Vec<Report>, Result<(), FrameError>, Option<String>) {
     let (mut units, mut leaving, mut retired) = (Vec::new(), Vec::new(), Vec::new());
+    let mut panic = None;
     let t0 = Instant::now();
-    let mut result = pipeline.validate.process(frame, &mut pipeline.spare, &mut units);
+    let validated = match rebuild {
+        None => Ok(pipeline.validate.process(frame, &mut pipeline.spare, &mut units)),
+        Some(_) => std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| pipeline.validate.process(frame, &mut pipeline.spare, &mut units))),
+    };
+    let mut result = match (validated, rebuild) {
+        (Ok(r), _) => r,
+        (Err(p), Some(r)) => {
+            panic = Some(panic_message(p.as_ref()));
+            pipeline.validate = super::validate::Validate::new(&r.scene);
+            Ok(())
+        }
+        (Err(p), None) => std::panic::resume_unwind(p),
+    };
     if let Some(c) = costs.as_deref_mut() {
         c[0] += t0.elapsed().as_secs_f64();
     }
-    if result.is_ok() {
+    if result.is_ok() && panic.is_none() {
         for (i, stage) in pipeline.stages.iter_mut().enumerate() {
             let t0 = Instant::now();
-            run_stages(std::slice::from_mut(stage), &mut units, &mut leaving, &mut result, &mut retired, &mut None, None);
+            run_stages(std::slice::from_mut(stage), &mut units, &mut leaving, &mut result, &mut retired, &mut panic, rebuild.map(|r| (r, i)));
             if let Some(c) = costs.as_deref_mut() {
                 c[i + 1] += t0.elapsed().as_secs_f64();
             }
@@ -703,7 +734,7 @@ fn push_timed(
         reports.push(std::mem::replace(&mut w.report, pipeline.spare_reports.pop().unwrap_or_default()));
         retire(&mut pipeline.spare, w);
     }
-    (reports, result)
+    (reports, result, panic)
 }
 
 impl Pool {
@@ -715,7 +746,7 @@ impl Pool {
         let chunk = std::mem::replace(&mut self.pending, Vec::with_capacity(CHUNK));
         self.in_flight += chunk.len();
         if let Some(tx) = &self.frames
-            && !tx.send(chunk)
+            && !tx.send(HeadMsg::Frames(chunk))
         {
             // The head is gone (it cannot panic out: stages are caught).
             self.frames = None;
@@ -803,18 +834,10 @@ enum FramesTx {
 
 impl FramesTx {
     /// False when the head thread is gone.
-    fn send(&self, chunk: Vec<Frame>) -> bool {
+    fn send(&self, msg: HeadMsg) -> bool {
         match self {
-            FramesTx::Chain(tx) => tx.send(HeadMsg::Frames(chunk)).is_ok(),
-            FramesTx::Ring(tx) => tx.send(HeadMsg::Frames(chunk)).is_ok(),
-        }
-    }
-
-    /// Tells the head thread to hand the stages back; false when it is gone.
-    fn hand_back(&self) -> bool {
-        match self {
-            FramesTx::Chain(tx) => tx.send(HeadMsg::HandBack).is_ok(),
-            FramesTx::Ring(tx) => tx.send(HeadMsg::HandBack).is_ok(),
+            FramesTx::Chain(tx) => tx.send(msg).is_ok(),
+            FramesTx::Ring(tx) => tx.send(msg).is_ok(),
         }
     }
 }
@@ -1203,22 +1226,29 @@ mod tests {
     /// outcome carries the panic's message and no report, every other
     /// frame's outcome comes out once, in order, with its report, and the
     /// pipeline carries on (the stage rebuilt) — on the ring and on the
-    /// chain. Every stage panics once, each on its own frame after the
-    /// pilot, so every segment is tried whatever the cut.
+    /// chain. Every stage panics once, each on its own frame: the even
+    /// ones on their threads after the first pilot (so every segment is
+    /// tried whatever the cut), the odd ones in the second pilot, on the
+    /// calling thread.
     #[test]
     fn a_stage_panicking_on_a_thread_costs_its_frame_only() {
         let scene = Scene::default_scene();
         let sim = crate::physics::Simulator::new(&scene).expect("the default scene simulates");
-        let frames: Vec<Frame> = (0..1000).map(|i| sim.frame(5, i).0).collect();
+        let frames: Vec<Frame> = (0..super::SETTLED_FRAMES as u64 + 100).map(|i| sim.frame(5, i).0).collect();
         for ring in [true, false] {
             let mut s = Staged::new(&scene, "t", 2);
             s.prefer_ring(Some(ring));
             let Mode::Local { pipeline, .. } = &mut s.mode else { unreachable!("a new pipeline starts on the calling thread") };
             let n = pipeline.stages.len();
             assert!(n >= 3, "{n} stages");
-            // After the pilot (400 frames on the calling thread): on the threads.
-            let booms: Vec<(usize, u64)> = (0..n).map(|i| (i, 450 + 80 * i as u64)).collect();
-            assert!(booms.last().expect("stages").1 < frames.len() as u64);
+            // After the first pilot (400 frames on the calling thread): on
+            // the threads; in the second (frames 2001 to 2200): on the calling thread.
+            let booms: Vec<(usize, u64)> = (0..n).map(|i| (i, if i % 2 == 0 { 450 + 80 * i as u64 } else { 2010 + 30 * i as u64 })).collect();
+            for &(i, at) in &booms {
+                let on_threads = (super::PILOT_FRAMES as u64..super::REPILOT_AT as u64).contains(&at);
+                let in_second_pilot = (super::REPILOT_AT as u64..super::SETTLED_FRAMES as u64).contains(&at);
+                assert!(if i % 2 == 0 { on_threads } else { in_second_pilot }, "stage {i} at frame {at}");
+            }
             let mut names = Vec::new();
             for &(i, at) in &booms {
                 let inner = pipeline.stages.remove(i);
@@ -1256,28 +1286,33 @@ mod tests {
     }
 
     /// The threads a pipeline runs on once cut: on three, a chain of three
-    /// segments each on a thread of its own (three segments once ran as the
-    /// ring, on two); on two, the ring when asked for (the first and last
-    /// segments on one thread). Checked again past the second pilot.
+    /// segments, each on a thread of its own; on two, the ring when asked
+    /// for (the first and last segments on one thread). Checked after each
+    /// pilot.
     #[test]
     fn each_segment_of_a_chain_has_a_thread_of_its_own() {
         let scene = Scene::default_scene();
         let sim = crate::physics::Simulator::new(&scene).expect("the default scene simulates");
+        let frames: Vec<Frame> = (0..super::SETTLED_FRAMES as u64 + 10).map(|i| sim.frame(5, i).0).collect();
         for (threads, ring, want) in [(3, None, 3), (2, Some(true), 2), (2, Some(false), 2)] {
             let mut s = Staged::new(&scene, "t", threads);
             s.prefer_ring(ring);
             let mut out = Vec::new();
-            for i in 0..super::SETTLED_FRAMES as u64 + 10 {
-                s.push(sim.frame(5, i).0, &mut out);
+            for (i, f) in frames.iter().enumerate() {
+                s.push(f.clone(), &mut out);
                 out.clear();
-                if i + 1 == super::PILOT_FRAMES as u64 + 10 || i + 1 == super::SETTLED_FRAMES as u64 + 10 {
-                    let Mode::Split(pool) = &s.mode else { panic!("{threads} threads: on threads after the pilot") };
-                    let cut = s.cut();
-                    assert_eq!(pool.handles.len(), want, "{threads} threads, ring {ring:?}: {cut}");
-                    let used = cut.threads.iter().max().map_or(0, |t| t + 1);
-                    assert_eq!(used, want, "{cut}");
-                    assert_eq!(cut.threads == [0, 1, 0], ring == Some(true), "{cut}");
-                }
+                let pilot = match i + 1 {
+                    n if n == super::PILOT_FRAMES + 10 => (201, 400),
+                    n if n == super::SETTLED_FRAMES + 10 => (2001, 2200),
+                    _ => continue,
+                };
+                let Mode::Split(pool) = &s.mode else { panic!("{threads} threads: on threads after the pilot") };
+                let cut = s.cut();
+                assert_eq!(cut.pilot, Some(pilot), "{cut}");
+                assert_eq!(pool.handles.len(), want, "{threads} threads, ring {ring:?}: {cut}");
+                let used = cut.threads.iter().max().map_or(0, |t| t + 1);
+                assert_eq!(used, want, "{cut}");
+                assert_eq!(cut.threads == [0, 1, 0], ring == Some(true), "{cut}");
             }
             s.finish(&mut out);
         }

@@ -83,7 +83,8 @@ pub struct ServeArgs {
     /// Threads each sensor's pipeline runs on, threads. A sensor's frames
     /// run on one worker thread at 1; with N > 1 its stages are cut into N
     /// consecutive segments, one thread each, cut where the times measured
-    /// on its first 400 frames balance best. Reports are identical to one
+    /// on one thread balance best: on its frames 201-400, and again on
+    /// frames 2001-2200, once start-up has passed. Reports are identical to one
     /// thread's and in order; each frame is acknowledged once its report is
     /// out. Worth it when one sensor's frame rate exceeds what one core
     /// processes (see `tofwave bench`); more threads than stages add nothing

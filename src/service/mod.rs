@@ -77,8 +77,9 @@ pub struct ServerConfig {
     /// Frames queued per sensor before ingest waits (backpressure), frames.
     pub queue_frames: usize,
     /// Threads one sensor's pipeline runs on: its stages are cut into this
-    /// many consecutive segments once the first 400 frames have timed them
-    /// (reports identical to one thread's, in order).
+    /// many consecutive segments once the first 400 frames have timed them,
+    /// and cut again by frames 2001-2200 (reports identical to one thread's,
+    /// in order).
     pub workers_per_sensor: usize,
     /// Sensors served at most; frames of further sensor ids are refused
     /// (`RESOURCE_EXHAUSTED`), since each sensor holds a thread and a pipeline.

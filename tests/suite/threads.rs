@@ -149,8 +149,9 @@ fn the_ring_and_the_chain_give_one_threads_reports() {
 /// threads, unflushed, are timed again on the calling thread and cut anew:
 /// the reports stay one thread's, bit for bit, on the ring, the chain and
 /// three threads, with an averaging group open across the hand-back
-/// (2000 = 3 × 666 + 2), a refused frame at it and one in the second pilot,
-/// and the cut says which frames chose it.
+/// (frame 1999 waits in it: the 1998 frames before it, frame 600 refused,
+/// made 666 groups), a refused frame at it and one in the second pilot, and the
+/// cut says which frames chose it.
 #[test]
 fn the_second_pilot_hands_the_stages_back_and_changes_no_report() {
     assert_eq!((threaded::REPILOT_AT, threaded::SETTLED_FRAMES), (2000, 2200), "the frames below are placed for these");

@@ -960,12 +960,6 @@ struct Basis {
     /// 1 / L's diagonal, one per kept column: the substitutions through L
     /// multiply (a chain of divisions waited some 13 cycles a row).
     inv_diag: Vec<f64>,
-    /// Leading rows of L that are rows of the identity (zeros left of a
-    /// unit diagonal: band columns pushed first, orthonormal): the
-    /// substitutions pass over them, whose terms there are zeros and whose
-    /// division is by 1 (the same values, bit for bit, up to the sign of a
-    /// zero).
-    unit_rows: usize,
 }
 
 /// Most columns one judgement holds (band columns plus a pulse and its slope
@@ -983,7 +977,6 @@ impl Basis {
         self.cols.clear();
         self.vals.clear();
         self.y.clear();
-        self.unit_rows = 0;
         if self.l.len() < CAP_COLS * CAP_COLS {
             self.l.resize(CAP_COLS * CAP_COLS, 0.0);
         }
@@ -1109,8 +1102,8 @@ impl Basis {
             let v = self.inner(band, len, self.cols[i], a);
             self.g.push(v);
         }
-        // Forward substitution: L l = g (the unit rows leave g as it is).
-        for i in self.unit_rows.min(k)..k {
+        // Forward substitution: L l = g.
+        for i in 0..k {
             let row = &self.l[i * CAP_COLS..i * CAP_COLS + i];
             let s = self.g[i] - dot(row, &self.g[..i]);
             self.g[i] = s * self.inv_diag[i];
@@ -1139,18 +1132,14 @@ impl Basis {
         let y = (self.with_x(xw, a) - dot(&self.g, &self.y)) / d;
         self.y.push(y);
         self.cols.push(a);
-        if self.unit_rows == k && d == 1.0 && self.g.iter().all(|v| *v == 0.0) {
-            self.unit_rows += 1;
-        }
     }
 
-    /// Solves Lᵀ β = `g` in place over the kept columns (a unit row's
-    /// entries left of its diagonal are zeros: passed over).
+    /// Solves Lᵀ β = `g` in place over the kept columns.
     fn back_substitute(&mut self) {
         let k = self.cols.len();
         for i in (0..k).rev() {
             let mut s = self.g[i];
-            for j in (i + 1).max(self.unit_rows)..k {
+            for j in i + 1..k {
                 s -= self.l[j * CAP_COLS + i] * self.g[j];
             }
             self.g[i] = s * self.inv_diag[i];
@@ -1162,7 +1151,6 @@ impl Basis {
     fn truncate(&mut self, k: usize) {
         self.cols.truncate(k);
         self.y.truncate(k);
-        self.unit_rows = self.unit_rows.min(k);
     }
 
     /// Appends the unit column of window sample `i`: the sample is left out

@@ -1484,15 +1484,16 @@ async fn failed_recording_faults_its_sensor_and_health_goes_not_serving() {
 }
 
 /// `--workers-per-sensor`: one sensor's stages cut over 2 and 3 threads
-/// (past the 400-frame pilot, with averaging groups in flight) report
+/// (past both pilots, frames 201-400 and 2001-2200, with averaging groups
+/// in flight and one open across the hand-back at frame 2000) report
 /// exactly what the pipeline run directly does, in order.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_sensor_on_several_workers_reports_what_one_thread_does() {
     let mut scene = Scene::default_scene();
     scene.averaging.frames = 3;
-    let all = frames("wps", 0..720, 9);
+    let all = frames("wps", 0..2400, 9);
     let want = direct_reports(&scene, &all);
-    assert_eq!(want.len(), 240);
+    assert_eq!(want.len(), 800);
     for workers in [2, 3] {
         let config = ServerConfig { scene: scene.clone(), workers_per_sensor: workers, queue_frames: 256, ..ServerConfig::default() };
         let server = TestServer::start(config).await;
@@ -1501,7 +1502,7 @@ async fn a_sensor_on_several_workers_reports_what_one_thread_does() {
         let source = all.clone().into_iter().map(Ok::<_, std::convert::Infallible>);
         let limits = BatchLimits { frames: 32, bytes: 1 << 22 };
         let summary = client::replay(&mut c.ingest, source, Rate::Max, None, limits, |_| {}).await.unwrap();
-        assert_eq!((summary.accepted, summary.rejected), (720, 0), "{workers} workers: {summary}");
+        assert_eq!((summary.accepted, summary.rejected), (2400, 0), "{workers} workers: {summary}");
         server.shutdown().await.unwrap();
         let (reports, skipped) = collect_events(sub).await;
         assert_eq!(skipped, 0);

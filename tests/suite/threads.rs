@@ -189,15 +189,16 @@ fn the_second_pilot_hands_the_stages_back_and_changes_no_report() {
     assert_eq!(cut.pilot, Some((201, 400)), "{cut}");
 }
 
+/// `process --threads 2` past both pilots (2300 frames) prints what one thread does.
 #[test]
 fn process_threads_flag_gives_the_same_output() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("sim.twr");
-    tofwave_ok(&["simulate", "--frames", "500", "--seed", "5", "--out", path.to_str().unwrap()]);
+    tofwave_ok(&["simulate", "--frames", "2300", "--seed", "5", "--out", path.to_str().unwrap()]);
     let p = path.to_str().unwrap();
     let one = tofwave_ok(&["process", "-i", p, "--threads", "1"]);
     let two = tofwave_ok(&["process", "-i", p, "--threads", "2"]);
-    assert_eq!(one.lines().count(), 500);
+    assert_eq!(one.lines().count(), 2300);
     assert!(one == two, "process --threads 2 differs from --threads 1");
 }
 

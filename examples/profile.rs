@@ -233,7 +233,8 @@ static GLOBAL: Counting = Counting;
 /// span, whole process (the frame's clone and the JSON included).
 fn threads_probe(scene: &Scene, frames: &[Frame], threads: usize) {
     let skip = tofwave::pipeline::threaded::SETTLED_FRAMES;
-    assert!(frames.len() > 2 * skip, "PROFILE_THREADS wants more than {} frames", 2 * skip);
+    let want = skip + tofwave::pipeline::threaded::PILOT_FRAMES;
+    assert!(frames.len() >= want, "PROFILE_THREADS wants at least {want} frames");
     let (mut first, mut last, mut seen, mut allocations) = (None, None, 0usize, 0u64);
     let cut = tofwave::pipeline::threaded::run(scene, "bench", threads, frames.iter().cloned(), |o| {
         if o.reports.is_empty() && seen == frames.len() {

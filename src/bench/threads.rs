@@ -128,9 +128,9 @@ impl ThreadsCost {
         let total = |v: &[(&str, f64)]| v.iter().map(|s| s.1).sum::<f64>();
         let (pilot, steady) = (total(&self.stage_s), total(&self.steady_stage_s));
         let cell = |t: Option<f64>, all: f64| t.map_or("–".to_string(), |t| format!("{:.1} | {:.0} %", t * 1e6, 100.0 * t / all));
-        let frames = self.pilot.map_or("none ran".to_string(), |(a, b)| format!("{a}–{b}"));
+        let timed = self.pilot.map_or("in the pilot (none ran: too few frames)".to_string(), |(a, b)| format!("in the pilot's timed frames ({a}–{b}, whose times chose the cut)"));
         let mut md = format!(
-            "\nStage times per frame on one thread: in the pilot's timed frames ({frames}, whose times chose the cut) \
+            "\nStage times per frame on one thread: {timed} \
              and over the second half of the frames (steady state: the pooled noise colour, and the thresholds it sets, have settled):\n\n\
              | stage | pilot µs/frame | share | steady µs/frame | share |\n|---|---|---|---|---|\n"
         );
@@ -355,6 +355,20 @@ fn pipeline_cpu_s() -> Option<Vec<(u64, String, f64)>> {
 
 #[cfg(test)]
 mod tests {
+    /// The clock starts after both pilots where 400 outcomes follow them,
+    /// else after the first where as many follow it, else at once.
+    #[test]
+    fn the_clock_skips_the_pilots_that_leave_400_outcomes_after_them() {
+        for (frames, skip) in [(799, 0), (800, 400), (2599, 400), (2600, 2200), (6000, 2200)] {
+            assert_eq!(super::pilot_skip(frames), skip, "{frames} frames");
+        }
+        let mut c = cost(&[], &[]);
+        c.frames = 1000;
+        assert!(c.markdown().contains("from the 401st outcome to the last (the first 400, the threaded pipeline's first pilot"));
+        c.frames = 700;
+        assert!(c.markdown().contains("each rate from the first outcome to the last"));
+    }
+
     #[test]
     fn a_task_stat_line_gives_its_name_and_cpu_ticks() {
         // A name with a space and parentheses; utime 1234, stime 56.
@@ -374,7 +388,7 @@ mod tests {
         let us = |v: &[(&str, f64)]| v.iter().map(|(n, t)| (n.to_string(), t * 1e-6)).collect();
         super::ThreadsCost {
             threads: 2,
-            frames: 1000,
+            frames: 6000,
             samples_per_frame: 2500,
             cut: "a+b (40 %) | c (60 %)".into(),
             stage_s: vec![("validate", 1e-6), ("a", 30e-6), ("c", 69e-6)],
@@ -405,6 +419,7 @@ mod tests {
         assert!(md.contains("service with 1 worker / offline 1 thread: 88.9 %."), "{md}");
         // The pilot's stage times beside the steady state's, each with its share.
         assert!(md.contains("(2001–2200, whose times chose the cut)"), "{md}");
+        assert!(md.contains("each rate from the 2201st outcome to the last (the first 2200, the threaded pipeline's two pilots"), "{md}");
         assert!(md.contains("| a | 30.0 | 30 % | 19.0 | 19 % |"), "{md}");
         // Without /proc (or with no stage threads) there is no CPU table, and the report says why.
         let none = cost(&[], &[]).markdown();

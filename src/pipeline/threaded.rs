@@ -79,14 +79,13 @@ pub const PILOT_FRAMES: usize = PILOT_WARMUP + PILOT_TIMED;
 /// to the calling thread once, times them there for [`PILOT_TIMED`] frames
 /// more (the second pilot) and cuts them again by those times, for good.
 /// The first pilot runs while start-up still costs: the detect stage pools
-/// the noise colour from every frame, and solves the detector's thresholds
+/// the noise colour from every unit, and solves the detector's thresholds
 /// again for each new estimate, until the colour rests on 10⁶ gate samples
-/// (some 800 frames of the prototype's gates; by this many frames, those of
-/// any gates of 500 samples or more), and from one frame in eight after
-/// that. In one run of eight on the prototype's scene, the stages up to
-/// and with the matched filter took 44 % of the first pilot's time against
-/// 23 % in steady state, and it chose the wrong cut (`docs/bench/report.md`,
-/// "Threads, seventeenth round").
+/// (some 800 units of the prototype's gates; by this many frames, those of
+/// any gates of more than 500 samples where frames are not averaged, of
+/// more than 500·N where they are averaged N to a unit), and from one unit
+/// in eight after that. Its shares of the first pilot's time can then be
+/// far from the steady state's, enough to choose the wrong cut.
 pub const REPILOT_AT: usize = 2000;
 /// Frames after which a pipeline on several threads keeps its cut (the
 /// second pilot's end): the start of its steady state.
@@ -215,10 +214,9 @@ where
 /// other frames and the other stages carry on. (On one thread the whole
 /// pipeline is rebuilt, as a fresh one.)
 pub struct Staged {
-    scene: Scene,
-    sensor: String,
     threads: usize,
-    /// Builds a stage afresh after a panic in a pilot (see [`Rebuild`]).
+    /// The scene and sensor the pipeline was built for: a stage (or the
+    /// whole pipeline) is built afresh from them after a panic.
     rebuild: Rebuild,
     mode: Mode,
     observer: Option<Observer>,
@@ -234,7 +232,7 @@ pub struct Staged {
 
 impl std::fmt::Debug for Staged {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Staged").field("sensor", &self.sensor).field("threads", &self.threads).field("cut", &self.cut).finish()
+        f.debug_struct("Staged").field("sensor", &self.rebuild.sensor).field("threads", &self.threads).field("cut", &self.cut).finish()
     }
 }
 
@@ -286,8 +284,6 @@ impl Staged {
         let names = pipeline.stage_names();
         let costs = vec![0.0; names.len()];
         Staged {
-            scene: scene.clone(),
-            sensor: sensor.to_string(),
             threads: threads.clamp(1, costs.len()),
             rebuild: Rebuild { scene: scene.clone(), sensor: sensor.to_string(), first: 0 },
             mode: Mode::Local { pipeline, costs, lists: Vec::new() },
@@ -323,7 +319,7 @@ impl Staged {
 
     /// The scene the pipeline was built from.
     pub fn scene(&self) -> &Scene {
-        &self.scene
+        &self.rebuild.scene
     }
 
     /// How the stages are cut (one segment until the first pilot has
@@ -482,8 +478,9 @@ impl Staged {
 
     /// Brings the stages back from their threads to the calling thread, as
     /// they are (nothing flushed), for the second pilot: every frame in
-    /// flight first finishes, its outcome to `out`. Each thread passes the
-    /// hand-back on behind the frames it has, then returns its stages.
+    /// flight first finishes, its outcome to `out`; then the hand-back goes
+    /// through the threads (on the ring, round and back to the head), each
+    /// passing it on and returning its stages.
     fn hand_back(&mut self, out: &mut Vec<Outcome>) {
         self.sync(out);
         let Mode::Split(mut pool) = std::mem::replace(&mut self.mode, Mode::Done) else { return };
@@ -506,8 +503,8 @@ impl Staged {
                 spare.extend(spare_rx.try_iter());
                 spare.append(&mut pool.back);
                 Pipeline {
-                    scene: self.scene.clone(),
-                    sensor: self.sensor.clone(),
+                    scene: self.rebuild.scene.clone(),
+                    sensor: self.rebuild.sensor.clone(),
                     validate,
                     stages,
                     last_noise: self.last_noise,
@@ -520,7 +517,7 @@ impl Staged {
             }
             _ => {
                 // (Not seen: the threads catch their stages' panics.)
-                tracing::error!(sensor = %self.sensor, "the stage threads did not hand their stages back: the pipeline starts afresh");
+                tracing::error!(sensor = %self.rebuild.sensor, "the stage threads did not hand their stages back: the pipeline starts afresh");
                 debug_assert!(false, "the stage threads did not hand their stages back");
                 fresh(&self.rebuild, observer)
             }
@@ -556,7 +553,7 @@ impl Staged {
             stage_s: if even { Vec::new() } else { names.iter().zip(&costs).map(|(n, c)| (*n, c / PILOT_TIMED as f64)).collect() },
             threads: threads.clone(),
         };
-        tracing::info!(sensor = %self.sensor, threads = self.threads, cut = %cut, "stages cut over threads");
+        tracing::info!(sensor = %self.rebuild.sensor, threads = self.threads, cut = %cut, "stages cut over threads");
         self.cut = Some(cut);
         // Cost index 0 is validate; pipeline stage i is cost index i + 1.
         let mut all = std::mem::take(&mut pipeline.stages);
@@ -568,7 +565,7 @@ impl Staged {
         groups.reverse();
         let spare = std::mem::take(&mut pipeline.spare);
         let (spare_tx, spare_rx) = channel::<Unit>();
-        let rebuild = |first: usize| Rebuild { scene: self.scene.clone(), sensor: self.sensor.clone(), first };
+        let rebuild = |first: usize| Rebuild { first, ..self.rebuild.clone() };
         if threads == [0, 1, 0] {
             let [(f0, g0), (f1, g1), (f2, g2)]: [(usize, Vec<Box<dyn Stage>>); 3] = groups.try_into().ok().expect("three segments");
             let (head_tx, head_rx) = channel::<HeadMsg>();
@@ -698,20 +695,10 @@ fn push_timed(
     rebuild: Option<&Rebuild>,
 ) -> (Vec<Report>, Result<(), FrameError>, Option<String>) {
     let (mut units, mut leaving, mut retired) = (Vec::new(), Vec::new(), Vec::new());
-    let mut panic = None;
     let t0 = Instant::now();
-    let validated = match rebuild {
-        None => Ok(pipeline.validate.process(frame, &mut pipeline.spare, &mut units)),
-        Some(_) => std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| pipeline.validate.process(frame, &mut pipeline.spare, &mut units))),
-    };
-    let mut result = match (validated, rebuild) {
-        (Ok(r), _) => r,
-        (Err(p), Some(r)) => {
-            panic = Some(panic_message(p.as_ref()));
-            pipeline.validate = super::validate::Validate::new(&r.scene);
-            Ok(())
-        }
-        (Err(p), None) => std::panic::resume_unwind(p),
+    let (mut result, mut panic) = match rebuild {
+        None => (pipeline.validate.process(frame, &mut pipeline.spare, &mut units), None),
+        Some(r) => validate_caught(&mut pipeline.validate, frame, &mut pipeline.spare, &mut units, r),
     };
     if let Some(c) = costs.as_deref_mut() {
         c[0] += t0.elapsed().as_secs_f64();
@@ -861,6 +848,7 @@ struct Ends {
 }
 
 /// Builds a fresh copy of a segment's stage after a panic.
+#[derive(Clone)]
 struct Rebuild {
     scene: Scene,
     sensor: String,
@@ -954,21 +942,34 @@ fn head_chunk(
     let mut msgs = Vec::with_capacity(chunk.len());
     for frame in chunk {
         let mut units = Vec::with_capacity(1);
-        let mut panic = None;
-        let mut result = match std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| validate.process(frame, spare, &mut units))) {
-            Ok(r) => r,
-            Err(p) => {
-                panic = Some(panic_message(p.as_ref()));
-                *validate = super::validate::Validate::new(&rebuild.scene);
-                Ok(())
-            }
-        };
+        let (mut result, mut panic) = validate_caught(validate, frame, spare, &mut units, rebuild);
         if result.is_ok() && panic.is_none() {
             run_stages(stages, &mut units, leaving, &mut result, spare, &mut panic, Some((rebuild, 0)));
         }
         msgs.push(Msg::Push(InFlight { units, result, flush: false, panic }));
     }
     msgs
+}
+
+/// Validates `frame` into `units` (reusing `spare`) as [`Validate::process`]
+/// does; a panic there rebuilds the validate stage and is returned as its
+/// message, the frame's result left Ok (its units empty).
+///
+/// [`Validate::process`]: super::validate::Validate::process
+fn validate_caught(
+    validate: &mut super::validate::Validate,
+    frame: Frame,
+    spare: &mut Vec<Unit>,
+    units: &mut Vec<Unit>,
+    rebuild: &Rebuild,
+) -> (Result<(), FrameError>, Option<String>) {
+    match std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| validate.process(frame, spare, units))) {
+        Ok(r) => (r, None),
+        Err(p) => {
+            *validate = super::validate::Validate::new(&rebuild.scene);
+            (Ok(()), Some(panic_message(p.as_ref())))
+        }
+    }
 }
 
 /// Runs `stages` on what the segment before passed on, and says whether

@@ -78,8 +78,8 @@ pub struct ServerConfig {
     pub queue_frames: usize,
     /// Threads one sensor's pipeline runs on: its stages are cut into this
     /// many consecutive segments once the first 400 frames have timed them,
-    /// and cut again by frames 2001-2200 (reports identical to one thread's,
-    /// in order).
+    /// and cut again by the times of frames 2001-2200 (reports identical to
+    /// one thread's, in order).
     pub workers_per_sensor: usize,
     /// Sensors served at most; frames of further sensor ids are refused
     /// (`RESOURCE_EXHAUSTED`), since each sensor holds a thread and a pipeline.

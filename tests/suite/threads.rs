@@ -149,8 +149,9 @@ fn the_ring_and_the_chain_give_one_threads_reports() {
 /// threads, unflushed, are timed again on the calling thread and cut anew:
 /// the reports stay one thread's, bit for bit, on the ring, the chain and
 /// three threads, with an averaging group open across the hand-back
-/// (frame 1999 waits in it: the 1998 frames before it, frame 600 refused,
-/// made 666 groups), a refused frame at it and one in the second pilot, and the
+/// (frame 1999 waits in it: of the 1999 frames before it, frame 600 was
+/// refused and the other 1998 made 666 groups), a refused frame at it and
+/// one in the second pilot, and the
 /// cut says which frames chose it.
 #[test]
 fn the_second_pilot_hands_the_stages_back_and_changes_no_report() {
@@ -165,6 +166,10 @@ fn the_second_pilot_hands_the_stages_back_and_changes_no_report() {
         scene.averaging.frames = average;
         let (one, _) = run(&scene, &frames, 1);
         assert_eq!(one.iter().filter(|l| l.starts_with("refused")).count(), 3, "the bad frames are refused");
+        if average == 3 {
+            let open = r#""seq_first":1999,"seq_last":2002,"#;
+            assert!(one.iter().any(|l| l.contains(open)), "a group open across the hand-back: frames 1999, 2001 and 2002");
+        }
         let mut arms: Vec<(String, Vec<String>, threaded::Cut)> = Vec::new();
         for ring in [true, false] {
             // All outcomes handed back at frame 1990, ten frames before the hand-back.

@@ -230,3 +230,36 @@ fn bench_threads_writes_its_report() {
     // Measured where the arms' CPU windows are long enough, else said not to be.
     assert!(md.contains("CPU time by thread: not measured") || md.contains("\n| all | "), "{md}");
 }
+
+/// Two threads against one, bit for bit, past both pilots, on frames the
+/// pipeline was not designed around: the independent generator's (the
+/// prototype's frames with interference events in a third of them) and
+/// the real capture `lecroy_3.trc` (its 20 segments 120 times over, on the
+/// scene measured from it).
+#[test]
+fn threads_match_one_thread_on_frames_not_designed_for() {
+    use crate::common::seedgen::{generate, EventConfig, GenConfig};
+    let cfg = GenConfig { events: Some(EventConfig { probability: 1.0 / 3.0, random_phase: true, ..EventConfig::default() }), ..GenConfig::default() };
+    let generated: Vec<Frame> = generate(&cfg, 2400, 46).into_iter().map(|(f, _)| f).collect();
+    let segments = capture::read_paths(&[crate::common::replay_path("lecroy_3.trc")], &ReadOptions::default()).unwrap();
+    assert_eq!(segments.len(), 20);
+    let measured = capture::measure::measure(&segments, "lecroy_3.trc").unwrap().scene().unwrap();
+    let repeated: Vec<Frame> = (0..2400)
+        .map(|i| {
+            let mut f = segments[i % segments.len()].clone();
+            f.sequence = i as u64;
+            f
+        })
+        .collect();
+    for (name, scene, frames) in [("independent generator", Scene::default_scene(), generated), ("lecroy_3 repeated", measured, repeated)] {
+        let (one, _) = run(&scene, &frames, 1);
+        let reports = one.iter().filter(|l| l.starts_with('{')).count();
+        assert!(reports >= 2300, "{name}: {reports} reports of 2400 frames");
+        let (two, cut) = run(&scene, &frames, 2);
+        assert_eq!(cut.pilot, Some((2001, 2200)), "{name}: {cut}");
+        assert_eq!(two.len(), one.len(), "{name} ({cut})");
+        for (i, (a, b)) in one.iter().zip(&two).enumerate() {
+            assert_eq!(a, b, "{name} ({cut}): outcome line {i} differs");
+        }
+    }
+}

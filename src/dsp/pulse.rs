@@ -67,6 +67,26 @@ impl Pulse {
         (-4.0 * self.sigma_rise, 4.0 * self.sigma_fall)
     }
 
+    /// The values alone of [`fill_grid`](PulseShape::fill_grid) at t0,
+    /// t0 + 1, … into every entry of `out`: the same bits.
+    pub fn fill_values(&self, t0: f64, out: &mut [f64]) {
+        #[cfg(target_arch = "x86_64")]
+        {
+            use std::arch::is_x86_feature_detected as has;
+            if has!("avx512f") && has!("avx512dq") && has!("avx512vl") && has!("avx2") && has!("fma") {
+                // SAFETY: the CPU has the features the function is compiled for.
+                unsafe { gaussian_values_on_grid_avx512(self, t0, out) };
+                return;
+            }
+            if has!("avx2") && has!("fma") {
+                // SAFETY: as above.
+                unsafe { gaussian_values_on_grid_avx2(self, t0, out) };
+                return;
+            }
+        }
+        gaussian_values_on_grid(self, t0, out);
+    }
+
     /// Full width at half maximum, samples.
     pub fn fwhm(&self) -> f64 {
         HWHM_PER_SIGMA * (self.sigma_rise + self.sigma_fall)
@@ -151,6 +171,47 @@ fn gaussian_halves_on_grid(p: &Pulse, t0: f64, out: &mut [(f64, f64)]) {
         }
         rest.copy_from_slice(&eight[..rest.len()]);
     }
+}
+
+/// The values alone of [`gaussian_halves_on_grid`]: the same operations on
+/// each point, so the same bits (no slope, no pairs to store).
+#[inline(always)]
+fn gaussian_values_on_grid(p: &Pulse, t0: f64, out: &mut [f64]) {
+    // Opaque, as in `gaussian_halves_on_grid`.
+    let (rise, fall) = std::hint::black_box((1.0 / p.sigma_rise, 1.0 / p.sigma_fall));
+    let first = out.len() - out.len() % 8;
+    let mut eights = out.chunks_exact_mut(8);
+    for (c, o) in eights.by_ref().enumerate() {
+        for (i, o) in o.iter_mut().enumerate() {
+            let t = t0 + (8 * c + i) as f64;
+            let z = t * if t < 0.0 { rise } else { fall };
+            *o = exp(-0.5 * z * z);
+        }
+    }
+    let rest = eights.into_remainder();
+    if !rest.is_empty() {
+        let mut eight = [0.0; 8];
+        for (i, o) in eight.iter_mut().enumerate() {
+            let t = t0 + (first + i) as f64;
+            let z = t * if t < 0.0 { rise } else { fall };
+            *o = exp(-0.5 * z * z);
+        }
+        rest.copy_from_slice(&eight[..rest.len()]);
+    }
+}
+
+/// [`gaussian_values_on_grid`] compiled for AVX-512, the same bits.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2,fma")]
+fn gaussian_values_on_grid_avx512(p: &Pulse, t0: f64, out: &mut [f64]) {
+    gaussian_values_on_grid(p, t0, out);
+}
+
+/// [`gaussian_values_on_grid`] compiled for AVX2 with FMA, the same bits.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn gaussian_values_on_grid_avx2(p: &Pulse, t0: f64, out: &mut [f64]) {
+    gaussian_values_on_grid(p, t0, out);
 }
 
 /// [`gaussian_halves_on_grid`] compiled for AVX-512 (the loop vectorises:
@@ -753,6 +814,18 @@ mod tests {
                     let mut scalar = vec![(0.0, 0.0); count];
                     if let Shape::Parametric(p) = &shape {
                         gaussian_halves_on_grid(p, t0, &mut scalar);
+                        // The values alone (dispatched, and the AVX2 copy
+                        // where the CPU has it) are the pairs' values.
+                        let mut values = vec![f64::NAN; count];
+                        p.fill_values(t0, &mut values);
+                        assert!(values.iter().zip(&scalar).all(|(v, s)| v.to_bits() == s.0.to_bits()), "{shape:?} t0 {t0} count {count}");
+                        #[cfg(target_arch = "x86_64")]
+                        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+                            let mut avx2 = vec![f64::NAN; count];
+                            // SAFETY: the CPU has AVX2 and FMA.
+                            unsafe { gaussian_values_on_grid_avx2(p, t0, &mut avx2) };
+                            assert!(avx2.iter().zip(&scalar).all(|(v, s)| v.to_bits() == s.0.to_bits()));
+                        }
                         // And the AVX2 copy, where the CPU has it.
                         #[cfg(target_arch = "x86_64")]
                         if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {

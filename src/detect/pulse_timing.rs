@@ -104,16 +104,17 @@ impl ShapeFit {
             // as four grids of whole samples (phase r, index q), each filled
             // at once: a position reads one of them, contiguously.
             let mut lens = [0; 4];
+            // (value, slope) scratch for a measured shape, zeroed once, where one is.
+            let mut grid = None;
             for r in 0..4usize.min(len) {
                 lens[r] = (len - r).div_ceil(4);
                 let t0 = (r as i64 + m_min) as f64 * 0.25 - near;
                 match pulse {
                     // The values alone (the same bits as fill_grid's).
                     Shape::Parametric(p) => p.fill_values(t0, &mut table[r][..lens[r]]),
-                    Shape::Table(_) => {
-                        let mut grid = [(0.0, 0.0); SHAPE_TABLE / 4 + 1];
-                        let g = &mut grid[..lens[r]];
-                        pulse.fill_grid(t0, g);
+                    Shape::Table(tp) => {
+                        let g = &mut grid.get_or_insert([(0.0, 0.0); SHAPE_TABLE / 4 + 1])[..lens[r]];
+                        tp.fill_grid(t0, g);
                         for (t, &(v, _)) in table[r].iter_mut().zip(g.iter()) {
                             *t = v;
                         }

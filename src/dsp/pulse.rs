@@ -134,9 +134,15 @@ impl PulseShape for Pulse {
 /// (value, slope) at `t` of a Gaussian of 1/sigma `inv`.
 #[inline(always)]
 fn gaussian_half(inv: f64, t: f64) -> (f64, f64) {
+    let v = gaussian_value(inv, t);
+    (v, -v * (t * inv) * inv)
+}
+
+/// The value alone of [`gaussian_half`] (the one expression both use).
+#[inline(always)]
+fn gaussian_value(inv: f64, t: f64) -> f64 {
     let z = t * inv;
-    let v = exp(-0.5 * z * z);
-    (v, -v * z * inv)
+    exp(-0.5 * z * z)
 }
 
 /// (value, slope) of `p` at t0, t0 + 1, … into `out`, with
@@ -184,8 +190,7 @@ fn gaussian_values_on_grid(p: &Pulse, t0: f64, out: &mut [f64]) {
     for (c, o) in eights.by_ref().enumerate() {
         for (i, o) in o.iter_mut().enumerate() {
             let t = t0 + (8 * c + i) as f64;
-            let z = t * if t < 0.0 { rise } else { fall };
-            *o = exp(-0.5 * z * z);
+            *o = gaussian_value(if t < 0.0 { rise } else { fall }, t);
         }
     }
     let rest = eights.into_remainder();
@@ -193,8 +198,7 @@ fn gaussian_values_on_grid(p: &Pulse, t0: f64, out: &mut [f64]) {
         let mut eight = [0.0; 8];
         for (i, o) in eight.iter_mut().enumerate() {
             let t = t0 + (first + i) as f64;
-            let z = t * if t < 0.0 { rise } else { fall };
-            *o = exp(-0.5 * z * z);
+            *o = gaussian_value(if t < 0.0 { rise } else { fall }, t);
         }
         rest.copy_from_slice(&eight[..rest.len()]);
     }
@@ -814,25 +818,25 @@ mod tests {
                     let mut scalar = vec![(0.0, 0.0); count];
                     if let Shape::Parametric(p) = &shape {
                         gaussian_halves_on_grid(p, t0, &mut scalar);
-                        // The values alone (dispatched, and the AVX2 copy
-                        // where the CPU has it) are the pairs' values.
+                        // The values alone, portable and dispatched, are the pairs' values.
+                        let same = |values: &[f64]| values.iter().zip(&scalar).all(|(v, s)| v.to_bits() == s.0.to_bits());
                         let mut values = vec![f64::NAN; count];
+                        gaussian_values_on_grid(p, t0, &mut values);
+                        assert!(same(&values), "portable values: {shape:?} t0 {t0} count {count}");
+                        values.fill(f64::NAN);
                         p.fill_values(t0, &mut values);
-                        assert!(values.iter().zip(&scalar).all(|(v, s)| v.to_bits() == s.0.to_bits()), "{shape:?} t0 {t0} count {count}");
-                        #[cfg(target_arch = "x86_64")]
-                        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
-                            let mut avx2 = vec![f64::NAN; count];
-                            // SAFETY: the CPU has AVX2 and FMA.
-                            unsafe { gaussian_values_on_grid_avx2(p, t0, &mut avx2) };
-                            assert!(avx2.iter().zip(&scalar).all(|(v, s)| v.to_bits() == s.0.to_bits()));
-                        }
-                        // And the AVX2 copy, where the CPU has it.
+                        assert!(same(&values), "dispatched values: {shape:?} t0 {t0} count {count}");
+                        // And the AVX2 copies, pairs and values, where the CPU has them.
                         #[cfg(target_arch = "x86_64")]
                         if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
                             let mut avx2 = vec![(0.0, 0.0); count];
                             // SAFETY: the CPU has AVX2 and FMA.
                             unsafe { gaussian_halves_on_grid_avx2(p, t0, &mut avx2) };
-                            assert!(avx2.iter().zip(&scalar).all(|(a, b)| a.0.to_bits() == b.0.to_bits() && a.1.to_bits() == b.1.to_bits()));
+                            assert!(avx2.iter().zip(&scalar).all(|(a, b)| a.0.to_bits() == b.0.to_bits() && a.1.to_bits() == b.1.to_bits()), "AVX2 pairs: {shape:?} t0 {t0} count {count}");
+                            values.fill(f64::NAN);
+                            // SAFETY: as above.
+                            unsafe { gaussian_values_on_grid_avx2(p, t0, &mut values) };
+                            assert!(same(&values), "AVX2 values: {shape:?} t0 {t0} count {count}");
                         }
                     }
                     for (i, &(v, dv)) in out.iter().enumerate() {

@@ -194,31 +194,34 @@ fn the_second_pilot_hands_the_stages_back_and_changes_no_report() {
     assert_eq!(cut.pilot, Some((201, 400)), "{cut}");
 }
 
-/// A stream that ends around the second pilot: on the hand-back's frame
-/// (2000), just after it (2001), inside the pilot (2100, the stages on the
-/// calling thread being timed) and on the pilot's last frame (2200, cut
-/// again and ended at once). Each is flushed as one thread flushes it, bit
-/// for bit, on two and three threads, with averaging 3 (the group open at
-/// the end is closed by the flush) and 1.
+/// A stream that ends around the second pilot: just before the hand-back
+/// (2000 frames: the stages still on their threads), on the hand-back's
+/// frame (2001: the stages handed back, then the end), just after it (2002),
+/// inside the second pilot (2100, the stages on the calling thread being
+/// timed) and on the pilot's last frame (2200, cut again and ended at
+/// once). Each is flushed as one thread flushes it, bit for bit, on two and
+/// three threads, with averaging 3 (where a group is open at the end, the
+/// flush closes it; else the flush has no report) and, at the hand-back's
+/// frame, 1; frame 2050 is refused.
 #[test]
 fn a_stream_ending_in_the_second_pilot_is_flushed_as_on_one_thread() {
     assert_eq!((threaded::REPILOT_AT, threaded::SETTLED_FRAMES), (2000, 2200), "the ends below are placed for these");
     let dir = tempfile::tempdir().unwrap();
     let mut frames = simulated_n(&dir, 2200);
     frames[2050].sample_interval_s = -1.0;
-    for average in [3u32, 1] {
+    for (average, ends) in [(3u32, &[2000, 2001, 2002, 2100, 2200][..]), (1, &[2001][..])] {
         let mut scene = Scene::default_scene();
         scene.averaging.frames = average;
-        for end in [2000, 2001, 2100, 2200] {
+        for &end in ends {
             let (one, _) = run(&scene, &frames[..end], 1);
             let outcomes = one.iter().filter(|l| *l == "--").count();
             // One outcome per frame, and the flush's.
             assert_eq!(outcomes, end + 1, "average {average}, end {end}");
-            // Frame 2050 is refused: the frames valid before `end` make the groups.
+            assert_eq!(one.iter().filter(|l| l.starts_with("refused")).count(), usize::from(end > 2050), "end {end}");
+            // The frames valid before `end` make the groups.
             let valid = end - usize::from(end > 2050);
-            if average == 3 && valid % 3 != 0 {
-                assert!(one.iter().rev().nth(1).is_some_and(|l| l.starts_with('{')), "average 3, end {end}: the flush closes the open group");
-            }
+            let flush_report = one[one.len() - 2].starts_with('{');
+            assert_eq!(flush_report, valid % average as usize != 0, "average {average}, end {end}: the flush closes an open group, and only one");
             for threads in [2, 3] {
                 let (many, cut) = run(&scene, &frames[..end], threads);
                 assert_eq!(many.len(), one.len(), "average {average}, end {end}, {threads} threads ({cut})");

@@ -70,21 +70,15 @@ impl Pulse {
     /// The values alone of [`fill_grid`](PulseShape::fill_grid) at t0,
     /// t0 + 1, … into every entry of `out`: the same bits.
     pub fn fill_values(&self, t0: f64, out: &mut [f64]) {
-        #[cfg(target_arch = "x86_64")]
-        {
-            use std::arch::is_x86_feature_detected as has;
-            if has!("avx512f") && has!("avx512dq") && has!("avx512vl") && has!("avx2") && has!("fma") {
-                // SAFETY: the CPU has the features the function is compiled for.
-                unsafe { gaussian_values_on_grid_avx512(self, t0, out) };
-                return;
-            }
-            if has!("avx2") && has!("fma") {
-                // SAFETY: as above.
-                unsafe { gaussian_values_on_grid_avx2(self, t0, out) };
-                return;
-            }
+        match vectors() {
+            // SAFETY: the CPU has the features the function is compiled for.
+            #[cfg(target_arch = "x86_64")]
+            Vectors::Avx512 => unsafe { gaussian_values_on_grid_avx512(self, t0, out) },
+            // SAFETY: as above.
+            #[cfg(target_arch = "x86_64")]
+            Vectors::Avx2Fma => unsafe { gaussian_values_on_grid_avx2(self, t0, out) },
+            Vectors::Portable => gaussian_values_on_grid(self, t0, out),
         }
-        gaussian_values_on_grid(self, t0, out);
     }
 
     /// Full width at half maximum, samples.
@@ -113,22 +107,46 @@ impl PulseShape for Pulse {
     }
 
     fn fill_grid(&self, t0: f64, out: &mut [(f64, f64)]) {
-        #[cfg(target_arch = "x86_64")]
-        {
-            use std::arch::is_x86_feature_detected as has;
-            if has!("avx512f") && has!("avx512dq") && has!("avx512vl") && has!("avx2") && has!("fma") {
-                // SAFETY: the CPU has the features the function is compiled for.
-                unsafe { gaussian_halves_on_grid_avx512(self, t0, out) };
-                return;
-            }
-            if has!("avx2") && has!("fma") {
-                // SAFETY: as above.
-                unsafe { gaussian_halves_on_grid_avx2(self, t0, out) };
-                return;
-            }
+        match vectors() {
+            // SAFETY: the CPU has the features the function is compiled for.
+            #[cfg(target_arch = "x86_64")]
+            Vectors::Avx512 => unsafe { gaussian_halves_on_grid_avx512(self, t0, out) },
+            // SAFETY: as above.
+            #[cfg(target_arch = "x86_64")]
+            Vectors::Avx2Fma => unsafe { gaussian_halves_on_grid_avx2(self, t0, out) },
+            Vectors::Portable => gaussian_halves_on_grid(self, t0, out),
         }
-        gaussian_halves_on_grid(self, t0, out);
     }
+}
+
+/// Which copies of the Gaussian's grid kernels this CPU can run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Vectors {
+    /// AVX-512 (F, DQ, VL) with AVX2 and FMA.
+    #[cfg(target_arch = "x86_64")]
+    Avx512,
+    /// AVX2 with FMA.
+    #[cfg(target_arch = "x86_64")]
+    Avx2Fma,
+    /// Neither: the portable body.
+    Portable,
+}
+
+/// The widest [`Vectors`] this CPU has (the standard library caches the
+/// features it detects).
+#[inline]
+fn vectors() -> Vectors {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::is_x86_feature_detected as has;
+        if has!("avx512f") && has!("avx512dq") && has!("avx512vl") && has!("avx2") && has!("fma") {
+            return Vectors::Avx512;
+        }
+        if has!("avx2") && has!("fma") {
+            return Vectors::Avx2Fma;
+        }
+    }
+    Vectors::Portable
 }
 
 /// (value, slope) at `t` of a Gaussian of 1/sigma `inv`.
@@ -152,6 +170,23 @@ fn gaussian_value(inv: f64, t: f64) -> f64 {
 /// peak, growing with z² in the tails (z·2e-16 in z, times z² in the value).
 #[inline(always)]
 fn gaussian_halves_on_grid(p: &Pulse, t0: f64, out: &mut [(f64, f64)]) {
+    gaussian_on_grid(p, t0, out, gaussian_half);
+}
+
+/// The values alone of [`gaussian_halves_on_grid`]: the same operations on
+/// each point, so the same bits (no slope, no pairs to store).
+#[inline(always)]
+fn gaussian_values_on_grid(p: &Pulse, t0: f64, out: &mut [f64]) {
+    gaussian_on_grid(p, t0, out, gaussian_value);
+}
+
+/// `point(1/sigma, t)` at t0, t0 + 1, … into `out`, eight points at a
+/// time, the rise's sigma before the peak and the fall's after it.
+/// `point` is a function item, inlined: the loops vectorise. (Shared as a
+/// closure over the sigmas, the point's expression stopped both loops
+/// vectorising, 25 % slower on reference frames.)
+#[inline(always)]
+fn gaussian_on_grid<T: Copy + Default>(p: &Pulse, t0: f64, out: &mut [T], point: fn(f64, f64) -> T) {
     // Opaque to the optimiser: otherwise it turns the choice between two
     // reciprocals into a division per point (of the chosen sigma), the
     // same bits at many times the cost.
@@ -161,44 +196,17 @@ fn gaussian_halves_on_grid(p: &Pulse, t0: f64, out: &mut [(f64, f64)]) {
     for (c, o) in eights.by_ref().enumerate() {
         for (i, o) in o.iter_mut().enumerate() {
             let t = t0 + (8 * c + i) as f64;
-            *o = gaussian_half(if t < 0.0 { rise } else { fall }, t);
+            *o = point(if t < 0.0 { rise } else { fall }, t);
         }
     }
     // The last few points as a whole eight (the same bits, vectorised too)
     // rather than one at a time: a fit's window is seldom a multiple of eight.
-    // (The point's expression is written out in both loops: shared as a
-    // closure, it stopped both vectorising, 25 % slower on reference frames.)
     let rest = eights.into_remainder();
     if !rest.is_empty() {
-        let mut eight = [(0.0, 0.0); 8];
+        let mut eight = [T::default(); 8];
         for (i, o) in eight.iter_mut().enumerate() {
             let t = t0 + (first + i) as f64;
-            *o = gaussian_half(if t < 0.0 { rise } else { fall }, t);
-        }
-        rest.copy_from_slice(&eight[..rest.len()]);
-    }
-}
-
-/// The values alone of [`gaussian_halves_on_grid`]: the same operations on
-/// each point, so the same bits (no slope, no pairs to store).
-#[inline(always)]
-fn gaussian_values_on_grid(p: &Pulse, t0: f64, out: &mut [f64]) {
-    // Opaque, as in `gaussian_halves_on_grid`.
-    let (rise, fall) = std::hint::black_box((1.0 / p.sigma_rise, 1.0 / p.sigma_fall));
-    let first = out.len() - out.len() % 8;
-    let mut eights = out.chunks_exact_mut(8);
-    for (c, o) in eights.by_ref().enumerate() {
-        for (i, o) in o.iter_mut().enumerate() {
-            let t = t0 + (8 * c + i) as f64;
-            *o = gaussian_value(if t < 0.0 { rise } else { fall }, t);
-        }
-    }
-    let rest = eights.into_remainder();
-    if !rest.is_empty() {
-        let mut eight = [0.0; 8];
-        for (i, o) in eight.iter_mut().enumerate() {
-            let t = t0 + (first + i) as f64;
-            *o = gaussian_value(if t < 0.0 { rise } else { fall }, t);
+            *o = point(if t < 0.0 { rise } else { fall }, t);
         }
         rest.copy_from_slice(&eight[..rest.len()]);
     }

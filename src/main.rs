@@ -166,8 +166,10 @@ struct BenchArgs {
     cluster_trials: usize,
     /// Instead of the report: one sensor on N threads against one thread, offline (`process
     /// --threads N`) and in a loopback service (`serve --workers-per-sensor N`), on the same
-    /// simulated frames of the default scene (or --scene), trials alternating the four arms;
-    /// prints steady-state frames/s and the ratios (Markdown) and writes threads.md to --out.
+    /// simulated frames of the default scene (or --scene), trials alternating the arms; each
+    /// trial also runs N independent one-thread pipelines at once (the machine's own N-thread
+    /// yardstick); prints steady-state frames/s and the ratios (Markdown) and writes threads.md
+    /// to --out.
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(2..=64),
           conflicts_with_all = ["soak", "dashboard_only", "cluster"])]
     threads: Option<u32>,

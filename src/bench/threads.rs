@@ -18,6 +18,14 @@
 //! arms, that work (a few µs per report) would count against the service
 //! alone.
 //!
+//! Each trial also runs the machine's own yardstick: N independent copies
+//! of the one-thread pipeline at once, one per thread, each over the same
+//! frames. That is N threads' worth of the same work with nothing handed
+//! between threads: its rate over one thread's is what the machine gives
+//! N threads at that time, against which the cut's own cost (its balance,
+//! the hand-over) shows. On a machine whose cores slow each other down
+//! (shared caches, power, a virtual machine's host), it falls short of N.
+//!
 //! The report also gives each stage's time per frame on one thread (in the
 //! pilot, and in steady state) and, on Linux, each pipeline thread's CPU
 //! time per frame on one and on N threads (from /proc).
@@ -64,6 +72,9 @@ pub struct ThreadsCost {
     pub offline_1: Vec<f64>,
     /// Offline frames/s per trial, N threads.
     pub offline_n: Vec<f64>,
+    /// N independent one-thread pipelines at once (the machine's
+    /// yardstick, see [`copies`]): their frames/s together, per trial.
+    pub copies_n: Vec<f64>,
     /// Service (loopback gRPC, one sensor) frames/s per trial, one worker.
     pub service_1: Vec<f64>,
     /// The same with N workers for the sensor.
@@ -74,6 +85,12 @@ impl ThreadsCost {
     /// Offline N threads over one (medians).
     pub fn offline_speedup(&self) -> f64 {
         median(&self.offline_n) / median(&self.offline_1)
+    }
+
+    /// N independent one-thread pipelines at once over one alone (medians):
+    /// what the machine gives N threads of this work with no hand-over.
+    pub fn copies_speedup(&self) -> f64 {
+        median(&self.copies_n) / median(&self.offline_1)
     }
 
     /// Service with N workers over offline with N threads (medians).
@@ -105,6 +122,7 @@ impl ThreadsCost {
         );
         md += &row("offline, 1 thread (`process --threads 1`)", &self.offline_1);
         md += &row(&format!("offline, {n} threads (`process --threads {n}`)"), &self.offline_n);
+        md += &row(&format!("offline, {n} independent copies of the 1-thread arm at once (the machine's yardstick)"), &self.copies_n);
         md += &row("service, 1 worker (`serve`)", &self.service_1);
         md += &row(&format!("service, {n} workers (`serve --workers-per-sensor {n}`)"), &self.service_n);
         // Enough digits to tell a ratio or share from the targets' 1.8× and
@@ -116,6 +134,18 @@ impl ThreadsCost {
             100.0 * self.service_share(),
             100.0 * median(&self.service_1) / median(&self.offline_1),
             self.cut
+        );
+        let ratios = |v: &[f64]| v.iter().zip(&self.offline_1).map(|(a, b)| format!("{:.3}×", a / b)).collect::<Vec<_>>().join(", ");
+        md += &format!(
+            "\nThe machine's yardstick: {n} independent copies of the one-thread pipeline at once, each on a thread of its own \
+             and over the same frames, ran **{:.3}×** one alone (medians). That is what this machine gave {n} threads' worth of \
+             this work with nothing handed between threads, in the same trials: the pipeline on {n} threads reached {:.1} % of \
+             it, which is its own cost (the cut's balance, the hand-over) apart from how much the machine's cores slow each other. Trial by trial (each against the same trial's one thread): {n} threads {}; \
+             {n} copies {}.\n",
+            self.copies_speedup(),
+            100.0 * self.offline_speedup() / self.copies_speedup(),
+            ratios(&self.offline_n),
+            ratios(&self.copies_n)
         );
         md += &self.stage_table();
         md += &self.cpu_table();
@@ -210,6 +240,7 @@ pub fn measure_threads_cost(
         cpu_tick_s: 0.0,
         offline_1: Vec::new(),
         offline_n: Vec::new(),
+        copies_n: Vec::new(),
         service_1: Vec::new(),
         service_n: Vec::new(),
     };
@@ -231,16 +262,18 @@ pub fn measure_threads_cost(
                 cost.cpu_tick_s = cost.cpu_tick_s.max(1.0 / USER_HZ / window as f64);
             }
         }
+        cost.copies_n.push(copies(scene, frames, threads));
         for (n, into) in [(1, &mut cost.service_1), (threads, &mut cost.service_n)] {
             let sensor = format!("threads-{t}-{n}");
             let (fps, _) = rt.block_on(trial(scene, &wire, &sensor, None, n, pilot_skip(frames.len())))?;
             into.push(fps);
         }
         progress(&format!(
-            "trial {}: offline {:.0} / {:.0} frames/s, service {:.0} / {:.0} frames/s (1 / {threads} threads)",
+            "trial {}: offline {:.0} / {:.0} frames/s ({threads} independent copies at once: {:.0}), service {:.0} / {:.0} frames/s (1 / {threads} threads)",
             t + 1,
             cost.offline_1[t],
             cost.offline_n[t],
+            cost.copies_n[t],
             cost.service_1[t],
             cost.service_n[t]
         ));
@@ -322,6 +355,52 @@ fn offline(scene: &Scene, frames: &[Frame], threads: usize) -> (f64, threaded::C
     ((count.saturating_sub(1)) as f64 / span, cut, cpu)
 }
 
+/// Steady-state frames/s of `n` independent copies of the one-thread arm
+/// run at once, one per thread (the machine's yardstick): each copy is a
+/// one-thread pipeline of its own over all of `frames`, rendering each
+/// report's JSON line as [`offline`] does. Every copy runs its first
+/// [`pilot_skip`] frames off the clock and waits for the others; then all
+/// start together, and the rate is `n` × the frames after those over the
+/// time from the first copy's start to the last copy's end (the slowest
+/// copy sets it, as the slowest thread sets a cut's pace).
+fn copies(scene: &Scene, frames: &[Frame], n: usize) -> f64 {
+    let skip = pilot_skip(frames.len());
+    let barrier = std::sync::Barrier::new(n);
+    let feed = |staged: &mut threaded::Staged, frames: &[Frame], out: &mut Vec<threaded::Outcome>| {
+        for frame in frames {
+            staged.push(frame.clone(), out);
+            for o in out.drain(..) {
+                for r in &o.reports {
+                    std::hint::black_box(report_json(r));
+                }
+                staged.recycle(o.reports);
+            }
+        }
+    };
+    let spans: Vec<(Instant, Instant)> = std::thread::scope(|s| {
+        let handles: Vec<_> = (0..n)
+            .map(|_| {
+                s.spawn(|| {
+                    let (mut staged, mut out) = (threaded::Staged::new(scene, "bench", 1), Vec::new());
+                    feed(&mut staged, &frames[..skip], &mut out);
+                    barrier.wait();
+                    let start = Instant::now();
+                    feed(&mut staged, &frames[skip..], &mut out);
+                    (start, Instant::now())
+                })
+            })
+            .collect();
+        handles.into_iter().map(|h| h.join().unwrap_or_else(|p| std::panic::resume_unwind(p))).collect()
+    });
+    let start = spans.iter().map(|s| s.0).min();
+    let end = spans.iter().map(|s| s.1).max();
+    let span = match (start, end) {
+        (Some(a), Some(b)) => b.duration_since(a).as_secs_f64().max(1e-9),
+        _ => f64::INFINITY,
+    };
+    (n * (frames.len() - skip)) as f64 / span
+}
+
 /// Each pipeline thread's CPU time per frame (name, s/frame) over a CPU
 /// window, and the frames in it.
 type CpuWindow = (Vec<(String, f64)>, usize);
@@ -399,6 +478,7 @@ mod tests {
             cpu_tick_s: 2e-6,
             offline_1: vec![4000.0, 5000.0],
             offline_n: vec![7000.0, 7600.0],
+            copies_n: vec![7600.0, 9500.0],
             service_1: vec![4000.0],
             service_n: vec![7200.0],
         }
@@ -417,6 +497,12 @@ mod tests {
         // The ratio and the service's share to the digit that tells them from 1.8× and 80 %.
         assert!(md.contains("Offline 2 threads / 1 thread: **1.622×**; service with 2 workers / offline with 2 threads: **98.6 %**"), "{md}");
         assert!(md.contains("service with 1 worker / offline 1 thread: 88.9 %."), "{md}");
+        // The machine's yardstick, over the same one-thread median, and the
+        // pipeline's share of it; trial by trial against the same trial.
+        assert!(md.contains("| offline, 2 independent copies of the 1-thread arm at once (the machine's yardstick) | 7600 / 9500 | 8550 |"), "{md}");
+        assert!(md.contains("ran **1.900×** one alone"), "{md}");
+        assert!(md.contains("the pipeline on 2 threads reached 85.4 % of it,"), "{md}");
+        assert!(md.contains("2 threads 1.750×, 1.520×; 2 copies 1.900×, 1.900×."), "{md}");
         // The pilot's stage times beside the steady state's, each with its share.
         assert!(md.contains("(2001–2200, whose times chose the cut)"), "{md}");
         assert!(md.contains("each rate from the 2201st outcome to the last (the first 2200, the threaded pipeline's two pilots"), "{md}");

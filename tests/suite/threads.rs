@@ -246,8 +246,8 @@ fn process_threads_flag_gives_the_same_output() {
     assert!(one == two, "process --threads 2 differs from --threads 1");
 }
 
-/// `bench --threads 2` runs its four arms and writes threads.md: the rates,
-/// the ratios, the cut, the pilot's and the steady stage times, and the
+/// `bench --threads 2` runs its arms and writes threads.md: the rates,
+/// the ratios, the machine's yardstick (two independent copies at once), the cut, the pilot's and the steady stage times, and the
 /// CPU time by thread or why it was not measured (likely, with this few frames).
 #[test]
 fn bench_threads_writes_its_report() {
@@ -260,6 +260,8 @@ fn bench_threads_writes_its_report() {
         "| offline, 2 threads (`process --threads 2`) |",
         "| service, 2 workers (`serve --workers-per-sensor 2`) |",
         "Offline 2 threads / 1 thread: **",
+        "| offline, 2 independent copies of the 1-thread arm at once (the machine's yardstick) |",
+        "The machine's yardstick: 2 independent copies of the one-thread pipeline at once",
         ". Cut: validate+",
         "| stage | pilot µs/frame | share | steady µs/frame | share |",
         "| events |",

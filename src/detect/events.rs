@@ -981,7 +981,13 @@ impl Basis {
             self.l.resize(CAP_COLS * CAP_COLS, 0.0);
         }
         self.bx.clear();
-        self.bx.extend(band.cols.chunks_exact(len).map(|b| dot(b, xw)));
+        // Four columns at a time (x − 0 is x: each is `dot`'s sum, bit for bit).
+        let mut cols = band.cols.chunks_exact(len);
+        while cols.len() >= 4 {
+            let four: [&[f64]; 4] = std::array::from_fn(|_| cols.next().expect("four left"));
+            self.bx.extend(centred_dots4(four.map(|b| (b, xw)), 0.0));
+        }
+        self.bx.extend(cols.map(|b| dot(b, xw)));
     }
 
     /// Energy of x − μ in the span so far.
@@ -1695,15 +1701,28 @@ fn folded_energy_and_first_body(folded: &[(f64, Vec<f64>)], x: &[f64], mean: f64
     if len % 2 == 1 {
         even.push(x[h] - mean);
     }
-    let (mut e, mut first) = (0.0, 0.0);
-    for (j, (parity, col)) in folded.iter().enumerate() {
-        let p = if *parity > 0.0 { dot(col, even) } else { dot(col, odd) };
-        if j == 0 {
-            first = p;
-        }
-        e += p.powi(2);
+    // Each column against its half, four columns at a time (four
+    // independent chains; x − 0 is x, so each is `dot`'s sum, bit for bit),
+    // the energy added in column order.
+    let (even, odd) = (&even[..], &odd[..]);
+    fn pick<'a>(c: &'a (f64, Vec<f64>), even: &'a [f64], odd: &'a [f64]) -> (&'a [f64], &'a [f64]) {
+        (&c.1, if c.0 > 0.0 { even } else { odd })
     }
-    (e, first)
+    let half = |c| pick(c, even, odd);
+    let (mut e, mut first) = (0.0, None);
+    let mut add = |p: f64| {
+        first.get_or_insert(p);
+        e += p.powi(2);
+    };
+    let mut fours = folded.chunks_exact(4);
+    for four in &mut fours {
+        centred_dots4_body([half(&four[0]), half(&four[1]), half(&four[2]), half(&four[3])], 0.0).into_iter().for_each(&mut add);
+    }
+    for c in fours.remainder() {
+        let (a, b) = half(c);
+        add(lane_sum(a, b, |x, y| x * y));
+    }
+    (e, first.unwrap_or(0.0))
 }
 
 /// Removes from `v` its components along the orthonormal columns of `q`.
@@ -2640,13 +2659,30 @@ mod tests {
     }
 
     #[test]
+    fn a_windows_band_answers_are_dot_s_bit_for_bit() {
+        // Band column counts with 0, 1 and 3 columns past the fours.
+        for (len, f_max) in [(64usize, 0.002), (120, 0.02), (161, 0.01), (200, 0.03)] {
+            let mut bands = BandCache::default();
+            let band = bands.get(len, f_max);
+            let xw: Vec<f64> = noise(len, 7 + len as u64);
+            let mut basis = Basis::default();
+            basis.reset(band, len, &xw);
+            let want: Vec<u64> = band.cols.chunks_exact(len).map(|b| dot(b, &xw).to_bits()).collect();
+            assert!(!want.is_empty());
+            assert_eq!(basis.bx.iter().map(|v| v.to_bits()).collect::<Vec<_>>(), want, "len {len}, {} columns", want.len());
+        }
+    }
+
+    #[test]
     fn folded_band_energies_are_the_band_energies() {
         // Even and odd window lengths, a few bands.
-        for (len, f_max) in [(160usize, 0.01), (161, 0.01), (97, 0.03), (240, 0.004)] {
+        let mut counts = std::collections::BTreeSet::new();
+        for (len, f_max) in [(160usize, 0.01), (161, 0.01), (97, 0.03), (240, 0.004), (120, 0.02), (64, 0.05), (64, 0.002)] {
             let mut band = Vec::new();
             band_columns(len, f_max, &mut band, &mut Vec::new());
             let folded = fold_columns(&band, len);
             assert_eq!(folded.len(), band.len() / len, "len {len}: every band column folds");
+            counts.insert(folded.len() % 4);
             let mut halves = (Vec::new(), Vec::new());
             for seed in 0..20u64 {
                 let v: Vec<f64> = noise(len, 300 + seed).iter().map(|x| 0.2 + x).collect();
@@ -2662,6 +2698,14 @@ mod tests {
                 let (eb, db) = folded_energy_and_first(&folded, &centred, 0.0, &mut halves);
                 let (em, dm) = folded_energy_and_first(&folded, &raw, mean, &mut halves);
                 assert_eq!((em.to_bits(), dm.to_bits()), (eb.to_bits(), db.to_bits()), "len {len}");
+                // Four columns at a time: each column's `dot` with its half
+                // and the energy added in column order, bit for bit.
+                let h = len / 2;
+                let even: Vec<f64> = (0..h).map(|i| (raw[i] - mean) + (raw[len - 1 - i] - mean)).chain((len % 2 == 1).then(|| raw[h] - mean)).collect();
+                let odd: Vec<f64> = (0..h).map(|i| (raw[i] - mean) - (raw[len - 1 - i] - mean)).collect();
+                let dots: Vec<f64> = folded.iter().map(|(parity, col)| dot(col, if *parity > 0.0 { &even } else { &odd })).collect();
+                let want = dots.iter().fold(0.0, |e, p| e + p.powi(2));
+                assert_eq!((em.to_bits(), dm.to_bits()), (want.to_bits(), dots[0].to_bits()), "len {len}: {} columns", folded.len());
                 // The portable loop and the compiles of it this CPU can run: the same bits.
                 let (ep, dp) = folded_energy_and_first_body(&folded, &raw, mean, &mut halves);
                 assert_eq!((em.to_bits(), dm.to_bits()), (ep.to_bits(), dp.to_bits()), "len {len}");
@@ -2679,6 +2723,9 @@ mod tests {
                 }
             }
         }
+        // Band column counts are odd: both remainders past the fours (one
+        // and three columns, the single column alone among them) are tried.
+        assert_eq!(counts, [1, 3].into(), "column counts mod 4");
         // A column that is neither even nor odd: no folding.
         let lopsided: Vec<f64> = (0..10).map(|i| i as f64).collect();
         assert!(fold_columns(&lopsided, 10).is_empty());

@@ -20,16 +20,19 @@
 //!
 //! Each trial also runs the machine's own yardstick: N independent copies
 //! of the one-thread pipeline at once, one per thread, each over the same
-//! frames. That is N threads' worth of the same work with nothing handed
-//! between threads: its rate over one thread's is what the machine gives
-//! N threads at that time, against which the cut's own cost (its balance,
-//! the hand-over) shows. On a machine whose cores slow each other down
+//! frames, clocked together from the end of their warm-up. That is N
+//! threads' worth of the same work with nothing handed between threads:
+//! its rate over one thread's shows how the machine's cores scale on this
+//! work at that time. On a machine whose cores slow each other down
 //! (shared caches, power, a virtual machine's host), it falls short of N.
+//! It is a reference, not a bound: the pipeline's threads each hold a part
+//! of its state, and its calling thread is one thread more.
 //!
 //! The report also gives each stage's time per frame on one thread (in the
 //! pilot, and in steady state) and, on Linux, each pipeline thread's CPU
 //! time per frame on one and on N threads (from /proc).
 
+use std::sync::mpsc::{channel, Receiver, Sender};
 use std::time::Instant;
 
 use super::BenchError;
@@ -137,10 +140,13 @@ impl ThreadsCost {
         );
         let ratios = |v: &[f64]| v.iter().zip(&self.offline_1).map(|(a, b)| format!("{:.3}×", a / b)).collect::<Vec<_>>().join(", ");
         md += &format!(
-            "\nThe machine's yardstick: {n} independent copies of the one-thread pipeline at once, each on a thread of its own \
-             and over the same frames, ran **{:.3}×** one alone (medians). That is what this machine gave {n} threads' worth of \
-             this work with nothing handed between threads, in the same trials: the pipeline on {n} threads reached {:.1} % of \
-             it, which is its own cost (the cut's balance, the hand-over) apart from how much the machine's cores slow each other. Trial by trial (each against the same trial's one thread): {n} threads {}; \
+            "\nThe machine's yardstick: {n} independent copies of the one-thread pipeline at once, each on a thread of its \
+             own and over the same frames (clocked together once each is past the outcomes every arm leaves off its clock), \
+             ran **{:.3}×** one alone (medians): {n} whole pipelines side by side, each \
+             feeding its own frames and rendering its own JSON lines, nothing handed between threads. It shows how this \
+             machine's cores scaled on this work in these trials; it is a reference, not a bound (the pipeline's threads \
+             each hold a part of its state, and its calling thread is one thread more). The pipeline on {n} threads reached \
+             {:.1} % of it. Trial by trial (each against the same trial's one thread): {n} threads {}; \
              {n} copies {}.\n",
             self.copies_speedup(),
             100.0 * self.offline_speedup() / self.copies_speedup(),
@@ -262,7 +268,7 @@ pub fn measure_threads_cost(
                 cost.cpu_tick_s = cost.cpu_tick_s.max(1.0 / USER_HZ / window as f64);
             }
         }
-        cost.copies_n.push(copies(scene, frames, threads));
+        cost.copies_n.push(copies(scene, frames, threads)?);
         for (n, into) in [(1, &mut cost.service_1), (threads, &mut cost.service_n)] {
             let sensor = format!("threads-{t}-{n}");
             let (fps, _) = rt.block_on(trial(scene, &wire, &sensor, None, n, pilot_skip(frames.len())))?;
@@ -323,9 +329,7 @@ fn offline(scene: &Scene, frames: &[Frame], threads: usize) -> (f64, threaded::C
         if o.reports.is_empty() && seen == frames.len() {
             return; // the final flush's outcome
         }
-        for r in &o.reports {
-            std::hint::black_box(report_json(r));
-        }
+        render(o);
         seen += 1;
         if seen <= skip {
             return;
@@ -357,48 +361,99 @@ fn offline(scene: &Scene, frames: &[Frame], threads: usize) -> (f64, threaded::C
 
 /// Steady-state frames/s of `n` independent copies of the one-thread arm
 /// run at once, one per thread (the machine's yardstick): each copy is a
-/// one-thread pipeline of its own over all of `frames`, rendering each
-/// report's JSON line as [`offline`] does. Every copy runs its first
-/// [`pilot_skip`] frames off the clock and waits for the others; then all
-/// start together, and the rate is `n` × the frames after those over the
-/// time from the first copy's start to the last copy's end (the slowest
-/// copy sets it, as the slowest thread sets a cut's pace).
-fn copies(scene: &Scene, frames: &[Frame], n: usize) -> f64 {
+/// one-thread pipeline of its own over all of `frames`, run as [`offline`]
+/// runs its arms (each report's JSON line rendered). Every copy runs its
+/// first [`pilot_skip`] frames (at least one) off the clock and says so; once all have,
+/// all start together, and the rate is the outcomes after those, all
+/// copies', over the time from the first copy's start to the last copy's
+/// last outcome (the slowest copy sets it, as the slowest thread sets a
+/// cut's pace). A copy that panics before the start stops the others (its
+/// panic goes on up); a thread that cannot be started is an error.
+fn copies(scene: &Scene, frames: &[Frame], n: usize) -> Result<f64, BenchError> {
     let skip = pilot_skip(frames.len());
-    let barrier = std::sync::Barrier::new(n);
-    let feed = |staged: &mut threaded::Staged, frames: &[Frame], out: &mut Vec<threaded::Outcome>| {
-        for frame in frames {
-            staged.push(frame.clone(), out);
-            for o in out.drain(..) {
-                for r in &o.reports {
-                    std::hint::black_box(report_json(r));
+    let runs: Vec<Option<Timed>> = std::thread::scope(|s| {
+        let (ready_tx, ready_rx) = channel();
+        let (mut gates, mut handles) = (Vec::with_capacity(n), Vec::with_capacity(n));
+        for k in 0..n {
+            let (go_tx, go_rx) = channel();
+            let ready = ready_tx.clone();
+            let copy = std::thread::Builder::new().name(format!("tofwave-copy{k}")).spawn_scoped(s, move || timed_copy(scene, frames, skip, ready, go_rx));
+            match copy {
+                Ok(h) => {
+                    gates.push(go_tx);
+                    handles.push(h);
                 }
-                staged.recycle(o.reports);
+                // The copies started wait for a start that will not come: the gates' close ends them.
+                Err(e) => return Err(BenchError::Service(format!("starting copy {} of {n} of the one-thread pipeline: {e}", k + 1))),
             }
         }
-    };
-    let spans: Vec<(Instant, Instant)> = std::thread::scope(|s| {
-        let handles: Vec<_> = (0..n)
-            .map(|_| {
-                s.spawn(|| {
-                    let (mut staged, mut out) = (threaded::Staged::new(scene, "bench", 1), Vec::new());
-                    feed(&mut staged, &frames[..skip], &mut out);
-                    barrier.wait();
-                    let start = Instant::now();
-                    feed(&mut staged, &frames[skip..], &mut out);
-                    (start, Instant::now())
-                })
-            })
-            .collect();
-        handles.into_iter().map(|h| h.join().unwrap_or_else(|p| std::panic::resume_unwind(p))).collect()
-    });
-    let start = spans.iter().map(|s| s.0).min();
-    let end = spans.iter().map(|s| s.1).max();
+        drop(ready_tx);
+        // Every copy past its warm-up (a copy that panicked there dropped its sender unsent).
+        if (0..n).all(|_| ready_rx.recv().is_ok()) {
+            for g in &gates {
+                let _ = g.send(());
+            }
+        }
+        drop(gates);
+        Ok(handles.into_iter().map(|h| h.join().unwrap_or_else(|p| std::panic::resume_unwind(p))).collect())
+    })?;
+    let runs: Vec<Timed> = runs.into_iter().flatten().collect();
+    let start = runs.iter().map(|r| r.0).min();
+    let end = runs.iter().filter_map(|r| r.1).max();
     let span = match (start, end) {
         (Some(a), Some(b)) => b.duration_since(a).as_secs_f64().max(1e-9),
         _ => f64::INFINITY,
     };
-    (n * (frames.len() - skip)) as f64 / span
+    Ok(runs.iter().map(|r| r.2).sum::<usize>() as f64 / span)
+}
+
+/// One copy's clock: its start, its last outcome's time (None with none)
+/// and the outcomes between.
+type Timed = (Instant, Option<Instant>, usize);
+
+/// One copy of [`copies`]: a one-thread pipeline over `frames`, each
+/// report's JSON line rendered; after its first `skip` outcomes (at least
+/// one: the first frame's start-up is off every arm's clock) it says so on
+/// `ready` and waits on `go`. Its clock then starts; None where `go` closed
+/// unsent (another copy failed: the rest of the frames are not run).
+fn timed_copy(scene: &Scene, frames: &[Frame], skip: usize, ready: Sender<()>, go: Receiver<()>) -> Option<Timed> {
+    let (mut gate, mut seen, mut clock) = (Some((ready, go)), 0usize, None);
+    let stopped = std::cell::Cell::new(false);
+    let open = |gate: &mut Option<(Sender<()>, Receiver<()>)>| {
+        let (ready, go) = gate.take()?;
+        let _ = ready.send(());
+        drop(ready);
+        match go.recv() {
+            Ok(()) => Some((Instant::now(), None, 0)),
+            Err(_) => {
+                stopped.set(true);
+                None
+            }
+        }
+    };
+    threaded::run(scene, "bench", 1, frames.iter().take_while(|_| !stopped.get()).cloned(), |o| {
+        if stopped.get() || o.reports.is_empty() && seen == frames.len() {
+            return; // the final flush's outcome
+        }
+        render(o);
+        seen += 1;
+        match &mut clock {
+            Some((_, last, count)) => {
+                *last = Some(Instant::now());
+                *count += 1;
+            }
+            None if seen == skip.max(1) => clock = open(&mut gate),
+            None => {}
+        }
+    });
+    clock
+}
+
+/// Renders each report's JSON line of `o`, as `process` writes them.
+fn render(o: &threaded::Outcome) {
+    for r in &o.reports {
+        std::hint::black_box(report_json(r));
+    }
 }
 
 /// Each pipeline thread's CPU time per frame (name, s/frame) over a CPU
@@ -501,7 +556,8 @@ mod tests {
         // pipeline's share of it; trial by trial against the same trial.
         assert!(md.contains("| offline, 2 independent copies of the 1-thread arm at once (the machine's yardstick) | 7600 / 9500 | 8550 |"), "{md}");
         assert!(md.contains("ran **1.900×** one alone"), "{md}");
-        assert!(md.contains("the pipeline on 2 threads reached 85.4 % of it,"), "{md}");
+        assert!(md.contains("it is a reference, not a bound"), "{md}");
+        assert!(md.contains("The pipeline on 2 threads reached 85.4 % of it."), "{md}");
         assert!(md.contains("2 threads 1.750×, 1.520×; 2 copies 1.900×, 1.900×."), "{md}");
         // The pilot's stage times beside the steady state's, each with its share.
         assert!(md.contains("(2001–2200, whose times chose the cut)"), "{md}");
@@ -513,6 +569,29 @@ mod tests {
         assert!(none.contains("CPU time by thread: not measured"), "{none}");
         let pilot_only = cost(&[("calling thread", 200.0)], &[("calling thread", 190.0)]).markdown();
         assert!(pilot_only.contains("CPU time by thread: not measured"), "{pilot_only}");
+    }
+
+    /// A copy of the yardstick says it is ready after its warm-up and then
+    /// waits: started, its clock counts the outcomes after the warm-up;
+    /// never started (another copy failed), it gives up without a clock.
+    #[test]
+    fn a_copy_is_timed_from_its_start_and_gives_up_on_a_start_that_never_comes() {
+        use std::sync::mpsc::channel;
+        let scene = crate::scene::Scene::default_scene();
+        let sim = crate::physics::Simulator::new(&scene).unwrap();
+        let frames: Vec<_> = (0..20u64).map(|i| sim.frame(1, i).0).collect();
+        let (ready_tx, ready_rx) = channel();
+        let (go_tx, go_rx) = channel();
+        go_tx.send(()).unwrap();
+        let (start, last, count) = super::timed_copy(&scene, &frames, 5, ready_tx, go_rx).expect("started");
+        assert!(ready_rx.recv().is_ok(), "it said it was ready");
+        assert_eq!(count, 15, "the outcomes after the first 5");
+        assert!(last.is_some_and(|t| t > start));
+        let (ready_tx, ready_rx) = channel();
+        let (go_tx, go_rx) = channel::<()>();
+        drop(go_tx);
+        assert!(super::timed_copy(&scene, &frames, 5, ready_tx, go_rx).is_none());
+        assert!(ready_rx.recv().is_ok(), "ready before the start it waited for");
     }
 
     #[test]

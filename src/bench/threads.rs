@@ -91,7 +91,8 @@ impl ThreadsCost {
     }
 
     /// N independent one-thread pipelines at once over one alone (medians):
-    /// what the machine gives N threads of this work with no hand-over.
+    /// how the machine's cores scale on this work with no hand-over (a
+    /// reference, not a bound: see the module's notes).
     pub fn copies_speedup(&self) -> f64 {
         median(&self.copies_n) / median(&self.offline_1)
     }
@@ -363,12 +364,13 @@ fn offline(scene: &Scene, frames: &[Frame], threads: usize) -> (f64, threaded::C
 /// run at once, one per thread (the machine's yardstick): each copy is a
 /// one-thread pipeline of its own over all of `frames`, run as [`offline`]
 /// runs its arms (each report's JSON line rendered). Every copy runs its
-/// first [`pilot_skip`] frames (at least one) off the clock and says so; once all have,
-/// all start together, and the rate is the outcomes after those, all
-/// copies', over the time from the first copy's start to the last copy's
-/// last outcome (the slowest copy sets it, as the slowest thread sets a
-/// cut's pace). A copy that panics before the start stops the others (its
-/// panic goes on up); a thread that cannot be started is an error.
+/// first [`pilot_skip`] frames (at least one) off the clock and says so;
+/// once all have, all start together, and the rate is the outcomes after
+/// those, all copies', over the time from the first copy's start to the
+/// last copy's last outcome (the slowest copy sets it, as the slowest
+/// thread sets a cut's pace). A copy that panics before the start stops the
+/// others (its panic goes on up); a thread that cannot be started is an
+/// error.
 fn copies(scene: &Scene, frames: &[Frame], n: usize) -> Result<f64, BenchError> {
     let skip = pilot_skip(frames.len());
     let runs: Vec<Option<Timed>> = std::thread::scope(|s| {

@@ -183,7 +183,8 @@ fn machine() {
     println!("f64 FMA, one core: {:.2e} FMA/s ({:.1} GFLOP/s)", fma, 2.0 * fma / 1e9);
     let bw = tofwave::bench::measure_bandwidth(2500, 4096);
     println!(
-        "copy {:.1} GB/s (read + write), i16 accumulate {:.1} GB/s read (stream {} MB, wall time)",
+        "read-only {:.1} GB/s, copy {:.1} GB/s (read + write), i16 accumulate {:.1} GB/s read (stream {} MB, wall time)",
+        bw.read_bytes_per_s / 1e9,
         bw.copy_bytes_per_s / 1e9,
         bw.average_bytes_per_s / 1e9,
         bw.stream_bytes / 1_000_000

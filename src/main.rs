@@ -45,7 +45,8 @@ enum Command {
     Template(TemplateArgs),
     /// Work-precision report on simulated frames with truth: range RMSE, bias, CRLB, Pd and pfa
     /// against run time per timing method, averaging depth and SNR; the numpy/scipy peer side by
-    /// side; loopback gRPC throughput; copy-loop vs averaging bandwidth. Writes report.md, CSV and SVG.
+    /// side; loopback gRPC throughput; averaging's bandwidth against a read-only pass. Writes report.md,
+    /// CSV and SVG.
     Bench(BenchArgs),
     /// Draw a capture's frame(s) as a PNG or SVG: the stop trace (and start channel), noise gates
     /// shaded, noise mean, each detected return marked with its range and SNR, and below it the
@@ -114,8 +115,8 @@ struct BenchArgs {
     /// With --dashboard-only: trials per arm (with and without the dashboard).
     #[arg(long, value_name = "N", default_value_t = 5, requires = "dashboard_only")]
     dashboard_trials: usize,
-    /// Skip the copy-loop and averaging bandwidth measurement (a 20 MB stream) and the
-    /// physical-limit table that uses it.
+    /// Skip the bandwidth measurement (a read-only pass, a copy loop and averaging over the same
+    /// 20 MB stream of i16 frames) and the physical-limit table that uses it.
     #[arg(long)]
     no_bandwidth: bool,
     /// Time with the scene's parametric pulse shapes instead of shapes learned

@@ -34,7 +34,7 @@ pub struct StageLimit {
 pub struct Yardsticks {
     /// f64 fused multiply-adds per second on one core.
     pub fma_per_s: f64,
-    /// Bytes of i16 codes read per second (the averaging stream of
+    /// Bytes of i16 codes read per second (the read-only pass of
     /// [`super::measure_bandwidth`]).
     pub read_bytes_per_s: f64,
 }
@@ -169,7 +169,7 @@ fn fma_chains_body(iter: usize, m: f64) -> f64 {
 /// not timed), with the machine's yardsticks measured first.
 pub fn measure_limits(scene: &Scene, frames: &[Frame], warmup: usize) -> Limits {
     let bw = super::measure_bandwidth(2500, 4096);
-    let yardsticks = Yardsticks { fma_per_s: fma_rate(), read_bytes_per_s: bw.average_bytes_per_s };
+    let yardsticks = Yardsticks { fma_per_s: fma_rate(), read_bytes_per_s: bw.read_bytes_per_s };
     // The frames' gate sizes and returns, from one pass of their reports.
     let mut pipeline = crate::pipeline::Pipeline::new(scene, "limits");
     let mut reports: Vec<Report> = Vec::new();
@@ -223,7 +223,7 @@ impl Limits {
         let y = &self.yardsticks;
         let mut md = format!(
             "This core: {:.1} GFLOP/s of f64 fused multiply-adds ({:.2e} FMA/s, 64 independent chains, widest vectors); \
-             {:.1} GB/s reading i16 codes (the averaging stream). Stage times: wall time around each stage, \
+             {:.1} GB/s reading i16 codes (the bench's read-only pass). Stage times: wall time around each stage, \
              {} frames after the warm-up, one thread (`pipeline::threaded::stage_times`). Bound: the stage's essential \
              work at those rates (`bench::limits`), whichever is longer.\n\n\
              | stage | µs/frame | essential kflop | bytes read | bound µs | time / bound |\n|---|---|---|---|---|---|\n",

@@ -1,7 +1,7 @@
 //! The work-precision report: range error and detection statistics against
 //! run time, per timing method and averaging depth, on simulated frames with
 //! ground truth; the numpy/scipy peer side by side; service throughput; and
-//! the memory-bandwidth yardstick for averaging; and the soak run
+//! the memory-bandwidth yardsticks for averaging; and the soak run
 //! (`tofwave bench --soak`) against a real server process killed midway.
 //!
 //! Everything here is driven by [`run`] (what `tofwave bench` calls); the
@@ -80,7 +80,7 @@ pub struct RunOptions {
     pub peer: bool,
     /// Run the loopback gRPC throughput test.
     pub service: bool,
-    /// Measure copy and averaging bandwidth, and the physical-limit table
+    /// Measure read-only, copy and averaging bandwidth, and the physical-limit table
     /// (each stage against its arithmetic or memory bound), which uses it.
     pub bandwidth: bool,
     /// Learn the return and start pulse shapes from simulated shots first
@@ -127,7 +127,7 @@ pub struct BenchResults {
     pub service: Option<Result<ServiceThroughput, String>>,
     /// Ingest throughput with and without the dashboard open (runs with the service test).
     pub dashboard: Option<Result<DashboardCost, String>>,
-    /// Copy-loop and averaging bandwidth.
+    /// Read-only, copy-loop and averaging bandwidth.
     pub bandwidth: Option<Bandwidth>,
     /// Single-core offline pipeline throughput on the reference configuration
     /// (ML timing, N = 1, 2500-sample i16 frames), frames/s.

@@ -203,10 +203,11 @@ pub fn markdown(res: &BenchResults, opts: &RunOptions) -> String {
     if let Some(b) = &res.bandwidth {
         let _ = writeln!(
             md,
-            "| averaging ≥ 50 % of copy bandwidth | copy {:.2} GB/s (read + write), averaging {:.2} GB/s of i16 codes: **{:.0} %** | {} |",
-            b.copy_bytes_per_s / 1e9,
+            "| averaging ≥ 50 % of the read-only bandwidth | read-only pass {:.2} GB/s, averaging {:.2} GB/s of i16 codes read: **{:.0} %** (copy loop {:.2} GB/s, read + write) | {} |",
+            b.read_bytes_per_s / 1e9,
             b.average_bytes_per_s / 1e9,
             100.0 * b.ratio(),
+            b.copy_bytes_per_s / 1e9,
             verdict(b.ratio() >= 0.5)
         );
     }

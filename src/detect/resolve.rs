@@ -7,6 +7,14 @@
 //! A fit whose residual is much larger than the noise means the scene's shape
 //! does not match the data; no further pulse is sought under it (such a
 //! residual is the mismatch, not a second return) and it is flagged.
+//!
+//! A shape ends where its support ends, but the data's pulse may go on (a
+//! receiver's long tail past the end of a learned shape): subtracting the
+//! fitted shape then leaves that tail, a step at the shape's end, which the
+//! filter reads as a pulse one shape's length from the real one. A pulse
+//! found there, no stronger than what the shape's own level near its end
+//! says the tail can hold, is taken as that leftover: subtracted, not
+//! reported (see [`cut_leftover`]).
 
 use super::kernels::DetectorPlan;
 use crate::math::linalg::solve_in_place;
@@ -200,7 +208,11 @@ impl Resolver {
         // Never below the white-noise gate: a filter that lowers the noise
         // (output gain below one) does not lower the bar.
         let strong_output = NO_SCAN_PEAK_SIGMAS * plan.norm() * out_sigma.max(sigma_v);
-        while comps.len() < max {
+        let fwhm = shape.fwhm();
+        // Pulses taken as another's leftover (subtracted, not kept); at most
+        // `max` of them, so that the loop ends whatever the data.
+        let mut leftovers = 0;
+        while comps.len() < max && leftovers < max {
             // The range's outputs by blocks, each block's maximum kept: after
             // a pulse is taken out only the blocks near it are read again.
             let y = match changed.take() {
@@ -249,9 +261,14 @@ impl Resolver {
                 c.amplitude_v = y[p] / plan.norm();
                 c.peak_index = start;
             }
+            let leftover = comps.iter().any(|k| cut_leftover(shape, (lo, hi), fwhm, k, &c));
             self.subtract(shape, &c, &window, -1.0);
             changed = Some(window(c.peak_index));
-            comps.push(c);
+            if leftover {
+                leftovers += 1;
+            } else {
+                comps.push(c);
+            }
         }
         if comps.is_empty() {
             return;
@@ -260,7 +277,6 @@ impl Resolver {
         self.joint_refit(x, mean_v, sigma_v, shape, comps, &window);
         // A pulse the shape cannot explain alone may be two returns closer than
         // a pulse width: try a split and keep it if it explains the data.
-        let fwhm = shape.fwhm();
         let mut i = 0;
         while i < comps.len() && comps.len() < max {
             if comps[i].misfit > MISFIT_LIMIT {
@@ -278,7 +294,10 @@ impl Resolver {
                 let j = comps.len() - 1;
                 let worse = comps[i].misfit > 0.8 * old.misfit && comps[j].misfit > 0.8 * old.misfit;
                 let weak = [comps[i], comps[j]].iter().any(|c| !(c.amplitude_v * plan.norm() > threshold));
-                if worse || weak {
+                // A part that another pulse's cut-off tail explains is that
+                // leftover again, not a return the split found.
+                let leftover = [i, j].into_iter().any(|m| comps.iter().enumerate().any(|(o, k)| o != i && o != j && cut_leftover(shape, (lo, hi), fwhm, k, &comps[m])));
+                if worse || weak || leftover {
                     std::mem::swap(comps, &mut self.before);
                     self.residual_from(x, mean_v, shape, comps, &window);
                 } else {
@@ -631,6 +650,31 @@ impl Resolver {
     }
 }
 
+/// Whether `c`, found after `k` was subtracted, is what `k` leaves where its
+/// shape (support `lo..hi` about the peak, `fwhm` wide) is cut off: `c`
+/// lies within half a FWHM inside either end of `k`'s support or up to two
+/// FWHM beyond it, and is no stronger than `k` times the shape's largest
+/// level over the half FWHM inside that end (a pulse that goes on past the
+/// end holds about that level there, and less beyond). A real return that
+/// weak, that close behind a strong one, cannot be told from the leftover.
+fn cut_leftover(shape: &Shape, (lo, hi): (f64, f64), fwhm: f64, k: &Component, c: &Component) -> bool {
+    use crate::dsp::pulse::PulseShape;
+    let d = c.peak_index - k.peak_index;
+    let inner = 0.5 * fwhm;
+    // The end `c` is near, and the way into the support from it.
+    let (end, inward) = if d >= hi - inner && d <= hi + 2.0 * fwhm {
+        (hi, -1.0)
+    } else if d <= lo + inner && d >= lo - 2.0 * fwhm {
+        (lo, 1.0)
+    } else {
+        return false;
+    };
+    // Evaluated only for a pulse found there (rare): quarter samples.
+    let steps = (4.0 * inner).ceil().max(1.0) as usize;
+    let level = (0..=steps).map(|i| shape.value_and_slope(end + inward * inner * i as f64 / steps as f64).0.abs()).fold(0.0, f64::max);
+    c.amplitude_v.abs() <= k.amplitude_v.abs() * level
+}
+
 /// Sample span covering every component's window.
 fn span(comps: &[Component], window: &dyn Fn(f64) -> Range<usize>) -> (usize, usize) {
     comps.iter().map(|c| window(c.peak_index)).fold((usize::MAX, 0), |(a, b), w| (a.min(w.start), b.max(w.end)))
@@ -724,4 +768,73 @@ mod tests {
             }
         }
     }
+
+    /// A pulse whose tail goes on past the end of the shape fitted to it (a
+    /// table cut where the tail falls to 1 % of the peak, the data's tail
+    /// exponential on to the frame's end) leaves, once subtracted, a step at
+    /// the shape's end that the filter reads far above the threshold: it is
+    /// taken as the leftover, and the frame resolves to the one pulse. A
+    /// real second pulse at 5 % of the first, in the same place, stays.
+    #[test]
+    fn a_tail_past_the_shapes_end_is_not_a_second_return() {
+        // Gaussian rise (σ 2 samples), exponential fall (τ 8 samples), peak 1 at 0.
+        let pulse = |t: f64| if t < 0.0 { (-t * t / 8.0).exp() } else { (-t / 8.0).exp() };
+        let end = 8.0 * 100f64.ln();
+        let step = 0.125;
+        let values: Vec<f64> = (0..).map(|i| -8.0 + i as f64 * step).take_while(|&t| t <= end).map(pulse).collect();
+        let shape = Shape::Table(crate::dsp::pulse::TablePulse::new(values, step, -8.0));
+        let (lo, hi) = shape.support();
+        assert!(pulse(hi) > 0.009 && pulse(hi) < 0.011, "the table ends at 1 % of the peak: {}", pulse(hi));
+        let n = 400;
+        let mut plan = DetectorPlan::matched_filter(&shape, n);
+        let sigma = 5e-4;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        let out_sigma = {
+            let e: Vec<f64> = (0..20_000).map(|_| sigma * rng.sample::<f64, _>(StandardNormal)).collect();
+            let y = plan.run(&e, 0.0);
+            (y[100..19_900].iter().map(|v| v * v).sum::<f64>() / 19_800.0).sqrt()
+        };
+        let threshold = 5.0 * out_sigma;
+        let mut resolver = Resolver::default();
+        let mut comps = Vec::new();
+        let mut leftover_seen = 0;
+        for frame in 0..40 {
+            let t0 = 100.0 + rng.random::<f64>();
+            let second = frame % 2 == 1;
+            let x: Vec<f64> = (0..n)
+                .map(|k| {
+                    let t = k as f64 - t0;
+                    pulse(t) + if second { 0.05 * pulse(t - hi - 6.0) } else { 0.0 } + sigma * rng.sample::<f64, _>(StandardNormal)
+                })
+                .collect();
+            plan.run(&x, 0.0);
+            resolver.resolve(&x, 0.0, sigma, out_sigma, &shape, &mut plan, 50..350, threshold, 8, &mut comps);
+            // At this SNR (66 dB) the fit may split the pulse itself in two,
+            // a fraction of a sample apart: what matters here is what lies
+            // beyond it.
+            let fwhm = shape.fwhm();
+            let (near, beyond): (Vec<Component>, Vec<Component>) = comps.iter().partition(|c| (c.peak_index - t0).abs() < fwhm);
+            assert!(!near.is_empty(), "frame {frame}: the pulse itself: {comps:?}");
+            if second {
+                assert!(
+                    beyond.len() == 1 && (beyond[0].peak_index - (t0 + hi + 6.0)).abs() < 1.0 && (beyond[0].amplitude_v / 0.05 - 1.0).abs() < 0.2,
+                    "frame {frame}: the real pulse at 5 % is kept, alone: {comps:?}"
+                );
+                continue;
+            }
+            assert!(beyond.is_empty(), "frame {frame}: the tail past the shape's end is no return: {comps:?}");
+            let c = *near.iter().max_by(|a, b| a.amplitude_v.total_cmp(&b.amplitude_v)).expect("checked above");
+            // The leftover is there to be found: the data less the fitted
+            // shape, filtered, stands above the threshold past the shape's end.
+            let mut r: Vec<f64> = x.clone();
+            let w = (c.peak_index + lo).floor() as usize..(c.peak_index + hi).ceil() as usize + 1;
+            shape.add_scaled(c.peak_index, w, -c.amplitude_v, &mut r);
+            let y = plan.run(&r, 0.0).to_vec();
+            let (a, b) = ((c.peak_index + hi - fwhm) as usize, (c.peak_index + hi + 2.0 * fwhm) as usize);
+            let top = y[a..b].iter().copied().fold(f64::MIN, f64::max);
+            leftover_seen += usize::from(top > 2.0 * threshold);
+        }
+        assert_eq!(leftover_seen, 20, "the residual's step past the shape's end crossed twice the threshold in every frame");
+    }
+
 }

@@ -10,8 +10,8 @@ use rand_chacha::ChaCha8Rng;
 
 use crate::dsp::accumulate::CodeAccumulator;
 
-/// Read-only, copy-loop and averaging throughput over a stream larger than
-/// the caches.
+/// Read-only, copy-loop and averaging throughput over one stream of i16
+/// frames (see [`measure_bandwidth`] on its size and the caches).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Bandwidth {
     /// Bytes of the stream (i16 frames).

@@ -88,6 +88,25 @@ impl ShapeFit {
     /// position (searched within ±2 samples of `near`, in quarter samples,
     /// then between them) and measures the residual in units of `sigma_v`.
     pub fn measure(x: &[f64], mean_v: f64, sigma_v: f64, pulse: &Shape, near: f64) -> ShapeFit {
+        // The thread's own tables: 12 kB zeroed once per thread, not once
+        // per fit (fresh ones where a fit runs inside another's, or while
+        // the thread's storage is torn down). Every slot a fit reads is
+        // written first, so what a previous fit left there is never read.
+        thread_local! {
+            static TABLES: std::cell::RefCell<ShapeTables> = const { std::cell::RefCell::new(ShapeTables::ZERO) };
+        }
+        TABLES
+            .try_with(|cell| cell.try_borrow_mut().ok().map(|mut t| ShapeFit::measure_in(x, mean_v, sigma_v, pulse, near, &mut t)))
+            .ok()
+            .flatten()
+            .unwrap_or_else(|| {
+                let mut fresh = ShapeTables::ZERO;
+                ShapeFit::measure_in(x, mean_v, sigma_v, pulse, near, &mut fresh)
+            })
+    }
+
+    /// [`ShapeFit::measure`] with the pulse's values kept in `tables`.
+    fn measure_in(x: &[f64], mean_v: f64, sigma_v: f64, pulse: &Shape, near: f64, tables: &mut ShapeTables) -> ShapeFit {
         // The 17 positions share the pulse's values: sample k at position
         // near + j/4 sits at offset (4k − j)/4 − near, so each value is
         // evaluated once (about 4 per sample instead of 17) and looked up by
@@ -97,15 +116,13 @@ impl ShapeFit {
         let k_max = (near + 2.0 + hi).floor() as i64;
         let m_min = 4 * k_min - 8;
         let len = (4 * (k_max - k_min) + 17).max(0) as usize;
-        let mut table = [[0.0; SHAPE_TABLE / 4 + 1]; 4];
+        let ShapeTables { values: table, grid: scratch } = tables;
         let fit = |j: i64, values: Option<&Phases>| ShapeFit::at(x, mean_v, sigma_v, pulse, near + 0.25 * j as f64, j, m_min, values);
         let values = (len <= SHAPE_TABLE).then(|| {
             // Slot i = 4q + r holds the pulse at (i + m_min)/4 − near, kept
             // as four grids of whole samples (phase r, index q), each filled
             // at once: a position reads one of them, contiguously.
             let mut lens = [0; 4];
-            // (value, slope) scratch for a measured shape, zeroed once, where one is.
-            let mut grid = None;
             for r in 0..4usize.min(len) {
                 lens[r] = (len - r).div_ceil(4);
                 let t0 = (r as i64 + m_min) as f64 * 0.25 - near;
@@ -113,7 +130,7 @@ impl ShapeFit {
                     // The values alone (the same bits as fill_grid's).
                     Shape::Parametric(p) => p.fill_values(t0, &mut table[r][..lens[r]]),
                     Shape::Table(tp) => {
-                        let g = &mut grid.get_or_insert([(0.0, 0.0); SHAPE_TABLE / 4 + 1])[..lens[r]];
+                        let g = &mut scratch[..lens[r]];
                         tp.fill_grid(t0, g);
                         for (t, &(v, _)) in table[r].iter_mut().zip(g.iter()) {
                             *t = v;
@@ -121,7 +138,7 @@ impl ShapeFit {
                     }
                 }
             }
-            Phases { grids: &table, lens }
+            Phases { grids: table, lens }
         });
         let mut chi2 = [f64::NAN; 17];
         let mut best: Option<(i64, ShapeFit)> = None;
@@ -219,9 +236,20 @@ pub fn mismatch_gap(input: &TimingInput, fit: &ShapeFit) -> Option<f64> {
     constant_fraction(input).map(|cf| cf.index - (fit.peak_index + input.pulse.fraction_offset(input.fraction)))
 }
 
-/// Pulse values [`ShapeFit::measure`] caches on the stack (4 per sample of
-/// the support plus margins); longer supports are evaluated directly.
+/// Pulse values [`ShapeFit::measure`] keeps in the thread's tables (4 per
+/// sample of the support plus margins); longer supports are evaluated directly.
 const SHAPE_TABLE: usize = 1024;
+
+/// [`ShapeFit::measure`]'s tables: the pulse's values in four phases and,
+/// for a measured shape, its (value, slope) scratch.
+struct ShapeTables {
+    values: [[f64; SHAPE_TABLE / 4 + 1]; 4],
+    grid: [(f64, f64); SHAPE_TABLE / 4 + 1],
+}
+
+impl ShapeTables {
+    const ZERO: ShapeTables = ShapeTables { values: [[0.0; SHAPE_TABLE / 4 + 1]; 4], grid: [(0.0, 0.0); SHAPE_TABLE / 4 + 1] };
+}
 
 /// The pulse's values at quarter-sample offsets for [`ShapeFit::measure`]:
 /// four grids of whole samples (phase r at q is slot 4q + r).

@@ -371,11 +371,26 @@ pub fn clopper_pearson(successes: u64, trials: u64, confidence: f64) -> (f64, f6
 
 /// Clopper-Pearson interval with total tail probability `alpha` (each bound
 /// leaves α/2): the lower bound solves P(X ≥ k | p) = α/2, the upper bound
-/// P(X ≤ k | p) = α/2, both by Illinois false position on logit(p) of the log tail, started
-/// from Wilson's score bounds. Relative
-/// accuracy ~1e-13 for n up to 1e9 and α down to 1e-300. α ≤ 0 gives (0, 1);
-/// α ≥ 1 gives the point estimate k/n twice; NaN gives (0, 1).
+/// P(X ≤ k | p) = α/2. Where the equation has a closed form it is used:
+/// k = 0 gives the upper bound 1 − (α/2)^(1/n) (from (1 − p)ⁿ = α/2) and
+/// k = n the lower bound (α/2)^(1/n), each to an ulp or two (the running
+/// false-alarm count, zero for most of a clean run, solves nothing). The
+/// other bounds come from Illinois false position on logit(p) of the log
+/// tail, started from Wilson's score bounds ([`clopper_pearson_solved`]).
+/// Relative accuracy ~1e-13 for n up to 1e9 and α down to 1e-300. α ≤ 0
+/// gives (0, 1); α ≥ 1 gives the point estimate k/n twice; NaN gives (0, 1).
 pub fn clopper_pearson_alpha(successes: u64, trials: u64, alpha: f64) -> (f64, f64) {
+    clopper_pearson_with(successes, trials, alpha, true)
+}
+
+/// [`clopper_pearson_alpha`] with every bound solved by the root finder,
+/// the closed forms at k = 0 and k = n included: what checks the solver
+/// against them.
+pub fn clopper_pearson_solved(successes: u64, trials: u64, alpha: f64) -> (f64, f64) {
+    clopper_pearson_with(successes, trials, alpha, false)
+}
+
+fn clopper_pearson_with(successes: u64, trials: u64, alpha: f64, closed: bool) -> (f64, f64) {
     if trials == 0 || alpha.is_nan() || alpha <= 0.0 {
         return (0.0, 1.0);
     }
@@ -386,6 +401,12 @@ pub fn clopper_pearson_alpha(successes: u64, trials: u64, alpha: f64) -> (f64, f
     }
     let (kf, nf) = (k as f64, trials as f64);
     let ln_target = (0.5 * alpha).ln();
+    if closed && k == 0 {
+        return (0.0, -(ln_target / nf).exp_m1());
+    }
+    if closed && k == trials {
+        return ((ln_target / nf).exp(), 1.0);
+    }
     // Wilson's score bounds start the search (within a few logit units of
     // the exact ones), Illinois false position finishes it.
     let (wlo, whi) = wilson(kf, nf, crate::math::special::q_inv(0.5 * alpha));
@@ -578,7 +599,9 @@ mod tests {
             (1, 1_000_000_000), (999_999_999, 1_000_000_000), (500_000, 1_000_000), (17, 300), (299, 300), (2, 5_000_000)]
         {
             for alpha in [0.5, 0.05, 0.01, 1e-3, 1e-9, 1e-100, 1e-300] {
-                let (a, b) = (clopper_pearson_alpha(k, n, alpha), clopper_pearson_by_halving(k, n, alpha));
+                // The root finder (the closed forms at k = 0 and k = n are
+                // checked against it in `tests/suite/numerics.rs`).
+                let (a, b) = (clopper_pearson_solved(k, n, alpha), clopper_pearson_by_halving(k, n, alpha));
                 for (x, y) in [(a.0, b.0), (a.1, b.1), (1.0 - a.0, 1.0 - b.0), (1.0 - a.1, 1.0 - b.1)] {
                     let e = if y == 0.0 { x.abs() } else { rel(x, y) };
                     assert!(e < 1e-11, "k {k} n {n} alpha {alpha}: {a:?} vs {b:?}");

@@ -396,7 +396,7 @@ fn per_cell_pfa_is_accurate_at_the_extremes() {
 
 use tofwave::math::stats::{
     binomial_acceptance_counts, binomial_two_sided_interval_99, clopper_pearson,
-    clopper_pearson_alpha, jarque_bera, poisson_interval, poisson_interval_alpha,
+    clopper_pearson_alpha, clopper_pearson_solved, jarque_bera, poisson_interval, poisson_interval_alpha,
 };
 
 /// Binomial pmf terms by the recurrence, in f64: an independent reference for small n.
@@ -413,11 +413,23 @@ fn binom_pmf(n: u64, p: f64) -> Vec<f64> {
 
 #[test]
 fn clopper_pearson_closed_forms_k0_and_kn() {
-    // k = 0: upper = 1 − (α/2)^(1/n); k = n: lower = (α/2)^(1/n). The solver does not special-case these.
+    // k = 0: upper = 1 − (α/2)^(1/n); k = n: lower = (α/2)^(1/n).
+    // `clopper_pearson_alpha` returns these closed forms; the root finder
+    // that solves every other bound (`clopper_pearson_solved`, which does
+    // not special-case them) must agree with them.
     let mut worst: f64 = 0.0;
     for n in [1u64, 2, 10, 1000, 1_000_000, 1_000_000_000] {
         for alpha in [0.05, 0.01, 1e-6, 1e-12, 1e-100] {
-            let (lo, hi) = clopper_pearson_alpha(0, n, alpha);
+            for (k, (lo, hi)) in [(0, clopper_pearson_alpha(0, n, alpha)), (n, clopper_pearson_alpha(n, n, alpha))] {
+                let solved = clopper_pearson_solved(k, n, alpha);
+                assert!(
+                    rel(lo, solved.0) < 1e-12 && rel(hi, solved.1) < 1e-12,
+                    "k={k} n={n} α={alpha}: closed form ({lo:e}, {hi:e}), solved ({:e}, {:e})",
+                    solved.0,
+                    solved.1
+                );
+            }
+            let (lo, hi) = clopper_pearson_solved(0, n, alpha);
             let want_hi = -((0.5 * alpha).ln() / n as f64).exp_m1();
             assert_eq!(lo, 0.0);
             worst = worst.max(rel(hi, want_hi));
@@ -425,7 +437,7 @@ fn clopper_pearson_closed_forms_k0_and_kn() {
                 rel(hi, want_hi) < 1e-12,
                 "n={n} α={alpha}: {hi:e} vs {want_hi:e}"
             );
-            let (lo, hi) = clopper_pearson_alpha(n, n, alpha);
+            let (lo, hi) = clopper_pearson_solved(n, n, alpha);
             let want_lo = ((0.5 * alpha).ln() / n as f64).exp();
             assert_eq!(hi, 1.0);
             worst = worst.max(rel(lo, want_lo));

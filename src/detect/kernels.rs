@@ -253,10 +253,7 @@ impl DetectorPlan {
         ct.codes.extend_from_slice(codes);
         ct.codes.resize(n + ql - 1, 0);
         // Every output is written by the filter: only the length needs setting.
-        if ct.sums.len() != n {
-            ct.sums.clear();
-            ct.sums.resize(n, 0);
-        }
+        ct.sums.resize(n, 0);
         correlate_codes::correlate_valid(&ct.q, &ct.codes, &mut ct.sums);
         let (a, b) = (ct.scale * g, ct.scale * (o - mean));
         let total = ct.prefix[ql] as f64;

@@ -374,9 +374,10 @@ pub fn clopper_pearson(successes: u64, trials: u64, confidence: f64) -> (f64, f6
 /// P(X ≤ k | p) = α/2. Where the equation has a closed form it is used:
 /// k = 0 gives the upper bound 1 − (α/2)^(1/n) (from (1 − p)ⁿ = α/2) and
 /// k = n the lower bound (α/2)^(1/n) (the running false-alarm count,
-/// zero for most of a clean run, solves nothing): the upper bound to half
-/// an ulp, the lower within about |ln(α/2)|/n ulp (the rounding of its
-/// exponent; an ulp or two at ordinary α, 60 at n = 1, α = 1e-100). The
+/// zero for most of a clean run, solves nothing). Both carry the rounding
+/// of ln(α/2): the upper bound within about 2ε relative, the lower within
+/// about |ln(α/2)|/n·ε (1 or 2 ε at ordinary α, 58 ε at n = 1 and
+/// α = 1e-100; ε = 2.2e-16). The
 /// other bounds come from Illinois false position on logit(p) of the log
 /// tail, started from Wilson's score bounds ([`clopper_pearson_solved`]).
 /// Relative accuracy ~1e-13 for n up to 1e9 and α down to 1e-300. α ≤ 0

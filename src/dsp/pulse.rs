@@ -260,6 +260,11 @@ pub struct TablePulse {
     /// The table by phase, where a whole sample is a whole number of steps
     /// (see [`Phased`]; derived from `values` and `slopes`).
     phased: Option<Phased>,
+    /// The half-maximum crossings before and after the peak, samples from
+    /// it (`crossing`'s, kept: the FWHM and the 50 % fraction point are
+    /// asked for every frame, and each is a walk along the table); none
+    /// for a table of no values.
+    half: Option<(f64, f64)>,
 }
 
 /// A table regrouped for a grid of whole samples: with `per` steps to a
@@ -343,7 +348,11 @@ impl TablePulse {
         // a sample (at most 64 phases: the finest tables are learned at 8).
         let per = (power_of_two && (1.0..=64.0).contains(&inv) && n >= 2).then_some(inv as usize);
         let phased = per.map(|per| Phased::new(&values, &slopes, step, per));
-        TablePulse { step, first, values, slopes, inv_step: power_of_two.then_some(inv), phased }
+        let mut table = TablePulse { step, first, values, slopes, inv_step: power_of_two.then_some(inv), phased, half: None };
+        if n > 0 {
+            table.half = Some((table.walk_to(0.5, true), table.walk_to(0.5, false)));
+        }
+        table
     }
 
     /// The values on the grid.
@@ -362,6 +371,16 @@ impl TablePulse {
     }
 
     fn crossing(&self, fraction: f64, rising: bool) -> f64 {
+        if let Some((rise, fall)) = self.half.filter(|_| fraction == 0.5) {
+            return if rising { rise } else { fall };
+        }
+        self.walk_to(fraction, rising)
+    }
+
+    /// Where the table, walked from its peak before it (`rising`) or after
+    /// it, first falls to `fraction`, linearly between its points; its end
+    /// where it never does.
+    fn walk_to(&self, fraction: f64, rising: bool) -> f64 {
         let peak = ((-self.first / self.step).round() as usize).min(self.values.len() - 1);
         let v = &self.values;
         let mut i = peak;

@@ -960,12 +960,6 @@ struct Basis {
     /// 1 / L's diagonal, one per kept column: the substitutions through L
     /// multiply (a chain of divisions waited some 13 cycles a row).
     inv_diag: Vec<f64>,
-    /// Leading columns that are band columns pushed onto band columns only
-    /// (step 2's model starts with every one): orthonormal, so their rows
-    /// of L are the identity's (zeros, then 1) and a forward substitution
-    /// leaves their entries as they are, bit for bit (g − 0, the +0 a zero
-    /// row's dot gives, times 1).
-    identity: usize,
 }
 
 /// Most columns one judgement holds (band columns plus a pulse and its slope
@@ -983,7 +977,6 @@ impl Basis {
         self.cols.clear();
         self.vals.clear();
         self.y.clear();
-        self.identity = 0;
         if self.l.len() < CAP_COLS * CAP_COLS {
             self.l.resize(CAP_COLS * CAP_COLS, 0.0);
         }
@@ -1114,8 +1107,13 @@ impl Basis {
             let v = self.inner(band, len, self.cols[i], a);
             self.g.push(v);
         }
-        // Forward substitution: L l = g (the identity's rows leave g as it is).
-        for i in self.identity.min(k)..k {
+        // Forward substitution: L l = g. Leading band columns (step 2's
+        // model starts with every one) were each pushed onto band columns
+        // only: orthonormal, their rows of L are the identity's (zeros, then
+        // 1), which leave g's entries as they are, bit for bit (g − the +0
+        // a zero row's dot gives, times 1): the substitution starts after them.
+        let identity = self.cols.iter().take_while(|c| matches!(c, Col::Band(_))).count();
+        for i in identity..k {
             let row = &self.l[i * CAP_COLS..i * CAP_COLS + i];
             let s = self.g[i] - dot(row, &self.g[..i]);
             self.g[i] = s * self.inv_diag[i];
@@ -1144,9 +1142,6 @@ impl Basis {
         let y = (self.with_x(xw, a) - dot(&self.g, &self.y)) / d;
         self.y.push(y);
         self.cols.push(a);
-        if self.identity == k && matches!(a, Col::Band(_)) {
-            self.identity = k + 1;
-        }
     }
 
     /// Solves Lᵀ β = `g` in place over the kept columns.
@@ -1166,7 +1161,6 @@ impl Basis {
     fn truncate(&mut self, k: usize) {
         self.cols.truncate(k);
         self.y.truncate(k);
-        self.identity = self.identity.min(k);
     }
 
     /// Appends the unit column of window sample `i`: the sample is left out
